@@ -1,0 +1,137 @@
+"""Camera intrinsics in the ROS ``camera_info`` YAML format (what ``camera_calibration`` writes).
+
+Pixel coordinates follow OpenCV: the centre of the top-left pixel is (0, 0).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import yaml
+
+from ipt.config.models import read_yaml_mapping
+from ipt.errors import IptError
+from ipt.fileio import write_text_atomic
+
+
+class CameraInfoError(IptError):
+    """A camera_info file is missing, unreadable or invalid."""
+
+
+_ROS_KEYS = {
+    "image_width",
+    "image_height",
+    "camera_name",
+    "camera_matrix",
+    "distortion_model",
+    "distortion_coefficients",
+    "rectification_matrix",
+    "projection_matrix",
+}
+
+
+@dataclass(frozen=True)
+class CameraInfo:
+    """Pinhole intrinsics with plumb_bob (Brown–Conrady k1 k2 p1 p2 k3) distortion."""
+
+    width_px: int
+    height_px: int
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    name: str = "camera"
+
+    @property
+    def camera_matrix(self) -> npt.NDArray[np.float64]:
+        """The 3x3 intrinsic matrix K."""
+        return np.array(
+            [[self.fx_px, 0.0, self.cx_px], [0.0, self.fy_px, self.cy_px], [0.0, 0.0, 1.0]], dtype=np.float64
+        )
+
+    @property
+    def dist_coeffs(self) -> npt.NDArray[np.float64]:
+        """Distortion coefficients as OpenCV expects them."""
+        return np.asarray(self.distortion, dtype=np.float64)
+
+    def to_ros_dict(self) -> dict[str, Any]:
+        """The camera_info mapping, ready for ``yaml.safe_dump``."""
+        k = [float(v) for v in self.camera_matrix.ravel()]
+        p = [self.fx_px, 0.0, self.cx_px, 0.0, 0.0, self.fy_px, self.cy_px, 0.0, 0.0, 0.0, 1.0, 0.0]
+        return {
+            "image_width": self.width_px,
+            "image_height": self.height_px,
+            "camera_name": self.name,
+            "camera_matrix": {"rows": 3, "cols": 3, "data": k},
+            "distortion_model": "plumb_bob",
+            "distortion_coefficients": {"rows": 1, "cols": len(self.distortion), "data": list(self.distortion)},
+            "rectification_matrix": {"rows": 3, "cols": 3, "data": [1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0]},
+            "projection_matrix": {"rows": 3, "cols": 4, "data": [float(v) for v in p]},
+        }
+
+
+def _matrix(path: Path, data: dict[str, Any], key: str, shapes: set[tuple[int, int]]) -> list[float]:
+    block = data.get(key)
+    if not isinstance(block, dict):
+        raise CameraInfoError(f"{path}: {key}: expected a mapping with rows, cols and data")
+    rows, cols, values = block.get("rows"), block.get("cols"), block.get("data")
+    if not isinstance(rows, int) or not isinstance(cols, int) or not isinstance(values, list):
+        raise CameraInfoError(f"{path}: {key}: expected integer rows and cols and a data list")
+    if (rows, cols) not in shapes:
+        raise CameraInfoError(f"{path}: {key}: unexpected shape {rows}x{cols}")
+    if len(values) != rows * cols:
+        raise CameraInfoError(f"{path}: {key}: {rows}x{cols} needs {rows * cols} values, got {len(values)}")
+    out = []
+    for v in values:
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(float(v)):
+            raise CameraInfoError(f"{path}: {key}: every value must be a finite number, got {v!r}")
+        out.append(float(v))
+    return out
+
+
+def load_camera_info(path: str | Path) -> CameraInfo:
+    """Read a ROS camera_info YAML file. Raises :class:`CameraInfoError` naming the file and the problem."""
+    p = Path(path)
+    data = read_yaml_mapping(p, CameraInfoError)
+    unknown = sorted(set(data) - _ROS_KEYS)
+    if unknown:
+        raise CameraInfoError(f"{p}: unknown key(s) {', '.join(map(str, unknown))} (not a camera_info file?)")
+    for key in ("image_width", "image_height"):
+        v = data.get(key)
+        if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 65536:
+            raise CameraInfoError(f"{p}: {key}: expected a positive integer, got {v!r}")
+    model = data.get("distortion_model", "plumb_bob")
+    if model not in ("plumb_bob", "rational_polynomial"):
+        raise CameraInfoError(f"{p}: distortion_model: '{model}' is not supported (use plumb_bob)")
+    k = _matrix(p, data, "camera_matrix", {(3, 3)})
+    if "distortion_coefficients" in data:
+        dist = _matrix(p, data, "distortion_coefficients", {(1, n) for n in (4, 5, 8)} | {(n, 1) for n in (4, 5, 8)})
+    else:
+        dist = [0.0] * 5
+    fx, fy, cx, cy = k[0], k[4], k[2], k[5]
+    if fx <= 0 or fy <= 0:
+        raise CameraInfoError(f"{p}: camera_matrix: focal lengths must be positive (fx={fx}, fy={fy})")
+    if k[1] != 0.0 or k[3] != 0.0 or k[6] != 0.0 or k[7] != 0.0 or k[8] != 1.0:
+        raise CameraInfoError(f"{p}: camera_matrix: expected [fx 0 cx; 0 fy cy; 0 0 1]")
+    name = data.get("camera_name", "camera")
+    return CameraInfo(
+        width_px=int(data["image_width"]),
+        height_px=int(data["image_height"]),
+        fx_px=fx,
+        fy_px=fy,
+        cx_px=cx,
+        cy_px=cy,
+        distortion=tuple(dist),
+        name=str(name),
+    )
+
+
+def save_camera_info(info: CameraInfo, path: str | Path) -> None:
+    """Write ``info`` as ROS camera_info YAML, atomically (a temp file renamed into place)."""
+    write_text_atomic(path, yaml.safe_dump(info.to_ros_dict(), sort_keys=False))

@@ -1,0 +1,156 @@
+"""The arena configuration and a strict YAML loader for any pydantic model.
+
+Units are in the field names. Every model forbids unknown keys, so a typo in a YAML file is reported
+instead of silently ignored.
+"""
+
+from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
+from typing import Any, Literal, TypeVar
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from ipt.errors import IptError
+
+
+class ConfigError(IptError):
+    """A configuration file is missing, unreadable or invalid."""
+
+
+class StrictModel(BaseModel):
+    """Base for every settings model: unknown keys are errors, instances are immutable."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ProjectorConfig(StrictModel):
+    """The projector (or projector array) that paints the arena floor."""
+
+    width_px: int = Field(1920, ge=64, le=16384, description="Output width in projector pixels.")
+    height_px: int = Field(2160, ge=64, le=16384, description="Output height in projector pixels.")
+    rate_hz: float = Field(60.0, gt=0, le=1000, description="Output (display) frame rate f_o in Hz.")
+
+
+class ScreenConfig(StrictModel):
+    """The size of the projected image on the floor, measured once the projector is fixed."""
+
+    width_m: float = Field(2.17, gt=0, le=100, description="Width of the projected image in metres.")
+    height_m: float = Field(2.47, gt=0, le=100, description="Height of the projected image in metres.")
+
+
+class TagMapConfig(StrictModel):
+    """The grid of AprilTags hidden in the video (the paper's Fig. 3)."""
+
+    family: Literal["tag36h11"] = Field("tag36h11", description="AprilTag family; only tag36h11 is supported.")
+    rows: int = Field(9, ge=1, le=64, description="Number of tag rows, counted bottom to top.")
+    cols: int = Field(9, ge=1, le=64, description="Number of tag columns, counted left to right.")
+    tag_size_px: int = Field(
+        160,
+        ge=16,
+        description="Side of a tag's black border square in projector pixels (a multiple of 8: tag36h11 is "
+        "8 cells across its border). A white quiet zone one cell wide surrounds it.",
+    )
+    first_id: int = Field(0, ge=0, description="Id of the bottom-left tag; ids grow left to right, then up.")
+
+    @model_validator(mode="after")
+    def _check(self) -> TagMapConfig:
+        if self.tag_size_px % 8:
+            raise ValueError(f"tag_size_px must be a multiple of 8, got {self.tag_size_px}")
+        if self.first_id + self.rows * self.cols > 587:
+            raise ValueError("tag36h11 has 587 ids: first_id + rows * cols must not exceed 587")
+        return self
+
+
+class ModulationConfig(StrictModel):
+    """How the tags are hidden in the video (the paper's Algorithm 1)."""
+
+    profile: Literal["paper"] = Field("paper", description="Modulation profile; 'paper' is Algorithm 1.")
+    delta_l: float = Field(
+        4.0, gt=0, le=50, description="Lightness change ΔL in 8-bit CIELAB L units (0..255 scale)."
+    )
+    input_rate_hz: float = Field(30.0, gt=0, le=1000, description="Frame rate f_i of the input video in Hz.")
+
+
+class ArenaConfig(StrictModel):
+    """Everything both sides must agree on: projector, screen size, tag map and modulation."""
+
+    projector: ProjectorConfig = Field(default_factory=ProjectorConfig, description="The projector.")
+    screen: ScreenConfig = Field(default_factory=ScreenConfig, description="The projected image on the floor.")
+    tag_map: TagMapConfig = Field(default_factory=TagMapConfig, description="The hidden tag grid.")
+    modulation: ModulationConfig = Field(default_factory=ModulationConfig, description="The modulation.")
+
+    @model_validator(mode="after")
+    def _check(self) -> ArenaConfig:
+        tm, pr = self.tag_map, self.projector
+        quiet_px = tm.tag_size_px // 8
+        if pr.width_px / tm.cols < tm.tag_size_px + 2 * quiet_px:
+            raise ValueError(
+                f"{tm.cols} columns of {tm.tag_size_px} px tags (plus quiet zone) do not fit in {pr.width_px} px"
+            )
+        if pr.height_px / tm.rows < tm.tag_size_px + 2 * quiet_px:
+            raise ValueError(
+                f"{tm.rows} rows of {tm.tag_size_px} px tags (plus quiet zone) do not fit in {pr.height_px} px"
+            )
+        return self
+
+
+M = TypeVar("M", bound=BaseModel)
+
+
+def _describe_validation_error(exc: ValidationError) -> str:
+    parts = []
+    for err in exc.errors():
+        where = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        msg = err["msg"]
+        if err["type"] == "extra_forbidden":
+            msg = "unknown key"
+        elif err["type"] == "missing":
+            msg = "missing key"
+        parts.append(f"{where}: {msg}")
+    return "; ".join(parts)
+
+
+def read_yaml_mapping(path: Path, error: type[IptError] = ConfigError) -> dict[str, Any]:
+    """Read a YAML file whose top level is a mapping; raise ``error`` naming the file otherwise."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise error(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise error(f"{path}: is a directory, expected a YAML file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise error(f"{path}: cannot read ({exc})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise error(f"{path}: not valid YAML{where}") from None
+    if data is None:
+        raise error(f"{path}: the file is empty")
+    if not isinstance(data, dict):
+        raise error(f"{path}: expected a mapping of keys at the top level, got {type(data).__name__}")
+    return data
+
+
+def load_yaml_model(path: str | Path, model: type[M]) -> M:
+    """Load ``path`` as YAML and validate it as ``model``; any problem is one :class:`ConfigError`."""
+    p = Path(path)
+    data = read_yaml_mapping(p)
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(f"{p}: {_describe_validation_error(exc)}") from None
+
+
+def load_arena_config(path: str | Path) -> ArenaConfig:
+    """Load an arena YAML file (see the shipped ``arena.yaml``)."""
+    return load_yaml_model(path, ArenaConfig)
+
+
+def shipped_config_path(name: str) -> Path:
+    """Path of an example config shipped inside the package (e.g. ``arena.yaml``)."""
+    return Path(str(resources.files("ipt.config") / name))

@@ -1,0 +1,33 @@
+"""Writing files so that a reader never sees half of one: write beside the target, then rename."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+
+@contextlib.contextmanager
+def atomic_path(target: str | Path) -> Iterator[Path]:
+    """Yield a temporary path beside ``target``; on success it is renamed onto ``target``.
+
+    If the body raises, the temporary file is removed and ``target`` is left as it was.
+    """
+    t = Path(target)
+    parent = t.parent if str(t.parent) else Path(".")
+    fd, tmp = tempfile.mkstemp(dir=parent, prefix=f".{t.name}.", suffix=".partial" + t.suffix)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, t)
+    finally:
+        tmp_path.unlink(missing_ok=True)
+
+
+def write_text_atomic(target: str | Path, text: str) -> None:
+    """Write ``text`` (UTF-8) to ``target`` atomically."""
+    with atomic_path(target) as tmp:
+        tmp.write_text(text, encoding="utf-8")

@@ -1,0 +1,287 @@
+"""The tag map: which tag36h11 tag sits where, in projector pixels and in arena metres.
+
+Shared by both sides: the sender draws the modulation mask from it, the receiver looks up the arena
+corners of each detected id from the same code and the same arena config.
+
+Coordinates:
+- projector pixels are continuous with the origin at the top-left *corner* of the top-left pixel, so
+  pixel (i, j) covers [i, i+1) x [j, j+1) (the convention AprilTag reports corners in);
+- arena metres are ENU with the origin at the centre of the projected image, y towards the top edge.
+
+Corner order, in both lists of a tag: bottom-left, bottom-right, top-right, top-left as the tag is seen
+in the projector image: counter-clockwise seen from above in the arena, and the order in which
+pupil-apriltags reports the corners of a tag it decodes.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from ipt.config.models import ArenaConfig
+from ipt.errors import IptError
+from ipt.fileio import atomic_path, write_text_atomic
+
+TAG36H11_CELLS = 10
+"""Cells across a rendered tag36h11 tag: a one-cell white quiet zone around the 8-cell black border."""
+_BORDER_CELLS = 8
+
+
+class TagMapError(IptError):
+    """A tag layout is invalid or cannot be read."""
+
+
+class _ApriltagFamily(ctypes.Structure):
+    """``apriltag_family_t`` of the AprilTag 3 C library (public header ``apriltag.h``)."""
+
+    _fields_ = [  # noqa: RUF012 - ctypes wants a plain list
+        ("ncodes", ctypes.c_uint32),
+        ("codes", ctypes.POINTER(ctypes.c_uint64)),
+        ("width_at_border", ctypes.c_int),
+        ("total_width", ctypes.c_int),
+        ("reversed_border", ctypes.c_bool),
+        ("nbits", ctypes.c_uint32),
+        ("bit_x", ctypes.POINTER(ctypes.c_uint32)),
+        ("bit_y", ctypes.POINTER(ctypes.c_uint32)),
+        ("h", ctypes.c_int32),
+        ("name", ctypes.c_char_p),
+    ]
+
+
+@functools.cache
+def _tag36h11_family() -> tuple[tuple[int, ...], tuple[int, ...], tuple[int, ...]]:
+    """The codes and bit positions of tag36h11, read from the library the detector itself uses.
+
+    Taking them from pupil-apriltags' bundled ``libapriltag`` guarantees that the tags we draw are the
+    ones the detector decodes, in its canonical orientation.
+    """
+    import pupil_apriltags
+
+    pkg = Path(pupil_apriltags.__file__).parent
+    candidates = sorted(pkg.glob("lib*/libapriltag.so*")) + sorted(pkg.glob("lib*/*apriltag*.dylib"))
+    candidates += sorted(pkg.glob("lib*/*apriltag*.dll"))
+    if not candidates:
+        raise TagMapError(f"cannot find the AprilTag library inside {pkg}")
+    lib = ctypes.CDLL(str(candidates[0]))
+    create = lib.tag36h11_create
+    create.restype = ctypes.POINTER(_ApriltagFamily)
+    fam = create().contents
+    if fam.nbits != 36 or fam.width_at_border != _BORDER_CELLS or fam.total_width != TAG36H11_CELLS:
+        raise TagMapError("unexpected tag36h11 family layout in the AprilTag library")
+    codes = tuple(int(fam.codes[i]) for i in range(fam.ncodes))
+    bit_x = tuple(int(fam.bit_x[i]) for i in range(fam.nbits))
+    bit_y = tuple(int(fam.bit_y[i]) for i in range(fam.nbits))
+    return codes, bit_x, bit_y
+
+
+def tag36h11_count() -> int:
+    """Number of ids in tag36h11 (587)."""
+    return len(_tag36h11_family()[0])
+
+
+@functools.cache
+def tag36h11_bitmap(tag_id: int) -> npt.NDArray[np.uint8]:
+    """The 10x10 cell image of tag ``tag_id``: 1 for white cells, 0 for black, quiet zone included."""
+    codes, bit_x, bit_y = _tag36h11_family()
+    if not 0 <= tag_id < len(codes):
+        raise TagMapError(f"tag36h11 has ids 0..{len(codes) - 1}, not {tag_id}")
+    cells = np.zeros((TAG36H11_CELLS, TAG36H11_CELLS), np.uint8)
+    cells[0, :] = cells[-1, :] = cells[:, 0] = cells[:, -1] = 1
+    code, nbits = codes[tag_id], len(bit_x)
+    offset = (TAG36H11_CELLS - _BORDER_CELLS) // 2
+    for i in range(nbits):
+        if code >> (nbits - 1 - i) & 1:
+            cells[bit_y[i] + offset, bit_x[i] + offset] = 1
+    cells.setflags(write=False)
+    return cells
+
+
+@dataclass(frozen=True)
+class TagPlacement:
+    """One tag of the map: its id and its four border corners (see the module doc for the order)."""
+
+    tag_id: int
+    corners_px: tuple[tuple[float, float], ...]
+    corners_m: tuple[tuple[float, float, float], ...]
+
+
+@dataclass(frozen=True)
+class TagMap:
+    """All tags of an arena, with the projector size they are drawn for."""
+
+    width_px: int
+    height_px: int
+    tags: tuple[TagPlacement, ...]
+
+    @functools.cached_property
+    def by_id(self) -> dict[int, TagPlacement]:
+        """Tags keyed by id."""
+        return {t.tag_id: t for t in self.tags}
+
+    def corners_m(self, tag_id: int) -> npt.NDArray[np.float64] | None:
+        """The 4x3 arena corners of ``tag_id``, or None if the id is not in the map."""
+        t = self.by_id.get(tag_id)
+        return None if t is None else np.asarray(t.corners_m, dtype=np.float64)
+
+    def render_mask(self) -> npt.NDArray[np.int8]:
+        """The modulation mask T_mask: +1 on white tag cells, -1 on black, 0 where untouched."""
+        mask = np.zeros((self.height_px, self.width_px), np.int8)
+        for tag in self.tags:
+            _draw_tag(mask, tag)
+        return mask
+
+    def render_image(self) -> npt.NDArray[np.uint8]:
+        """The exported map image: 255 where the mask is +1, 0 where -1, 127 elsewhere."""
+        mask = self.render_mask()
+        img = np.full(mask.shape, 127, np.uint8)
+        img[mask > 0] = 255
+        img[mask < 0] = 0
+        return img
+
+    def layout_dict(self) -> dict[str, Any]:
+        """The layout in the exported JSON shape."""
+        return {
+            "projector": {"width_px": self.width_px, "height_px": self.height_px},
+            "tags": [
+                {
+                    "id": t.tag_id,
+                    "corners_px": [list(c) for c in t.corners_px],
+                    "corners_m": [list(c) for c in t.corners_m],
+                }
+                for t in self.tags
+            ],
+        }
+
+
+def _draw_tag(mask: npt.NDArray[np.int8], tag: TagPlacement) -> None:
+    """Draw one tag (quiet zone included) into ``mask`` by nearest-neighbour warping of its cells."""
+    cells = tag36h11_bitmap(tag.tag_id).astype(np.uint8) + 1  # 1 black, 2 white, 0 = outside
+    lo, hi = (TAG36H11_CELLS - _BORDER_CELLS) / 2, (TAG36H11_CELLS + _BORDER_CELLS) / 2
+    src = np.array([[lo, hi], [hi, hi], [hi, lo], [lo, lo]], np.float64)  # BL, BR, TR, TL in cell units
+    dst = np.asarray(tag.corners_px, np.float64)
+    h_edge = cv2.getPerspectiveTransform(src.astype(np.float32), dst.astype(np.float32))
+    # Outer quiet-zone outline in projector pixels, to bound the region we touch.
+    outer = np.array([[0, 0], [TAG36H11_CELLS, 0], [TAG36H11_CELLS, TAG36H11_CELLS], [0, TAG36H11_CELLS]], float)
+    outer_px = cv2.perspectiveTransform(outer[None], h_edge)[0]
+    x0 = max(0, math.floor(outer_px[:, 0].min()))
+    y0 = max(0, math.floor(outer_px[:, 1].min()))
+    x1 = min(mask.shape[1], math.ceil(outer_px[:, 0].max()))
+    y1 = min(mask.shape[0], math.ceil(outer_px[:, 1].max()))
+    if x1 <= x0 or y1 <= y0:
+        return
+    # warpPerspective samples at pixel centres (i + 0.5 in edge coordinates): shift both ends by half a pixel.
+    to_roi = np.array([[1, 0, -x0 - 0.5], [0, 1, -y0 - 0.5], [0, 0, 1]], np.float64)
+    cell_centre_to_edge = np.array([[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1]], np.float64)
+    h = to_roi @ h_edge @ cell_centre_to_edge
+    warped = cv2.warpPerspective(
+        cells, h, (x1 - x0, y1 - y0), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+    )
+    roi = mask[y0:y1, x0:x1]
+    roi[warped == 2] = 1
+    roi[warped == 1] = -1
+
+
+def pixel_to_arena_m(arena: ArenaConfig, u_px: float, v_px: float) -> tuple[float, float, float]:
+    """Arena ENU metres (z = 0, the floor) of the projector point (u, v) in edge-origin pixels."""
+    sx = arena.screen.width_m / arena.projector.width_px
+    sy = arena.screen.height_m / arena.projector.height_px
+    return ((u_px - arena.projector.width_px / 2) * sx, (arena.projector.height_px / 2 - v_px) * sy, 0.0)
+
+
+def arena_to_pixel_matrix(arena: ArenaConfig) -> npt.NDArray[np.float64]:
+    """3x3 matrix taking homogeneous arena floor points (x_m, y_m, 1) to projector pixels (edge origin)."""
+    sx = arena.screen.width_m / arena.projector.width_px
+    sy = arena.screen.height_m / arena.projector.height_px
+    return np.array(
+        [[1 / sx, 0, arena.projector.width_px / 2], [0, -1 / sy, arena.projector.height_px / 2], [0, 0, 1]]
+    )
+
+
+def grid_tag_map(arena: ArenaConfig) -> TagMap:
+    """The evenly spaced grid of the arena config: ids left to right, then bottom to top."""
+    tm, pr = arena.tag_map, arena.projector
+    pitch_x = pr.width_px / tm.cols
+    pitch_y = pr.height_px / tm.rows
+    s = tm.tag_size_px
+    tags = []
+    for row in range(tm.rows):  # row 0 is the bottom row
+        for col in range(tm.cols):
+            left = round((col + 0.5) * pitch_x - s / 2)
+            top = round(pr.height_px - (row + 0.5) * pitch_y - s / 2)
+            px = ((left, top + s), (left + s, top + s), (left + s, top), (left, top))
+            corners_px = tuple((float(u), float(v)) for u, v in px)
+            corners_m = tuple(pixel_to_arena_m(arena, u, v) for u, v in corners_px)
+            tags.append(TagPlacement(tm.first_id + row * tm.cols + col, corners_px, corners_m))
+    return TagMap(pr.width_px, pr.height_px, tuple(tags))
+
+
+def export_map(tag_map: TagMap, image_path: str | Path, layout_path: str | Path) -> None:
+    """Write the map image (8-bit grey PNG at projector resolution) and the layout JSON, atomically."""
+    img = tag_map.render_image()
+    with atomic_path(image_path) as tmp:
+        if not cv2.imwrite(str(tmp.with_suffix(".png")), img):
+            raise TagMapError(f"{image_path}: cannot write the PNG")
+        tmp.with_suffix(".png").replace(tmp)
+    write_text_atomic(layout_path, json.dumps(tag_map.layout_dict(), indent=1) + "\n")
+
+
+def _float_list(path: Path, where: str, value: Any, n: int) -> tuple[float, ...]:
+    if not isinstance(value, list) or len(value) != n:
+        raise TagMapError(f"{path}: {where}: expected a list of {n} numbers")
+    out = []
+    for v in value:
+        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+            raise TagMapError(f"{path}: {where}: expected finite numbers, got {v!r}")
+        out.append(float(v))
+    return tuple(out)
+
+
+def load_layout(path: str | Path) -> TagMap:
+    """Read a layout JSON (the shape :func:`export_map` writes) and check it thoroughly."""
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise TagMapError(f"{p}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TagMapError(f"{p}: cannot read ({exc})") from None
+    except json.JSONDecodeError as exc:
+        raise TagMapError(f"{p}: not valid JSON (line {exc.lineno}: {exc.msg})") from None
+    if not isinstance(data, dict) or not isinstance(data.get("projector"), dict):
+        raise TagMapError(f"{p}: expected an object with 'projector' and 'tags'")
+    proj = data["projector"]
+    w, h = proj.get("width_px"), proj.get("height_px")
+    if not isinstance(w, int) or not isinstance(h, int) or w <= 0 or h <= 0:
+        raise TagMapError(f"{p}: projector: width_px and height_px must be positive integers")
+    raw_tags = data.get("tags")
+    if not isinstance(raw_tags, list) or not raw_tags:
+        raise TagMapError(f"{p}: tags: expected a non-empty list")
+    seen: set[int] = set()
+    tags = []
+    n_ids = tag36h11_count()
+    for i, t in enumerate(raw_tags):
+        where = f"tags[{i}]"
+        if not isinstance(t, dict):
+            raise TagMapError(f"{p}: {where}: expected an object")
+        tid = t.get("id")
+        if isinstance(tid, bool) or not isinstance(tid, int) or not 0 <= tid < n_ids:
+            raise TagMapError(f"{p}: {where}: id must be an integer in 0..{n_ids - 1}")
+        if tid in seen:
+            raise TagMapError(f"{p}: {where}: duplicate id {tid}")
+        seen.add(tid)
+        cpx, cm = t.get("corners_px"), t.get("corners_m")
+        if not isinstance(cpx, list) or len(cpx) != 4 or not isinstance(cm, list) or len(cm) != 4:
+            raise TagMapError(f"{p}: {where}: corners_px and corners_m must each list 4 corners")
+        corners_px = tuple(_float_list(p, f"{where}.corners_px", c, 2) for c in cpx)
+        corners_m = tuple(_float_list(p, f"{where}.corners_m", c, 3) for c in cm)
+        tags.append(TagPlacement(tid, corners_px, corners_m))  # type: ignore[arg-type]
+    return TagMap(w, h, tuple(tags))
