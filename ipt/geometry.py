@@ -96,7 +96,8 @@ def slerp_quat_wxyz(q0: F64, q1: F64, fraction: float) -> F64:
         q = a + fraction * (b - a)
         return q / np.linalg.norm(q)
     theta = np.arccos(dot)
-    return (np.sin((1 - fraction) * theta) * a + np.sin(fraction * theta) * b) / np.sin(theta)
+    q_out: F64 = (np.sin((1 - fraction) * theta) * a + np.sin(fraction * theta) * b) / np.sin(theta)
+    return q_out
 
 
 def rotation_angle_rad(r: F64) -> float:
@@ -106,4 +107,5 @@ def rotation_angle_rad(r: F64) -> float:
 
 def wrap_angle_rad(a: F64 | float) -> F64:
     """Wrap angles to (-pi, pi]."""
-    return np.asarray(-((-np.asarray(a) + np.pi) % (2 * np.pi) - np.pi), dtype=np.float64)
+    wrapped: F64 = np.asarray(-((-np.asarray(a, dtype=np.float64) + np.pi) % (2 * np.pi) - np.pi), dtype=np.float64)
+    return wrapped

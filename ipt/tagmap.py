@@ -43,7 +43,7 @@ class TagMapError(IptError):
 class _ApriltagFamily(ctypes.Structure):
     """``apriltag_family_t`` of the AprilTag 3 C library (public header ``apriltag.h``)."""
 
-    _fields_ = [  # noqa: RUF012 - ctypes wants a plain list
+    _fields_ = [
         ("ncodes", ctypes.c_uint32),
         ("codes", ctypes.POINTER(ctypes.c_uint64)),
         ("width_at_border", ctypes.c_int),
@@ -201,9 +201,7 @@ def arena_to_pixel_matrix(arena: ArenaConfig) -> npt.NDArray[np.float64]:
     """3x3 matrix taking homogeneous arena floor points (x_m, y_m, 1) to projector pixels (edge origin)."""
     sx = arena.screen.width_m / arena.projector.width_px
     sy = arena.screen.height_m / arena.projector.height_px
-    return np.array(
-        [[1 / sx, 0, arena.projector.width_px / 2], [0, -1 / sy, arena.projector.height_px / 2], [0, 0, 1]]
-    )
+    return np.array([[1 / sx, 0, arena.projector.width_px / 2], [0, -1 / sy, arena.projector.height_px / 2], [0, 0, 1]])
 
 
 def grid_tag_map(arena: ArenaConfig) -> TagMap:

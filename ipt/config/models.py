@@ -68,9 +68,7 @@ class ModulationConfig(StrictModel):
     """How the tags are hidden in the video (the paper's Algorithm 1)."""
 
     profile: Literal["paper"] = Field("paper", description="Modulation profile; 'paper' is Algorithm 1.")
-    delta_l: float = Field(
-        4.0, gt=0, le=50, description="Lightness change ΔL in 8-bit CIELAB L units (0..255 scale)."
-    )
+    delta_l: float = Field(4.0, gt=0, le=50, description="Lightness change ΔL in 8-bit CIELAB L units (0..255 scale).")
     input_rate_hz: float = Field(30.0, gt=0, le=1000, description="Frame rate f_i of the input video in Hz.")
 
 
@@ -95,6 +93,43 @@ class ArenaConfig(StrictModel):
                 f"{tm.rows} rows of {tm.tag_size_px} px tags (plus quiet zone) do not fit in {pr.height_px} px"
             )
         return self
+
+
+class DemodulationConfig(StrictModel):
+    """Recovering the tag image from two camera frames (the paper's Algorithm 2 and Section V-A/B)."""
+
+    sample_lines: int = Field(3, ge=1, le=64, description="N: columns (and rows) sampled for the alignment.")
+    max_shift_px: int = Field(5, ge=0, le=64, description="b: the largest alignment shift tried, in pixels.")
+    blur_ksize: int = Field(3, ge=1, le=15, description="Side of the mean filter, in pixels.")
+    morph_ksize: int = Field(3, ge=1, le=15, description="Side of the square opening/closing element.")
+
+
+class DetectorConfig(StrictModel):
+    """AprilTag 3 (pupil-apriltags) settings."""
+
+    quad_decimate: float = Field(1.0, ge=1.0, le=8.0, description="Decimation before quad detection.")
+    quad_sigma: float = Field(0.0, ge=0.0, le=5.0, description="Gaussian blur sigma before quad detection.")
+    refine_edges: bool = Field(True, description="Snap quad edges to strong gradients.")
+    decode_sharpening: float = Field(0.25, ge=0.0, le=2.0, description="Sharpening of decoded images.")
+    threads: int = Field(1, ge=1, le=16, description="Detector worker threads.")
+    max_hamming: int = Field(1, ge=0, le=2, description="Decodes with more bit errors than this are dropped.")
+
+
+class PoseConfig(StrictModel):
+    """Pose from tag corners (OpenCV solvePnP with IPPE)."""
+
+    min_tags: int = Field(1, ge=1, le=64, description="Fewest tags a pose may rest on.")
+    max_reprojection_rms_px: float = Field(
+        3.0, gt=0, description="Poses whose corner reprojection RMS exceeds this are rejected."
+    )
+
+
+class PipelineConfig(StrictModel):
+    """The receiver's per-frame processing."""
+
+    demodulation: DemodulationConfig = Field(default_factory=DemodulationConfig, description="Demodulation.")
+    detector: DetectorConfig = Field(default_factory=DetectorConfig, description="Tag detection.")
+    pose: PoseConfig = Field(default_factory=PoseConfig, description="Pose estimation.")
 
 
 M = TypeVar("M", bound=BaseModel)

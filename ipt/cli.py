@@ -1,0 +1,204 @@
+"""``ipt``: the arena tools — tag map export, simulator, evaluation and the end-to-end demo."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from ipt import __version__
+from ipt.cliutil import Parser, run_main
+from ipt.config.models import ArenaConfig, PipelineConfig, load_arena_config, load_yaml_model, shipped_config_path
+from ipt.errors import IptError
+
+DEFAULT_ARENA = shipped_config_path("arena.yaml")
+
+
+def _arena(path: str | None) -> ArenaConfig:
+    return load_arena_config(path if path is not None else DEFAULT_ARENA)
+
+
+def _scene(spec: str, arena: ArenaConfig, seed: int) -> object:
+    from ipt.sender.content import GeneratedScene, StillImageScene, VideoScene
+
+    w, h = arena.projector.width_px, arena.projector.height_px
+    if spec == "generated":
+        return GeneratedScene(w, h, seed=seed)
+    p = Path(spec)
+    if p.suffix.lower() in {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}:
+        return StillImageScene.from_file(p, w, h)
+    return VideoScene(p, w, h)
+
+
+def _cmd_map_export(args: argparse.Namespace) -> int:
+    from ipt.tagmap import export_map, grid_tag_map
+
+    tm = grid_tag_map(_arena(args.config))
+    export_map(tm, args.image, args.layout)
+    print(f"ipt map export: {len(tm.tags)} tags -> {args.image} ({tm.width_px}x{tm.height_px}), {args.layout}")
+    return 0
+
+
+def _cmd_map_check(args: argparse.Namespace) -> int:
+    import cv2
+    import numpy as np
+
+    from ipt.tagmap import TagMapError, load_layout
+
+    tm = load_layout(args.layout)
+    print(f"ipt map check: {args.layout}: {len(tm.tags)} tags, ids unique, projector {tm.width_px}x{tm.height_px}")
+    if args.image is None:
+        return 0
+    img = cv2.imread(str(args.image), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise TagMapError(f"{args.image}: not an image file")
+    import pupil_apriltags
+
+    found = {int(d.tag_id): np.asarray(d.corners) for d in pupil_apriltags.Detector(families="tag36h11").detect(img)}
+    wanted = set(tm.by_id)
+    hit = wanted & set(found)
+    worst = max((float(np.abs(found[i] - np.asarray(tm.by_id[i].corners_px)).max()) for i in hit), default=float("nan"))
+    print(
+        f"ipt map check: {args.image}: pupil-apriltags found {len(hit)}/{len(wanted)} ids of the layout, "
+        f"largest corner difference {worst:.3f} px"
+    )
+    return 0 if hit == wanted else 1
+
+
+def _cmd_sim(args: argparse.Namespace) -> int:
+    from ipt.sim.config import SimConfig
+    from ipt.sim.run import simulate_to_folder
+
+    arena = _arena(args.config)
+    sim = load_yaml_model(args.sim_config, SimConfig) if args.sim_config else SimConfig()
+    if args.seed is not None:
+        sim = sim.model_copy(update={"seed": args.seed})
+    scene = _scene(args.content, arena, sim.seed)
+    n = simulate_to_folder(arena, sim, scene, Path(args.out), args.seconds)  # type: ignore[arg-type]
+    print(f"ipt sim: {n} frames -> {args.out}/frames.mkv, camera.yaml, groundtruth.tum")
+    return 0
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from ipt.eval import eval_main
+
+    return eval_main(list(args.rest))
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from ipt.eval import evaluate, format_table, plot_report
+    from ipt.receiver.replay import replay
+    from ipt.sim.config import SimConfig
+    from ipt.sim.run import simulate_to_folder
+    from ipt.tagmap import grid_tag_map
+    from ipt.tum import read_tum
+
+    arena = _arena(args.config)
+    out = Path(args.out) if args.out else Path("results") / time.strftime("demo-%Y%m%d-%H%M%S")
+    sim = SimConfig(seed=args.seed)
+    tm = grid_tag_map(arena)
+    print(f"ipt demo: 1/3 simulating {args.seconds:g} s of the paper's flight over the hidden-tag arena -> {out}")
+    simulate_to_folder(arena, sim, _scene("generated", arena, sim.seed), out, args.seconds, tm)  # type: ignore[arg-type]
+    print("ipt demo: 2/3 replaying the camera video through the receiver (paper pipeline)")
+    poses = out / "poses.tum"
+    replay(arena, tm, out / "camera.yaml", out / "frames.mkv", poses, None, PipelineConfig())
+    print("ipt demo: 3/3 comparing with the ground truth")
+    truth, est = read_tum(out / "groundtruth.tum"), read_tum(poses)
+    report = evaluate(truth, est)
+    plot_report(truth, est, report, out / "errors.png")
+    (out / "report.json").write_text(json.dumps(report.to_dict(), indent=1) + "\n", encoding="utf-8")
+    print()
+    print(format_table(report))
+    print()
+    print(f"ipt demo: results in {out}/ (errors.png, report.json, poses.tum, groundtruth.tum, frames.mkv)")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``ipt`` argument parser."""
+    p = Parser(
+        prog="ipt",
+        description="IPT arena tools: export the hidden tag map, simulate a flight over the projected arena, "
+        "evaluate poses against ground truth, or run the whole chain with 'ipt demo'.",
+        epilog="Start with: ipt demo   (simulate, localise and score a 15 s flight; no hardware needed)",
+    )
+    p.add_argument("--version", action="version", version=f"ipt {__version__}")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
+    sub.required = True
+
+    cfg_help = f"arena YAML (default: the shipped paper arena, {DEFAULT_ARENA.name})"
+
+    m = sub.add_parser("map", help="export or check the tag map")
+    msub = m.add_subparsers(dest="map_command", metavar="ACTION", parser_class=Parser)
+    msub.required = True
+    e = msub.add_parser(
+        "export",
+        help="write the map image and its layout JSON",
+        description="Write the tag map at projector resolution (8-bit grey: 255 white tag cells, 0 black, "
+        "127 elsewhere) and a JSON layout with every tag's corners in projector pixels and arena metres.",
+    )
+    e.add_argument("--config", metavar="ARENA.yaml", help=cfg_help)
+    e.add_argument("--image", required=True, metavar="MAP.png", help="where to write the map image")
+    e.add_argument("--layout", required=True, metavar="LAYOUT.json", help="where to write the layout")
+    e.set_defaults(func=_cmd_map_export)
+    c = msub.add_parser(
+        "check",
+        help="validate a layout JSON (and detect its tags in a map image)",
+        description="Check a layout file; with --image, detect the tags with pupil-apriltags and compare "
+        "their corners with the layout. Exit 1 if any tag of the layout is not found.",
+    )
+    c.add_argument("--layout", required=True, metavar="LAYOUT.json")
+    c.add_argument("--image", metavar="MAP.png")
+    c.set_defaults(func=_cmd_map_check)
+
+    s = sub.add_parser(
+        "sim",
+        help="render a simulated flight (video, camera.yaml, ground truth)",
+        description="Render what a downward 120 FPS global-shutter camera sees while flying the paper's "
+        "rectangle over the projected, modulated floor. Writes OUT/frames.mkv (lossless FFV1), "
+        "OUT/camera.yaml (ROS camera_info) and OUT/groundtruth.tum (camera pose at each frame time).",
+    )
+    s.add_argument("--config", metavar="ARENA.yaml", help=cfg_help)
+    s.add_argument("--out", required=True, metavar="DIR", help="output folder (created if needed)")
+    s.add_argument("--seconds", type=float, default=15.0, help="flight length (default 15, as in the paper)")
+    s.add_argument("--sim-config", metavar="SIM.yaml", help="camera, timing, noise and flight settings")
+    s.add_argument("--seed", type=int, help="random seed (noise and generated content)")
+    s.add_argument("--content", default="generated", metavar="generated|FILE", help="video content: built-in or a file")
+    s.set_defaults(func=_cmd_sim)
+
+    ev = sub.add_parser("eval", help="the paper's error table for poses against ground truth", add_help=False)
+    ev.add_argument("rest", nargs=argparse.REMAINDER)
+    ev.set_defaults(func=_cmd_eval)
+
+    d = sub.add_parser(
+        "demo",
+        help="simulate a flight, localise it and print the paper's error table",
+        description="The whole chain on the built-in simulated arena: simulate, replay through the receiver, "
+        "evaluate against the ground truth. Results (plot, JSON, TUM files, video) go to a folder.",
+    )
+    d.add_argument("--config", metavar="ARENA.yaml", help=cfg_help)
+    d.add_argument("--seconds", type=float, default=15.0, help="flight length (default 15)")
+    d.add_argument("--seed", type=int, default=0, help="random seed")
+    d.add_argument("--out", metavar="DIR", help="results folder (default results/demo-<time>)")
+    d.set_defaults(func=_cmd_demo)
+    return p
+
+
+def _main(argv: Sequence[str] | None) -> int:
+    args = build_parser().parse_args(argv)
+    rc: int = args.func(args)
+    return rc
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``ipt``."""
+    return run_main("ipt", _main, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
+
+__all__ = ["IptError", "build_parser", "main"]

@@ -1,0 +1,75 @@
+"""Pose from tag corners: OpenCV solvePnP (IPPE) over all corners, then the paper's inversion (4).
+
+Pure. The result is the camera in the arena: the optical centre in arena metres and the rotation that
+takes camera (OpenCV optical) vectors into the arena frame.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from ipt.config.camera_info import CameraInfo
+from ipt.config.models import PoseConfig
+from ipt.geometry import quat_wxyz_from_matrix
+from ipt.receiver.detector import TagDetection
+from ipt.tagmap import TagMap
+
+F64 = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """The camera's pose in the arena from one frame."""
+
+    position_m: F64
+    """Optical centre in arena ENU metres."""
+    r_arena_cam: F64
+    """3x3 rotation camera→arena."""
+    tag_ids: tuple[int, ...]
+    reprojection_rms_px: float
+
+    @property
+    def quat_wxyz(self) -> F64:
+        """``r_arena_cam`` as a unit quaternion (w, x, y, z)."""
+        return quat_wxyz_from_matrix(self.r_arena_cam)
+
+
+def correspondences(detections: Sequence[TagDetection], tag_map: TagMap) -> tuple[F64, F64, tuple[int, ...]]:
+    """Arena points (N×3) and image points (N×2) of every corner of every detected tag in the map."""
+    obj, img, ids = [], [], []
+    for d in detections:
+        corners_m = tag_map.corners_m(d.tag_id)
+        if corners_m is None:
+            continue
+        obj.append(corners_m)
+        img.append(d.corners_px)
+        ids.append(d.tag_id)
+    if not obj:
+        return np.zeros((0, 3)), np.zeros((0, 2)), ()
+    return np.concatenate(obj), np.concatenate(img), tuple(ids)
+
+
+def solve_pose(
+    detections: Sequence[TagDetection], tag_map: TagMap, camera: CameraInfo, cfg: PoseConfig
+) -> PoseEstimate | None:
+    """The camera pose from the detected tags, or None if too few tags or the fit is poor."""
+    obj, img, ids = correspondences(detections, tag_map)
+    if len(ids) < cfg.min_tags:
+        return None
+    k, dist = camera.camera_matrix, camera.dist_coeffs
+    ok, rvec, tvec = cv2.solvePnP(obj, img, k, dist, flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        return None
+    proj, _ = cv2.projectPoints(obj, rvec, tvec, k, dist)
+    rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))
+    if not np.isfinite(rms) or rms > cfg.max_reprojection_rms_px:
+        return None
+    r_cam_arena, _ = cv2.Rodrigues(rvec)
+    r_arena_cam = r_cam_arena.T
+    position_m = -r_arena_cam @ tvec.reshape(3)
+    return PoseEstimate(position_m, r_arena_cam, ids, rms)

@@ -1,0 +1,100 @@
+"""Replay a recorded flight through the receiver pipeline and write the poses as a TUM file.
+
+Frame ``k`` of the recording has time ``k / fps``. Progress goes to stderr about once a second; the
+output appears only when the run completes (it is written beside the target and renamed).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TextIO
+
+from ipt.config.camera_info import load_camera_info
+from ipt.config.models import ArenaConfig, PipelineConfig
+from ipt.errors import IptError
+from ipt.fileio import atomic_path
+from ipt.receiver.pipeline import PaperPipeline
+from ipt.tagmap import TagMap
+from ipt.tum import TUM_HEADER, format_tum_line
+from ipt.videoio import open_frames
+
+
+class ReplayError(IptError):
+    """The recording and the settings do not fit together."""
+
+
+@dataclass(frozen=True)
+class ReplaySummary:
+    """Totals of a replay."""
+
+    frames: int
+    poses: int
+    seconds: float
+    reasons: dict[str, int]
+
+    @property
+    def yield_fraction(self) -> float:
+        """Poses per camera frame."""
+        return self.poses / self.frames if self.frames else 0.0
+
+    def line(self) -> str:
+        """The one-line summary printed at the end."""
+        fps = self.frames / self.seconds if self.seconds > 0 else float("inf")
+        why = ", ".join(f"{k}={v}" for k, v in sorted(self.reasons.items()))
+        return (
+            f"replay: {self.frames} frames, {self.poses} poses, yield {100 * self.yield_fraction:.1f} %, "
+            f"{fps:.1f} frames/s ({why})"
+        )
+
+
+def replay(
+    arena: ArenaConfig,
+    tag_map: TagMap,
+    camera_path: Path,
+    video_path: Path,
+    output_path: Path,
+    fps: float | None,
+    pipeline_cfg: PipelineConfig,
+    progress: TextIO | None = sys.stderr,
+) -> ReplaySummary:
+    """Run the recording at ``video_path`` through the pipeline; write one TUM line per pose."""
+    del arena  # the tag map already carries what the receiver needs from the arena
+    camera = load_camera_info(camera_path)
+    with open_frames(video_path) as source:
+        if (source.width, source.height) != (camera.width_px, camera.height_px):
+            raise ReplayError(
+                f"{camera_path}: the camera is {camera.width_px}x{camera.height_px} but {video_path} has "
+                f"{source.width}x{source.height} frames"
+            )
+        rate = fps if fps is not None else source.fps
+        if rate is None or rate <= 0:
+            raise ReplayError(f"{video_path}: the frame rate is unknown; give it with --fps")
+        pipeline = PaperPipeline(tag_map, camera, pipeline_cfg)
+        total = source.frame_count
+        frames = poses = 0
+        start = last_report = time.monotonic()
+        with atomic_path(output_path) as tmp, tmp.open("w", encoding="utf-8") as out:
+            out.write(TUM_HEADER + "\n")
+            for k, frame in enumerate(source):
+                t_us = round(k / rate * 1e6)
+                result = pipeline.process(k, frame, t_us)
+                frames += 1
+                if result.pose is not None:
+                    poses += 1
+                    out.write(format_tum_line(t_us * 1e-6, result.pose.position_m, result.pose.quat_wxyz))
+                now = time.monotonic()
+                if progress is not None and now - last_report >= 1.0:
+                    last_report = now
+                    of = f"/{total}" if total else ""
+                    progress.write(
+                        f"replay: frame {frames}{of}, {poses} poses ({100 * poses / frames:.0f} %), "
+                        f"{frames / (now - start):.0f} frames/s\n"
+                    )
+                    progress.flush()
+        summary = ReplaySummary(frames, poses, time.monotonic() - start, dict(pipeline.reasons))
+    if progress is not None:
+        progress.write(summary.line() + "\n")
+    return summary
