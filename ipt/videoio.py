@@ -1,0 +1,362 @@
+"""Frames in and out: lossless FFV1 video files, any video PyAV can read, and folders of images.
+
+Every frame that crosses this module is a C-contiguous ``numpy.uint8`` array of shape (H, W, 3) in RGB
+order (not OpenCV's BGR).
+
+Writing: :class:`FfvWriter` stores FFV1 in Matroska with pixel format ``bgr0``. FFV1 is lossless, and
+``bgr0`` is the only 8-bit-per-channel RGB layout the FFV1 encoder accepts (the planar ``gbrp`` is
+offered only at 9 bits and up): going from RGB24 to ``bgr0`` and back only reorders bytes and adds an
+unused padding byte, so frames come back bit-identical. The YUV formats would round the colour
+conversion and so are not lossless for RGB input.
+
+Reading: :func:`open_frames` returns a streaming :class:`FrameSource`; a video is decoded one frame
+at a time, a folder of images is read one file at a time.
+"""
+
+from __future__ import annotations
+
+import abc
+import contextlib
+import math
+import re
+from collections.abc import Iterator
+from fractions import Fraction
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Self
+
+import av
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from ipt.errors import IptError
+from ipt.fileio import atomic_path
+
+IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"})
+"""File name endings (compared case-insensitively) that :func:`open_frames` reads from a folder."""
+
+FFV1_PIX_FMT = "bgr0"
+"""The pixel format :class:`FfvWriter` stores; see the module docstring for why."""
+
+_RATE_TAG = "IPT_FRAME_RATE"
+"""Track tag holding the exact frame rate as ``num/den``.
+
+Matroska keeps timestamps in milliseconds and the frame duration in whole nanoseconds, so a rate such
+as 60000/1001 would otherwise read back as 19001/317.
+"""
+
+_MAX_RATE_DENOMINATOR = 1001
+
+
+class VideoError(IptError):
+    """A video file or image folder cannot be read or written."""
+
+
+def _rate_fraction(fps: float | Fraction) -> Fraction:
+    """``fps`` as an exact rational: 120 → 120/1, 59.94 → 2997/50, 29.97002997 → 30000/1001."""
+    if isinstance(fps, bool) or not isinstance(fps, int | float | Fraction):
+        raise VideoError(f"frame rate must be a number, not {fps!r}")
+    if isinstance(fps, float) and not math.isfinite(fps):
+        raise VideoError(f"frame rate must be finite, not {fps}")
+    rate = fps if isinstance(fps, Fraction) else Fraction(fps).limit_denominator(_MAX_RATE_DENOMINATOR)
+    if rate <= 0:
+        raise VideoError(f"frame rate must be positive, not {fps}")
+    return rate
+
+
+def _check_frame(frame: Any, width: int, height: int, what: str) -> npt.NDArray[np.uint8]:
+    """``frame`` as a C-contiguous RGB array of the given size, or a :class:`VideoError`."""
+    if not isinstance(frame, np.ndarray):
+        raise VideoError(f"{what}: a frame must be a numpy array, not {type(frame).__name__}")
+    if frame.dtype != np.uint8:
+        raise VideoError(f"{what}: frames must have dtype uint8, not {frame.dtype}")
+    if frame.shape != (height, width, 3):
+        raise VideoError(f"{what}: frame has shape {frame.shape}, expected {(height, width, 3)} (height, width, RGB)")
+    return np.ascontiguousarray(frame)
+
+
+class FfvWriter:
+    """Write RGB frames to a lossless FFV1/Matroska file that appears at ``path`` only when complete.
+
+    Frames go to a temporary ``….partial.mkv`` file beside ``path``; :meth:`close` (or leaving the
+    ``with`` block normally) renames it onto ``path``. If the ``with`` block raises, or :meth:`abort`
+    is called, the temporary file is removed and ``path`` is left as it was.
+    """
+
+    def __init__(self, path: str | Path, width: int, height: int, fps: float | Fraction) -> None:
+        self.path = Path(path)
+        for name, value in (("width", width), ("height", height)):
+            if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+                raise VideoError(f"{self.path}: {name} must be a positive integer, not {value!r}")
+        self.width = width
+        self.height = height
+        self.rate = _rate_fraction(fps)
+        self.frames_written = 0
+        self._closed = False
+        self._container: Any = None
+        self._stream: Any = None
+        self._stack = contextlib.ExitStack()
+        try:
+            tmp = self._stack.enter_context(atomic_path(self.path))
+        except OSError as e:
+            raise VideoError(f"{self.path}: cannot create a file here: {e.strerror or e}") from e
+        try:
+            self._container = av.open(str(tmp), mode="w", format="matroska")
+            self._stream = self._container.add_stream("ffv1", rate=self.rate)
+            self._stream.width = width
+            self._stream.height = height
+            self._stream.pix_fmt = FFV1_PIX_FMT
+            # level 3 with per-slice CRCs: the current FFV1 version, and damage is detected on reading.
+            self._stream.options = {"level": "3", "slicecrc": "1", "g": "1"}
+            self._stream.metadata[_RATE_TAG] = f"{self.rate.numerator}/{self.rate.denominator}"
+        except (av.FFmpegError, OSError) as e:
+            self._fail()
+            raise VideoError(f"{self.path}: cannot start an FFV1 video: {e}") from e
+
+    def write(self, frame_rgb: npt.NDArray[np.uint8]) -> None:
+        """Append one H×W×3 uint8 RGB frame."""
+        if self._closed:
+            raise VideoError(f"{self.path}: write after the writer was closed")
+        frame = _check_frame(frame_rgb, self.width, self.height, str(self.path))
+        video_frame = av.VideoFrame.from_ndarray(frame, format="rgb24")
+        video_frame.pts = self.frames_written
+        video_frame.time_base = 1 / self.rate
+        try:
+            for packet in self._stream.encode(video_frame):
+                self._container.mux(packet)
+        except (av.FFmpegError, OSError) as e:
+            self._fail()
+            raise VideoError(f"{self.path}: writing frame {self.frames_written} failed: {e}") from e
+        self.frames_written += 1
+
+    def close(self) -> None:
+        """Finish the file and move it to ``path``. Calling it again does nothing."""
+        if self._closed:
+            return
+        try:
+            if self.frames_written == 0:
+                self._container.start_encoding()  # so that even an empty video has a valid header
+            for packet in self._stream.encode(None):
+                self._container.mux(packet)
+            self._container.close()
+        except (av.FFmpegError, OSError) as e:
+            self._fail()
+            raise VideoError(f"{self.path}: finishing the video failed: {e}") from e
+        self._closed = True
+        try:
+            self._stack.close()  # renames the temporary file onto self.path
+        except OSError as e:
+            raise VideoError(f"{self.path}: cannot move the finished video into place: {e}") from e
+
+    def abort(self) -> None:
+        """Drop everything written so far: remove the temporary file, leave ``path`` untouched."""
+        if not self._closed:
+            self._fail()
+
+    def _fail(self) -> None:
+        self._closed = True
+        if self._container is not None:
+            with contextlib.suppress(av.FFmpegError, OSError):
+                self._container.close()
+        # Tell atomic_path the body failed, so that it removes the temporary file instead of renaming.
+        self._stack.__exit__(VideoError, VideoError("aborted"), None)
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+class FrameSource(abc.ABC):
+    """A stream of RGB frames from a video file or an image folder; use it as an iterator.
+
+    Attributes: ``path``; ``width`` and ``height`` in pixels (every frame has this size);
+    ``frame_count`` (None when a video container does not say); ``fps`` (None when unknown, always
+    for an image folder). Close it, or use it as a context manager, to release the file.
+    """
+
+    path: Path
+    width: int
+    height: int
+    frame_count: int | None
+    fps: float | None
+
+    def __iter__(self) -> Self:
+        return self
+
+    @abc.abstractmethod
+    def __next__(self) -> npt.NDArray[np.uint8]: ...
+
+    @abc.abstractmethod
+    def close(self) -> None:
+        """Release the file; iteration then ends."""
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+
+def _stream_fps(stream: Any) -> float | None:
+    tagged = (stream.metadata or {}).get(_RATE_TAG)
+    if tagged:
+        try:
+            rate = Fraction(tagged)
+        except (ValueError, ZeroDivisionError):
+            rate = Fraction(0)
+        if rate > 0:
+            return float(rate)
+    for rate in (stream.average_rate, stream.guessed_rate):
+        if rate is not None and rate > 0:
+            return float(rate)
+    return None
+
+
+class _VideoSource(FrameSource):
+    """Frames decoded one at a time from a file PyAV can open."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        try:
+            self._container: Any = av.open(str(path), mode="r")
+        except av.EOFError as e:
+            # A well-formed header followed by nothing: what a video with zero frames looks like.
+            raise VideoError(f"{path}: contains no frames") from e
+        except (av.FFmpegError, OSError, UnicodeDecodeError) as e:
+            raise VideoError(f"{path}: not a video file PyAV can read") from e
+        try:
+            if not self._container.streams.video:
+                raise VideoError(f"{path}: has no video stream")
+            stream = self._container.streams.video[0]
+            stream.thread_type = "AUTO"
+            self.fps = _stream_fps(stream)
+            self.frame_count = int(stream.frames) if stream.frames and stream.frames > 0 else None
+            self._frames: Iterator[Any] = iter(self._container.decode(stream))
+            self._index = 0
+            # Decode the first frame now, so that an empty or broken file fails here with one clear
+            # line, and so that width and height are those of the frames actually decoded.
+            first = self._decode_next()
+            if first is None:
+                raise VideoError(f"{path}: contains no frames")
+            self.height, self.width = first.shape[:2]
+            self._pending: npt.NDArray[np.uint8] | None = first
+        except BaseException:
+            self._container.close()
+            raise
+
+    def _decode_next(self) -> npt.NDArray[np.uint8] | None:
+        try:
+            frame = next(self._frames)
+            rgb = frame.to_ndarray(format="rgb24")
+        except StopIteration:
+            return None
+        except (av.FFmpegError, OSError, ValueError) as e:
+            raise VideoError(f"{self.path}: decoding frame {self._index} failed: {e}") from e
+        return np.ascontiguousarray(rgb, dtype=np.uint8)
+
+    def __next__(self) -> npt.NDArray[np.uint8]:
+        if self._pending is not None:
+            rgb, self._pending = self._pending, None
+        else:
+            if self._container is None:
+                raise StopIteration
+            decoded = self._decode_next()
+            if decoded is None:
+                self.close()
+                raise StopIteration
+            rgb = decoded
+            if rgb.shape[:2] != (self.height, self.width):
+                h, w = rgb.shape[:2]
+                raise VideoError(
+                    f"{self.path}: frame {self._index} is {w}x{h}, the first frame is {self.width}x{self.height}"
+                )
+        self._index += 1
+        return rgb
+
+    def close(self) -> None:
+        self._pending = None
+        if self._container is not None:
+            self._container.close()
+            self._container = None
+
+
+def _natural_key(name: str) -> tuple[tuple[int | str, ...], str]:
+    """Sort key that orders embedded numbers by value: frame2 < frame10."""
+    parts = re.split(r"(\d+)", name)
+    return tuple(int(p) if i % 2 else p.casefold() for i, p in enumerate(parts)), name
+
+
+def _read_image(file: Path) -> npt.NDArray[np.uint8]:
+    bgr = cv2.imread(str(file), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise VideoError(f"{file}: not an image OpenCV can read")
+    return np.ascontiguousarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), dtype=np.uint8)
+
+
+class _ImageFolderSource(FrameSource):
+    """The images in a folder in natural name order, each read when it is needed."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        try:
+            entries = list(path.iterdir())
+        except OSError as e:
+            raise VideoError(f"{path}: cannot list the folder: {e.strerror or e}") from e
+        self._files = sorted(
+            (f for f in entries if f.suffix.lower() in IMAGE_SUFFIXES and not f.name.startswith(".") and f.is_file()),
+            key=lambda f: _natural_key(f.name),
+        )
+        if not self._files:
+            suffixes = "/".join(sorted(s.lstrip(".").upper() for s in IMAGE_SUFFIXES))
+            raise VideoError(f"{path}: folder holds no images ({suffixes})")
+        self.frame_count = len(self._files)
+        self.fps = None
+        first = _read_image(self._files[0])
+        self.height, self.width = first.shape[:2]
+        self._pending: npt.NDArray[np.uint8] | None = first
+        self._index = 0
+        self._closed = False
+
+    def __next__(self) -> npt.NDArray[np.uint8]:
+        if self._closed or self._index >= len(self._files):
+            raise StopIteration
+        if self._pending is not None:
+            rgb, self._pending = self._pending, None
+        else:
+            file = self._files[self._index]
+            rgb = _read_image(file)
+            if rgb.shape[:2] != (self.height, self.width):
+                h, w = rgb.shape[:2]
+                raise VideoError(
+                    f"{file}: image is {w}x{h}, but the first image {self._files[0].name} is {self.width}x{self.height}"
+                )
+        self._index += 1
+        return rgb
+
+    def close(self) -> None:
+        self._closed = True
+        self._pending = None
+
+
+def open_frames(path: str | Path) -> FrameSource:
+    """Open a video file (anything PyAV reads) or a folder of PNG/JPG/BMP/TIFF images as RGB frames.
+
+    Raises :class:`VideoError` with one line naming the file if it is missing, unreadable, has no
+    video stream or no frames, or (for a folder) if an image differs in size from the first.
+    """
+    p = Path(path)
+    if p.is_dir():
+        return _ImageFolderSource(p)
+    if not p.exists():
+        raise VideoError(f"{p}: no such file or folder")
+    return _VideoSource(p)
