@@ -55,9 +55,12 @@ def _cmd_map_check(args: argparse.Namespace) -> int:
     img = cv2.imread(str(args.image), cv2.IMREAD_GRAYSCALE)
     if img is None:
         raise TagMapError(f"{args.image}: not an image file")
-    import pupil_apriltags
+    from ipt.config.models import DetectorConfig
+    from ipt.receiver.detector import APRILTAG_TO_OPENCV_PX, TagDetector
 
-    found = {int(d.tag_id): np.asarray(d.corners) for d in pupil_apriltags.Detector(families="tag36h11").detect(img)}
+    # The layout uses AprilTag's own pixel convention, so undo the wrapper's shift to OpenCV's.
+    detector = TagDetector(DetectorConfig(max_hamming=0))
+    found = {d.tag_id: d.corners_px - APRILTAG_TO_OPENCV_PX for d in detector.detect(img)}
     wanted = set(tm.by_id)
     hit = wanted & set(found)
     worst = max((float(np.abs(found[i] - np.asarray(tm.by_id[i].corners_px)).max()) for i in hit), default=float("nan"))
@@ -80,12 +83,6 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     n = simulate_to_folder(arena, sim, scene, Path(args.out), args.seconds)  # type: ignore[arg-type]
     print(f"ipt sim: {n} frames -> {args.out}/frames.mkv, camera.yaml, groundtruth.tum")
     return 0
-
-
-def _cmd_eval(args: argparse.Namespace) -> int:
-    from ipt.eval import eval_main
-
-    return eval_main(list(args.rest))
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -169,9 +166,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--content", default="generated", metavar="generated|FILE", help="video content: built-in or a file")
     s.set_defaults(func=_cmd_sim)
 
-    ev = sub.add_parser("eval", help="the paper's error table for poses against ground truth", add_help=False)
-    ev.add_argument("rest", nargs=argparse.REMAINDER)
-    ev.set_defaults(func=_cmd_eval)
+    # 'ipt eval' is dispatched to ipt.eval.eval_main before parsing; listed here for the help text.
+    sub.add_parser("eval", help="the paper's error table for poses against ground truth (see ipt eval --help)")
 
     d = sub.add_parser(
         "demo",
@@ -188,6 +184,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _main(argv: Sequence[str] | None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["eval"]:  # its own parser, with its own --help
+        from ipt.eval import eval_main
+
+        return eval_main(argv[1:])
     args = build_parser().parse_args(argv)
     rc: int = args.func(args)
     return rc

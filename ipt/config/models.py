@@ -99,7 +99,13 @@ class DemodulationConfig(StrictModel):
     """Recovering the tag image from two camera frames (the paper's Algorithm 2 and Section V-A/B)."""
 
     sample_lines: int = Field(3, ge=1, le=64, description="N: columns (and rows) sampled for the alignment.")
-    max_shift_px: int = Field(5, ge=0, le=64, description="b: the largest alignment shift tried, in pixels.")
+    max_shift_px: int | None = Field(
+        None,
+        ge=0,
+        le=64,
+        description="b: the largest alignment shift tried, in pixels. Default: the paper's 5 px at 640 px "
+        "wide, scaled with the image width (motion in pixels grows with resolution).",
+    )
     blur_ksize: int = Field(3, ge=1, le=15, description="Side of the mean filter, in pixels.")
     morph_ksize: int = Field(3, ge=1, le=15, description="Side of the square opening/closing element.")
 

@@ -93,11 +93,23 @@ def _median_u8(img: U8) -> int:
     return int(np.searchsorted(np.cumsum(hist), (img.size + 1) // 2))
 
 
+#: The paper's shift bound b and the image width it was chosen for.
+PAPER_MAX_SHIFT_PX = 5
+PAPER_WIDTH_PX = 640
+
+
+def max_shift_for(cfg: DemodulationConfig, width_px: int) -> int:
+    """The shift bound b for an image ``width_px`` wide (configured, or the paper's scaled to the width)."""
+    if cfg.max_shift_px is not None:
+        return cfg.max_shift_px
+    return max(PAPER_MAX_SHIFT_PX, round(PAPER_MAX_SHIFT_PX * width_px / PAPER_WIDTH_PX))
+
+
 def demodulate(prev_l: U8, now_l: U8, cfg: DemodulationConfig) -> DemodResult:
     """Algorithm 2, steps 4-10, on two lightness images of the same size."""
     if prev_l.shape != now_l.shape or prev_l.dtype != np.uint8 or now_l.dtype != np.uint8:
         raise DemodulationError(f"frames differ: {prev_l.shape} {prev_l.dtype} vs {now_l.shape} {now_l.dtype}")
-    dx, dy = estimate_shift(prev_l, now_l, cfg.sample_lines, cfg.max_shift_px)
+    dx, dy = estimate_shift(prev_l, now_l, cfg.sample_lines, max_shift_for(cfg, now_l.shape[1]))
     diff = aligned_difference(prev_l, now_l, dx, dy)
     norm = cv2.normalize(diff, None, 0, 255, cv2.NORM_MINMAX, dtype=cv2.CV_8U)
     if cfg.blur_ksize > 1:

@@ -7,8 +7,10 @@ Corner order is AprilTag's (see :mod:`ipt.tagmap`), which the tag map uses for i
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -38,6 +40,27 @@ class TagDetection:
     """4x2 corners in OpenCV pixel coordinates, in AprilTag's order."""
 
 
+def _destroy_detector(det: Any) -> None:
+    """Free a pupil-apriltags detector in the order the C library needs.
+
+    pupil-apriltags 1.0.4's ``Detector.__del__`` frees the tag family first and then calls
+    ``apriltag_detector_destroy``, which writes into that freed family (``quick_decode_uninit``): an
+    8-byte use-after-free that valgrind shows and that later aborts the process in an unrelated
+    ``malloc``. We destroy the detector first, then the family, and disarm the library's ``__del__``.
+    """
+    ptr = det.tag_detector_ptr
+    if ptr is None:
+        return
+    det.tag_detector_ptr = None  # makes pupil-apriltags' own __del__ a no-op
+    libc = det.libc
+    libc.apriltag_detector_destroy.restype = None
+    libc.apriltag_detector_destroy(ptr)
+    libc.tag36h11_destroy.restype = None
+    for family in det.tag_families.values():
+        libc.tag36h11_destroy(family)
+    det.tag_families = {}
+
+
 class TagDetector:
     """A configured tag36h11 detector that keeps only ids of the map and trustworthy decodes."""
 
@@ -52,6 +75,11 @@ class TagDetector:
             refine_edges=int(cfg.refine_edges),
             decode_sharpening=cfg.decode_sharpening,
         )
+        self._finalizer = weakref.finalize(self, _destroy_detector, self._det)
+
+    def close(self) -> None:
+        """Free the C detector now (also done when this object is garbage-collected)."""
+        self._finalizer()
 
     def effective_settings(self) -> dict[str, float]:
         """The settings as the C detector holds them (pupil-apriltags may coerce what it is given)."""
