@@ -9,6 +9,16 @@ from collections.abc import Iterator
 from pathlib import Path
 
 
+def _default_file_mode() -> int:
+    """0o666 less the process umask: the mode ``open()`` would give a new file."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+_FILE_MODE = _default_file_mode()
+
+
 @contextlib.contextmanager
 def atomic_path(target: str | Path) -> Iterator[Path]:
     """Yield a temporary path beside ``target``; on success it is renamed onto ``target``.
@@ -19,6 +29,7 @@ def atomic_path(target: str | Path) -> Iterator[Path]:
     parent = t.parent if str(t.parent) else Path(".")
     fd, tmp = tempfile.mkstemp(dir=parent, prefix=f".{t.name}.", suffix=".partial" + t.suffix)
     os.close(fd)
+    os.chmod(tmp, _FILE_MODE)  # mkstemp makes 0600 files; results should be as readable as any other
     tmp_path = Path(tmp)
     try:
         yield tmp_path

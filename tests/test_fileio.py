@@ -1,0 +1,39 @@
+"""Atomic writes: all or nothing, with ordinary permissions."""
+
+from __future__ import annotations
+
+import os
+import stat
+from pathlib import Path
+
+import pytest
+
+from ipt.fileio import atomic_path, write_text_atomic
+
+
+def test_write_text_atomic_creates_file_with_umask_permissions(tmp_path: Path) -> None:
+    target = tmp_path / "out.txt"
+    write_text_atomic(target, "hello\n")
+    assert target.read_text() == "hello\n"
+    mask = os.umask(0)
+    os.umask(mask)
+    assert stat.S_IMODE(target.stat().st_mode) == 0o666 & ~mask
+    assert [p.name for p in tmp_path.iterdir()] == ["out.txt"]
+
+
+def test_failed_body_leaves_previous_file_and_no_temporary(tmp_path: Path) -> None:
+    target = tmp_path / "out.txt"
+    target.write_text("old")
+    with pytest.raises(RuntimeError), atomic_path(target) as tmp:
+        tmp.write_text("half")
+        raise RuntimeError("interrupted")
+    assert target.read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["out.txt"]
+
+
+def test_temporary_path_keeps_the_suffix(tmp_path: Path) -> None:
+    with atomic_path(tmp_path / "fig.png") as tmp:
+        assert tmp.suffix == ".png"
+        assert tmp.parent == tmp_path
+        tmp.write_bytes(b"x")
+    assert (tmp_path / "fig.png").read_bytes() == b"x"
