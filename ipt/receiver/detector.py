@@ -97,6 +97,8 @@ class TagDetector:
         if gray.ndim != 2 or gray.dtype != np.uint8:
             raise DetectorError(f"expected an H×W uint8 image, got {gray.shape} {gray.dtype}")
         out = []
+        h, w = gray.shape
+        m = self.cfg.border_margin_px
         for d in self._det.detect(np.ascontiguousarray(gray)):
             tag_id, hamming = int(d.tag_id), int(d.hamming)
             if hamming > self.cfg.max_hamming:
@@ -104,5 +106,7 @@ class TagDetector:
             if self.known_ids is not None and tag_id not in self.known_ids:
                 continue
             corners = np.asarray(d.corners, dtype=np.float64).reshape(4, 2) + APRILTAG_TO_OPENCV_PX
+            if (corners < m - 0.5).any() or (corners[:, 0] > w - 0.5 - m).any() or (corners[:, 1] > h - 0.5 - m).any():
+                continue
             out.append(TagDetection(tag_id, hamming, float(d.decision_margin), corners))
         return tuple(out)

@@ -1,5 +1,8 @@
 """Pose from tag corners: OpenCV solvePnP (IPPE) over all corners, then the paper's inversion (4).
 
+IPPE's solution is refined by Levenberg-Marquardt on the reprojection error unless ``refine_lm`` is off
+(the paper uses IPPE alone); a tag that fits far worse than the rest is dropped first.
+
 Pure. The result is the camera in the arena: the optical centre in arena metres and the rotation that
 takes camera (OpenCV optical) vectors into the arena frame.
 """
@@ -54,22 +57,45 @@ def correspondences(detections: Sequence[TagDetection], tag_map: TagMap) -> tupl
     return np.concatenate(obj), np.concatenate(img), tuple(ids)
 
 
-def solve_pose(
-    detections: Sequence[TagDetection], tag_map: TagMap, camera: CameraInfo, cfg: PoseConfig
-) -> PoseEstimate | None:
-    """The camera pose from the detected tags, or None if too few tags or the fit is poor."""
-    obj, img, ids = correspondences(detections, tag_map)
-    if len(ids) < cfg.min_tags:
-        return None
+def _fit(obj: F64, img: F64, camera: CameraInfo, refine_lm: bool) -> tuple[F64, F64, F64] | None:
+    """IPPE over all points (then LM if asked); returns (rvec, tvec, per-point reprojection error px)."""
     k, dist = camera.camera_matrix, camera.dist_coeffs
     ok, rvec, tvec = cv2.solvePnP(obj, img, k, dist, flags=cv2.SOLVEPNP_IPPE)
     if not ok:
         return None
+    if refine_lm:
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, k, dist, rvec, tvec)
     proj, _ = cv2.projectPoints(obj, rvec, tvec, k, dist)
-    rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))
-    if not np.isfinite(rms) or rms > cfg.max_reprojection_rms_px:
-        return None
-    r_cam_arena, _ = cv2.Rodrigues(rvec)
-    r_arena_cam = r_cam_arena.T
-    position_m = -r_arena_cam @ tvec.reshape(3)
-    return PoseEstimate(position_m, r_arena_cam, ids, rms)
+    err = np.linalg.norm(proj.reshape(-1, 2) - img, axis=1)
+    return np.asarray(rvec, np.float64), np.asarray(tvec, np.float64), np.asarray(err, np.float64)
+
+
+def solve_pose(
+    detections: Sequence[TagDetection], tag_map: TagMap, camera: CameraInfo, cfg: PoseConfig
+) -> PoseEstimate | None:
+    """The camera pose from the detected tags, or None if too few tags or the fit is poor.
+
+    A tag that fits far worse than the others (a misread corner) is dropped and the pose solved again,
+    one tag at a time.
+    """
+    obj, img, ids = correspondences(detections, tag_map)
+    while len(ids) >= cfg.min_tags:
+        fit = _fit(obj, img, camera, cfg.refine_lm)
+        if fit is None:
+            return None
+        rvec, tvec, err = fit
+        per_tag = np.sqrt(np.mean(err.reshape(-1, 4) ** 2, axis=1))
+        worst = int(np.argmax(per_tag))
+        if len(ids) > 1 and per_tag[worst] > max(cfg.outlier_tag_px, 3.0 * float(np.median(per_tag))):
+            keep = np.repeat(np.arange(len(ids)) != worst, 4)
+            obj, img = obj[keep], img[keep]
+            ids = ids[:worst] + ids[worst + 1 :]
+            continue
+        rms = float(np.sqrt(np.mean(err**2)))
+        if not np.isfinite(rms) or rms > cfg.max_reprojection_rms_px:
+            return None
+        r_cam_arena, _ = cv2.Rodrigues(rvec)
+        r_arena_cam = np.asarray(r_cam_arena, np.float64).T
+        position_m = -r_arena_cam @ tvec.reshape(3)
+        return PoseEstimate(position_m, r_arena_cam, ids, rms)
+    return None
