@@ -1,8 +1,9 @@
-"""``ipt-receiver``: the drone side — replay a recorded flight (the daemon comes with the services)."""
+"""``ipt-receiver``: the drone side — replay a recorded flight, or run the receiver daemon."""
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -23,6 +24,43 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         arena, grid_tag_map(arena), Path(args.camera), Path(args.video), Path(args.output), args.fps, PipelineConfig()
     )
     print(f"ipt-receiver replay: {summary.poses} poses from {summary.frames} frames -> {args.output}")
+    return 0
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value <= 0:
+        raise ValueError(text)
+    return value
+
+
+_positive_int.__name__ = "positive integer"
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from ipt.config.receiver import load_receiver_config, with_overrides
+    from ipt.receiver.daemon import run
+
+    cfg = load_receiver_config(args.config or shipped_config_path("receiver.yaml"))
+    flags = {
+        "arena": None if args.arena is None else Path(args.arena),
+        "camera": None if args.camera is None else Path(args.camera),
+        "source": args.source,
+        "fps": args.fps,
+        "send": args.send,
+        "vehicle_id": args.vehicle_id,
+        "realtime": True if args.realtime else None,
+    }
+    updates = {k: v for k, v in flags.items() if v is not None}
+    if updates:
+        cfg = with_overrides(cfg, **updates)
+    stats = run(cfg, max_frames=args.max_frames)
+    if stats.capture_running:
+        # A read still inside native code (camera driver, renderer) must neither hold up the exit nor
+        # see the C++ runtime torn down under it: leave now, everything worth keeping is written.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
     return 0
 
 
@@ -49,6 +87,28 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--fps", type=float, help="camera frame rate (default: from the video file)")
     r.add_argument("--output", required=True, metavar="POSES.tum", help="where to write the poses")
     r.set_defaults(func=_cmd_replay)
+    d = sub.add_parser(
+        "run",
+        help="the receiver daemon: localise every camera frame and send UDP pose packets",
+        description="Read frames from the simulator, a recording or a V4L2 camera, localise each and send one "
+        "UDP pose packet per pose to every target. Statistics go to stderr every stats_interval_s seconds and "
+        "at exit. Stops on SIGTERM/SIGINT (exit code 0), at the end of a recording, or after --max-frames.",
+    )
+    d.add_argument("--config", metavar="RECEIVER.yaml", help="receiver YAML (default: the shipped receiver.yaml)")
+    d.add_argument("--arena", metavar="ARENA.yaml", help="arena YAML (overrides the config)")
+    d.add_argument("--camera", metavar="CAMERA.yaml", help="ROS camera_info YAML (overrides the config)")
+    d.add_argument("--source", metavar="SOURCE", help="sim, video:PATH or device:N (overrides the config)")
+    d.add_argument("--fps", type=float, metavar="F", help="camera frame rate in Hz (overrides the config)")
+    d.add_argument(
+        "--send",
+        action="append",
+        metavar="HOST:PORT",
+        help="UDP destination of the pose packets; repeat for several (replaces the config's list)",
+    )
+    d.add_argument("--vehicle-id", type=int, metavar="N", help="vehicle id in the packets, 0..65535")
+    d.add_argument("--realtime", action="store_true", help="pace sim/video to the frame rate (a live source)")
+    d.add_argument("--max-frames", type=_positive_int, metavar="N", help="stop after N captured frames")
+    d.set_defaults(func=_cmd_run)
     return p
 
 

@@ -1,0 +1,575 @@
+"""Frame sources of the receiver daemon and the hand-over of their frames to the event loop.
+
+A source (:class:`VideoCapture`, :class:`SimCapture`, :class:`DeviceCapture`) is plain blocking code:
+``open()``, then ``read()`` until it returns ``None`` (end of a recording), then ``close()``. A
+:class:`CaptureThread` runs it on its own thread, so no blocking read ever happens on the event loop,
+and hands each :class:`CapturedFrame` to a bounded :class:`FrameQueue` that the asyncio side reads.
+
+Two queue policies:
+
+- **live** sources (a camera, or a recording or the simulator paced to real time): the newest frame
+  wins. When the queue is full the *oldest* frame is dropped and counted; the camera never waits.
+- a recording read **as fast as possible** (no pacing): the reader waits for room, nothing is dropped.
+
+A source that fails (``read()`` raises, e.g. a camera unplugged) is reported on stderr, closed and
+opened again with exponential backoff; the daemon keeps running. The end of a recording ends the run.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import concurrent.futures
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Generic, Protocol, TextIO, TypeVar
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+from pydantic import ValidationError
+
+from ipt.config.camera_info import CameraInfo
+from ipt.config.models import ArenaConfig, ConfigError
+from ipt.errors import IptError
+from ipt.sim.config import SimCameraConfig, SimConfig
+from ipt.videoio import FrameSource, VideoError, open_frames
+
+if TYPE_CHECKING:  # the simulator plays the projector, so it uses sender code: import it only when used
+    from ipt.sim.arena import SimulatedArena
+
+U8 = npt.NDArray[np.uint8]
+T = TypeVar("T")
+
+Clock = Callable[[], float]
+"""Seconds on a monotonic clock."""
+Sleep = Callable[[float], object]
+"""Blocks for the given seconds (may return early, e.g. ``threading.Event.wait`` on shutdown)."""
+
+
+class CaptureError(IptError):
+    """A frame source cannot be opened or read."""
+
+
+@dataclass(frozen=True)
+class CapturedFrame:
+    """One camera frame as it left the source."""
+
+    index: int
+    """Frame number of the source (0, 1, ...); a gap means frames were lost before capture."""
+    capture_time_us: int
+    """Capture time in microseconds: ``round(k / fps · 1e6)`` for a recording or the simulator, the
+    monotonic clock at grab time for a camera. This is what the pose packet carries."""
+    image_rgb: U8
+    """H×W×3 uint8 RGB."""
+    grabbed_s: float = field(default_factory=time.monotonic)
+    """``time.monotonic()`` when the frame was grabbed (camera) or read (recording, simulator): the start
+    of the capture→send latency."""
+
+
+# --- the queue between the capture thread and the event loop ---------------------------------------
+
+
+class FrameQueue(Generic[T]):
+    """A bounded FIFO for one producer and one consumer on the event loop's thread.
+
+    ``put_newest`` never waits: when full it drops the oldest item and counts it in :attr:`dropped`
+    (the live policy). ``put`` waits for room (the recording policy). ``finish`` says no more items
+    will come: ``get`` then returns what is left and ``None`` after it. Not thread-safe: a thread hands
+    items over with ``loop.call_soon_threadsafe`` / ``asyncio.run_coroutine_threadsafe``.
+    """
+
+    def __init__(self, maxsize: int) -> None:
+        if maxsize < 1:
+            raise ValueError(f"maxsize must be at least 1, got {maxsize}")
+        self.maxsize = maxsize
+        self.dropped = 0
+        self._items: collections.deque[T] = collections.deque()
+        self._finished = False
+        self._not_empty = asyncio.Event()
+        self._not_full = asyncio.Event()
+        self._not_full.set()
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    @property
+    def finished(self) -> bool:
+        """Whether :meth:`finish` was called."""
+        return self._finished
+
+    def put_newest(self, item: T) -> T | None:
+        """Add ``item``; if the queue was full, drop and return the oldest item (counted). After
+        :meth:`finish`, ``item`` itself is discarded (not counted) and returned."""
+        if self._finished:
+            return item
+        dropped: T | None = None
+        if len(self._items) >= self.maxsize:
+            dropped = self._items.popleft()
+            self.dropped += 1
+        self._items.append(item)
+        self._not_empty.set()
+        self._update_full()
+        return dropped
+
+    async def put(self, item: T) -> bool:
+        """Add ``item`` once there is room; ``False`` (and ``item`` discarded) if the queue was finished."""
+        while len(self._items) >= self.maxsize and not self._finished:
+            await self._not_full.wait()
+        if self._finished:
+            return False
+        self._items.append(item)
+        self._not_empty.set()
+        self._update_full()
+        return True
+
+    async def get(self) -> T | None:
+        """The oldest item, waiting for one; ``None`` once the queue is finished and empty."""
+        while not self._items:
+            if self._finished:
+                return None
+            self._not_empty.clear()
+            await self._not_empty.wait()
+        item = self._items.popleft()
+        self._update_full()
+        if not self._items and not self._finished:
+            self._not_empty.clear()
+        return item
+
+    def finish(self, discard: bool = False) -> int:
+        """No more items will be put; wakes every waiter. With ``discard``, drops what is queued (not
+        counted in :attr:`dropped`) and returns how many."""
+        self._finished = True
+        count = 0
+        if discard:
+            count = len(self._items)
+            self._items.clear()
+        self._not_empty.set()
+        self._not_full.set()
+        return count
+
+    def _update_full(self) -> None:
+        if len(self._items) >= self.maxsize:
+            self._not_full.clear()
+        else:
+            self._not_full.set()
+
+
+# --- sources ---------------------------------------------------------------------------------------
+
+
+class CaptureSource(Protocol):
+    """What :class:`CaptureThread` drives. ``read`` returns ``None`` at the end of the stream."""
+
+    name: str
+    live: bool
+    """Frames come at their own pace and the newest wins (else the reader waits for the consumer)."""
+    retry_open: bool
+    """A failure of the first ``open`` is retried (a camera not plugged in yet) instead of fatal."""
+
+    def open(self) -> None: ...
+
+    def read(self) -> CapturedFrame | None: ...
+
+    def close(self) -> None: ...
+
+
+class Pacer:
+    """Sleeps until frame ``k`` is due: ``k / fps`` seconds after the first frame was paced."""
+
+    def __init__(self, fps: float, clock: Clock = time.monotonic, sleep: Sleep = time.sleep) -> None:
+        self.fps, self.clock, self.sleep = fps, clock, sleep
+        self._origin: tuple[float, int] | None = None
+
+    def wait(self, k: int) -> None:
+        """Block until frame ``k`` is due (returns at once if it is late)."""
+        now = self.clock()
+        if self._origin is None:
+            self._origin = (now, k)
+            return
+        start, k0 = self._origin
+        delay = start + (k - k0) / self.fps - now
+        if delay > 0:
+            self.sleep(delay)
+
+
+def capture_time_us(k: int, fps: float) -> int:
+    """Capture time of frame ``k`` of a recording or the simulator, in microseconds."""
+    return round(k / fps * 1e6)
+
+
+class VideoCapture:
+    """Frames of a recording (a video file or an image folder), frame ``k`` captured at ``k / fps``.
+
+    With ``realtime`` the frames are paced to the frame rate and treated as live (newest wins);
+    without, they come as fast as the consumer takes them. After a read error the source is reopened
+    and resumes after the frame that failed.
+    """
+
+    retry_open = False
+
+    def __init__(
+        self,
+        path: str | Path,
+        fps: float | None,
+        realtime: bool,
+        *,
+        size: tuple[int, int] | None = None,
+        clock: Clock = time.monotonic,
+        sleep: Sleep = time.sleep,
+    ) -> None:
+        self.path = Path(path)
+        self.name = f"video:{self.path}"
+        self.live = realtime
+        self.size = size
+        """(width, height) the frames must have, or None to accept any."""
+        self._fps = fps
+        self._clock, self._sleep = clock, sleep
+        self._pacer: Pacer | None = None
+        self._source: FrameSource | None = None
+        self._next = 0
+
+    @property
+    def fps(self) -> float | None:
+        """The frame rate in use (known once opened, unless given)."""
+        return self._fps
+
+    def open(self) -> None:
+        """Open the recording (again), skipping the frames already delivered."""
+        source = open_frames(self.path)
+        try:
+            if self.size is not None and (source.width, source.height) != self.size:
+                w, h = self.size
+                raise CaptureError(f"{self.path}: frames are {source.width}x{source.height} but the camera is {w}x{h}")
+            fps = self._fps if self._fps is not None else source.fps
+            if fps is None or not fps > 0:
+                raise CaptureError(f"{self.path}: the frame rate is unknown; give it with --fps")
+            for _ in range(self._next):  # resume after a failure: skip what was delivered (and the bad frame)
+                try:
+                    if next(source, None) is None:
+                        break
+                except VideoError:  # cannot get past it: reading on ends the recording
+                    break
+        except BaseException:
+            source.close()
+            raise
+        self._fps = fps
+        self._source = source
+        if self.live and self._pacer is None:
+            self._pacer = Pacer(fps, self._clock, self._sleep)
+
+    def read(self) -> CapturedFrame | None:
+        """The next frame, paced if real time; ``None`` at the end of the recording."""
+        if self._source is None or self._fps is None:
+            raise CaptureError(f"{self.path}: read before open")
+        k = self._next
+        self._next += 1  # a frame that fails to decode is skipped when the source is reopened
+        try:
+            image = next(self._source)
+        except StopIteration:
+            return None
+        if self._pacer is not None:
+            self._pacer.wait(k)
+        return CapturedFrame(k, capture_time_us(k, self._fps), image, self._clock())
+
+    def close(self) -> None:
+        """Release the file."""
+        if self._source is not None:
+            self._source.close()
+            self._source = None
+
+
+def sim_camera_from(camera: CameraInfo, fps: float) -> SimCameraConfig:
+    """The simulator's camera with the intrinsics of ``camera`` (so the receiver's model is exact)."""
+    dist = list(camera.distortion)
+    if len(dist) < 5:
+        dist += [0.0] * (5 - len(dist))
+    if any(dist[5:]):
+        raise ConfigError(f"{camera.name}: the simulator models plumb_bob distortion (5 coefficients) only")
+    try:
+        return SimCameraConfig(
+            width_px=camera.width_px,
+            height_px=camera.height_px,
+            fx_px=camera.fx_px,
+            fy_px=camera.fy_px,
+            cx_px=camera.cx_px,
+            cy_px=camera.cy_px,
+            distortion=(dist[0], dist[1], dist[2], dist[3], dist[4]),
+            fps=fps,
+        )
+    except ValidationError as exc:
+        raise ConfigError(f"the simulated camera cannot run this way: {exc.errors()[0]['msg']}") from None
+
+
+class SimCapture:
+    """Frames rendered live by the simulated arena; frame ``k`` is captured at ``k / fps``.
+
+    Rendering is done on the capture thread (building the arena takes a moment, so ``open`` does it).
+    With ``realtime`` frames are paced to the frame rate and treated as live; a renderer slower than
+    the frame rate simply delivers frames later than their time (every frame is rendered, none skipped).
+    """
+
+    retry_open = False
+
+    def __init__(
+        self,
+        arena: ArenaConfig,
+        sim_cfg: SimConfig,
+        fps: float | None = None,
+        realtime: bool = False,
+        *,
+        clock: Clock = time.monotonic,
+        sleep: Sleep = time.sleep,
+    ) -> None:
+        rate = fps if fps is not None else sim_cfg.camera.fps
+        if rate != sim_cfg.camera.fps:
+            try:
+                camera = SimCameraConfig.model_validate({**sim_cfg.camera.model_dump(), "fps": rate})
+            except ValidationError as exc:
+                raise ConfigError(f"the simulated camera cannot run at {rate} FPS: {exc.errors()[0]['msg']}") from None
+            sim_cfg = sim_cfg.model_copy(update={"camera": camera})
+        self.arena, self.sim_cfg, self.fps = arena, sim_cfg, rate
+        self.name = "sim"
+        self.live = realtime
+        self._clock = clock
+        self._pacer = Pacer(rate, clock, sleep) if realtime else None
+        self._world: SimulatedArena | None = None
+        self._next = 0
+
+    def open(self) -> None:
+        """Build the simulated arena (content, modulator, renderer)."""
+        if self._world is not None:
+            return
+        from ipt.sender.content import GeneratedScene
+        from ipt.sim.arena import SimulatedArena
+
+        pr = self.arena.projector
+        scene = GeneratedScene(pr.width_px, pr.height_px, seed=self.sim_cfg.seed)
+        self._world = SimulatedArena(self.arena, self.sim_cfg, scene)
+
+    def read(self) -> CapturedFrame | None:
+        """The next frame (the simulator never ends)."""
+        world = self._world
+        if world is None:
+            raise CaptureError("sim: read before open")
+        k = self._next
+        self._next += 1
+        image = world.render(k).image_rgb
+        if self._pacer is not None:
+            self._pacer.wait(k)
+        return CapturedFrame(k, capture_time_us(k, self.fps), image, self._clock())
+
+    def close(self) -> None:
+        """Nothing to release: the arena is kept for a reopen."""
+
+
+class DeviceCapture:
+    """A V4L2 camera (``/dev/videoN``) through OpenCV; BGR converted to RGB.
+
+    The capture time is the monotonic clock at the moment ``grab`` returned, in microseconds. A camera
+    is always live (newest wins); if it cannot be opened it is retried, like a read failure.
+    """
+
+    live = True
+    retry_open = True
+
+    def __init__(
+        self, index: int, width: int, height: int, fps: float | None, *, clock: Clock = time.monotonic
+    ) -> None:
+        self.index, self.width, self.height, self.fps = index, width, height, fps
+        self.name = f"device:{index}"
+        self._clock = clock
+        self._cap: cv2.VideoCapture | None = None
+        self._count = 0
+
+    def open(self) -> None:
+        """Open the device and ask for the camera's size and rate."""
+        cap = cv2.VideoCapture(self.index, cv2.CAP_V4L2)
+        if not cap.isOpened():
+            cap.release()
+            raise CaptureError(f"/dev/video{self.index}: cannot open the camera")
+        cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.width)
+        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height)
+        if self.fps is not None:
+            cap.set(cv2.CAP_PROP_FPS, self.fps)
+        cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # the newest frame, not a stale one from the driver's queue
+        self._cap = cap
+
+    def read(self) -> CapturedFrame | None:
+        """The next frame; raises :class:`CaptureError` if the camera fails (it is then reopened)."""
+        cap = self._cap
+        if cap is None:
+            raise CaptureError(f"/dev/video{self.index}: read before open")
+        if not cap.grab():
+            raise CaptureError(f"/dev/video{self.index}: grabbing a frame failed")
+        grabbed = self._clock()
+        ok, bgr = cap.retrieve()
+        if not ok or bgr is None:
+            raise CaptureError(f"/dev/video{self.index}: decoding a frame failed")
+        if bgr.ndim != 3 or bgr.shape[:2] != (self.height, self.width):
+            raise CaptureError(
+                f"/dev/video{self.index}: frames are {bgr.shape[1]}x{bgr.shape[0]}, the camera file says "
+                f"{self.width}x{self.height}"
+            )
+        rgb = np.ascontiguousarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), dtype=np.uint8)
+        k = self._count
+        self._count += 1
+        return CapturedFrame(k, round(grabbed * 1e6), rgb, grabbed)
+
+    def close(self) -> None:
+        """Release the device."""
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
+
+
+# --- the capture thread ----------------------------------------------------------------------------
+
+BACKOFF_FIRST_S = 0.1
+BACKOFF_MAX_S = 5.0
+
+
+class CaptureThread:
+    """Runs a source on its own (daemon) thread and hands its frames to a :class:`FrameQueue`.
+
+    Live sources use ``put_newest`` (the oldest frame is dropped when the consumer lags); the others
+    wait for room. The queue is finished when the source ends, after ``max_frames`` frames, or on
+    :meth:`stop`. :attr:`ready` resolves once the source first opened, or with the error of a first
+    open that is not retried.
+    """
+
+    def __init__(
+        self,
+        source: CaptureSource,
+        queue: FrameQueue[CapturedFrame],
+        loop: asyncio.AbstractEventLoop,
+        *,
+        stop: threading.Event | None = None,
+        max_frames: int | None = None,
+        report: TextIO | None = sys.stderr,
+    ) -> None:
+        self.source, self.queue, self.loop = source, queue, loop
+        self.stop_event = stop if stop is not None else threading.Event()
+        self.max_frames = max_frames
+        self.report = report
+        self.frames = 0
+        """Frames delivered to the queue (dropped ones included)."""
+        self.failures = 0
+        """Failed opens and reads."""
+        self.ready: concurrent.futures.Future[None] = concurrent.futures.Future()
+        self._thread = threading.Thread(target=self._run, name=f"ipt-capture-{source.name}", daemon=True)
+
+    def start(self) -> None:
+        """Start the thread."""
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Ask the thread to stop (it ends after the read in progress)."""
+        self.stop_event.set()
+
+    def join(self, timeout: float | None = None) -> bool:
+        """Wait for the thread; whether it has ended."""
+        if self._thread.ident is not None:
+            self._thread.join(timeout)
+        return not self._thread.is_alive()
+
+    def _say(self, text: str) -> None:
+        if self.report is not None:
+            try:
+                self.report.write(f"ipt-receiver: capture: {text}\n")
+                self.report.flush()
+            except (OSError, ValueError):
+                pass
+
+    def _run(self) -> None:
+        delay = BACKOFF_FIRST_S
+        opened = False
+        if self.source.retry_open:
+            self._resolve_ready()  # a camera that is not there yet is retried: the daemon runs meanwhile
+        try:
+            while not self.stop_event.is_set():
+                if not opened:
+                    try:
+                        self.source.open()
+                    except Exception as exc:
+                        self.failures += 1
+                        if not self.ready.done() and not self.source.retry_open:
+                            self._resolve_ready(exc)
+                            return
+                        self._say(f"{self.source.name}: {_describe(exc)}; retrying in {delay:.1f} s")
+                        self.stop_event.wait(delay)
+                        delay = min(2 * delay, BACKOFF_MAX_S)
+                        continue
+                    opened = True
+                    self._resolve_ready()
+                try:
+                    frame = self.source.read()
+                except Exception as exc:
+                    self.failures += 1
+                    self._say(f"{self.source.name}: {_describe(exc)}; reopening in {delay:.1f} s")
+                    self._close_source()
+                    opened = False
+                    self.stop_event.wait(delay)
+                    delay = min(2 * delay, BACKOFF_MAX_S)
+                    continue
+                if frame is None:
+                    break  # the end of a recording
+                delay = BACKOFF_FIRST_S
+                if self.stop_event.is_set() or not self._deliver(frame):
+                    break
+                self.frames += 1
+                if self.max_frames is not None and self.frames >= self.max_frames:
+                    break
+        finally:
+            self._close_source()
+            self._resolve_ready()
+            self._call(self.queue.finish)
+
+    def _resolve_ready(self, exc: BaseException | None = None) -> None:
+        if self.ready.done():
+            return
+        try:
+            if exc is None:
+                self.ready.set_result(None)
+            else:
+                self.ready.set_exception(exc)
+        except concurrent.futures.InvalidStateError:  # cancelled meanwhile: nobody waits for it
+            pass
+
+    def _close_source(self) -> None:
+        try:
+            self.source.close()
+        except Exception as exc:
+            self._say(f"{self.source.name}: closing failed: {_describe(exc)}")
+
+    def _call(self, fn: Callable[[], object]) -> bool:
+        try:
+            self.loop.call_soon_threadsafe(fn)
+        except RuntimeError:  # the loop is closed: nobody is listening any more
+            return False
+        return True
+
+    def _deliver(self, frame: CapturedFrame) -> bool:
+        if self.source.live:
+            return self._call(lambda: self.queue.put_newest(frame))
+        try:
+            fut = asyncio.run_coroutine_threadsafe(self.queue.put(frame), self.loop)
+        except RuntimeError:
+            return False
+        while True:
+            try:
+                return fut.result(timeout=0.1)
+            except TimeoutError:
+                if self.stop_event.is_set():
+                    fut.cancel()
+                    return False
+            except concurrent.futures.CancelledError:
+                return False
+
+
+def _describe(exc: BaseException) -> str:
+    return str(exc) if isinstance(exc, IptError) else f"{type(exc).__name__}: {exc}"

@@ -1,0 +1,407 @@
+"""The receiver daemon: camera frames in, UDP pose packets out, continuously.
+
+Three stages, each on its own thread, joined by bounded queues::
+
+    capture thread ──FrameQueue(queue_size)──▶ event loop ──▶ pipeline thread ──▶ event loop ──▶ UDP
+    (blocking reads;       (live: newest wins,      (submits      (one worker:         (packets,
+     paced if real time)    oldest dropped)          in order)     PaperPipeline)       stats)
+
+- The **capture thread** (:class:`~ipt.receiver.capture.CaptureThread`) does every blocking read and
+  hands frames over; a live source never waits, a recording waits for room.
+- The **event loop** takes frames in capture order and submits them to a single-worker executor that
+  runs :meth:`PaperPipeline.process`, keeping at most :data:`MAX_IN_FLIGHT` frames there: while frame
+  ``k`` is processed, frame ``k + 1`` is already waiting, so the worker never idles for a round trip
+  through the loop, and capture (decode or render) overlaps with processing on another core.
+- **In order**: the pipeline is stateful (each frame is demodulated against the one before), so it
+  must see frames in capture order. It does: one coroutine submits them in the order the FIFO queue
+  yields them, and one worker thread takes them from the executor's FIFO queue one after the other.
+  Results are awaited in submission order too, so packets leave in capture order.
+- Latency is ``time.monotonic()`` right after the packet was sent minus the frame's grab (or read)
+  instant, so it includes the time a frame waited in the queues.
+
+Shutdown (SIGTERM, SIGINT, the end of a recording, or ``--max-frames``): the signal handlers only set
+the stop event; then, within :data:`SHUTDOWN_BUDGET_S`, capture stops, queued frames are dropped,
+frames already submitted get up to :data:`DRAIN_TIMEOUT_S` to finish and be sent, the sockets are
+closed, the read in progress on the capture thread is waited for, and a final statistics line is
+printed. A read that does not end in time (a hung camera driver) is left to its daemon thread and
+reported in :attr:`DaemonStats.capture_running`, on which the command line leaves with ``os._exit``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import signal
+import sys
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Coroutine
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any, TextIO
+
+import numpy as np
+import numpy.typing as npt
+
+from ipt.config.camera_info import CameraInfo, load_camera_info
+from ipt.config.models import ArenaConfig, load_arena_config
+from ipt.config.receiver import ReceiverConfig, read_auth_key
+from ipt.protocol import ProtocolError
+from ipt.receiver.capture import (
+    CapturedFrame,
+    CaptureSource,
+    CaptureThread,
+    DeviceCapture,
+    FrameQueue,
+    SimCapture,
+    VideoCapture,
+    sim_camera_from,
+)
+from ipt.receiver.outputs import PacketMaker, UdpPoseSender
+from ipt.receiver.pipeline import FrameResult, PaperPipeline
+from ipt.sim.config import SimCameraConfig, SimConfig
+from ipt.tagmap import grid_tag_map
+
+MAX_IN_FLIGHT = 2
+"""Frames submitted to the pipeline worker at once (one processing, one waiting)."""
+SHUTDOWN_BUDGET_S = 0.5
+"""How long shutdown may take in all, from the stop to the return (the process must be gone within 1 s)."""
+DRAIN_TIMEOUT_S = 0.4
+"""How long frames already submitted may take to finish at shutdown (within the budget)."""
+MAX_ERROR_REPORTS = 5
+"""Pipeline errors reported in full on stderr; later ones are only counted."""
+
+PROG = "ipt-receiver"
+
+
+class LatencyHistogram:
+    """Latencies in 0.1 ms bins up to 10 s (later ones in the last bin): constant memory, exact enough."""
+
+    BIN_MS = 0.1
+    BINS = 100_000
+
+    def __init__(self) -> None:
+        self.counts: npt.NDArray[np.int64] = np.zeros(self.BINS + 1, np.int64)
+        self.n = 0
+
+    def add(self, seconds: float) -> None:
+        """Count one latency."""
+        i = int(max(seconds, 0.0) * 1e3 / self.BIN_MS)
+        self.counts[min(i, self.BINS)] += 1
+        self.n += 1
+
+    def quantile_ms(self, q: float) -> float | None:
+        """The ``q`` quantile (0..1) in milliseconds (the middle of its bin); None when empty."""
+        if self.n == 0:
+            return None
+        rank = max(1, int(np.ceil(q * self.n)))
+        i = int(np.searchsorted(np.cumsum(self.counts), rank))
+        return (i + 0.5) * self.BIN_MS
+
+    def clear(self) -> None:
+        """Forget every latency."""
+        self.counts.fill(0)
+        self.n = 0
+
+
+def _ms(value: float | None) -> str:
+    return "-" if value is None else f"{value:.1f} ms"
+
+
+@dataclass(frozen=True)
+class DaemonStats:
+    """Totals of one run of the daemon."""
+
+    frames_captured: int
+    """Frames the source delivered (including dropped ones)."""
+    frames_processed: int
+    poses: int
+    packets_sent: int
+    """Datagrams handed to the kernel (one per pose per target)."""
+    send_errors: int
+    drops: int
+    """Frames dropped because processing was behind a live source."""
+    capture_failures: int
+    seconds: float
+    latency_p50_ms: float | None
+    latency_p99_ms: float | None
+    reasons: dict[str, int]
+    capture_running: bool = False
+    """The capture thread was still inside a read (stuck in a driver, say) when the daemon returned. It
+    is a daemon thread; a process about to exit should then leave with ``os._exit`` rather than run
+    native destructors under a thread that is still inside them."""
+
+    @property
+    def yield_fraction(self) -> float:
+        """Poses per processed frame."""
+        return self.poses / self.frames_processed if self.frames_processed else 0.0
+
+    def line(self) -> str:
+        """The final statistics line."""
+        s = max(self.seconds, 1e-9)
+        why = ", ".join(f"{k}={v}" for k, v in sorted(self.reasons.items()))
+        return (
+            f"{PROG}: final: {self.frames_processed} frames ({self.frames_captured} captured), {self.poses} poses, "
+            f"{self.packets_sent} packets in {self.seconds:.2f} s: {self.frames_processed / s:.1f} frames/s, "
+            f"{self.poses / s:.1f} poses/s, yield {100 * self.yield_fraction:.1f} %, "
+            f"latency p50 {_ms(self.latency_p50_ms)} p99 {_ms(self.latency_p99_ms)}, drops {self.drops}, "
+            f"send errors {self.send_errors}, capture failures {self.capture_failures} ({why})"
+        )
+
+
+class _Meter:
+    """Counts kept on the event loop's thread: per interval and for the whole run."""
+
+    def __init__(self) -> None:
+        self.frames = self.poses = 0
+        self.reasons: Counter[str] = Counter()
+        self.latency = LatencyHistogram()
+        self.i_frames = self.i_poses = 0
+        self.i_latency = LatencyHistogram()
+        self.i_start = time.monotonic()
+
+    def frame(self, reason: str) -> None:
+        self.frames += 1
+        self.i_frames += 1
+        self.reasons[reason] += 1
+
+    def pose(self, latency_s: float) -> None:
+        self.poses += 1
+        self.i_poses += 1
+        self.latency.add(latency_s)
+        self.i_latency.add(latency_s)
+
+    def interval_line(self, drops: int, send_errors: int) -> str:
+        now = time.monotonic()
+        span = max(now - self.i_start, 1e-9)
+        yield_ = 100 * self.i_poses / self.i_frames if self.i_frames else 0.0
+        line = (
+            f"{PROG}: {self.i_frames / span:.1f} frames/s, {self.i_poses / span:.1f} poses/s, yield {yield_:.1f} %, "
+            f"latency p50 {_ms(self.i_latency.quantile_ms(0.5))} p99 {_ms(self.i_latency.quantile_ms(0.99))}, "
+            f"drops {drops}, send errors {send_errors} (totals)"
+        )
+        self.i_frames = self.i_poses = 0
+        self.i_latency.clear()
+        self.i_start = now
+        return line
+
+
+def _write(out: TextIO, line: str) -> None:
+    try:
+        out.write(line + "\n")
+        out.flush()
+    except (OSError, ValueError):  # stderr gone (closed pipe): the daemon carries on regardless
+        pass
+
+
+def make_source(cfg: ReceiverConfig, arena: ArenaConfig, camera: CameraInfo, stop: threading.Event) -> CaptureSource:
+    """The frame source ``cfg.source`` describes; its pacing sleeps end early when ``stop`` is set."""
+    spec = cfg.source_spec
+    if spec.kind == "video" and spec.path is not None:
+        size = (camera.width_px, camera.height_px)
+        return VideoCapture(spec.path, cfg.fps, cfg.realtime, size=size, sleep=stop.wait)
+    if spec.kind == "device" and spec.device is not None:
+        return DeviceCapture(spec.device, camera.width_px, camera.height_px, cfg.fps)
+    fps = cfg.fps if cfg.fps is not None else SimCameraConfig().fps
+    sim = SimConfig(camera=sim_camera_from(camera, fps))
+    return SimCapture(arena, sim, fps, cfg.realtime, sleep=stop.wait)
+
+
+def _install_signal_handlers(loop: asyncio.AbstractEventLoop, stop: asyncio.Event) -> list[signal.Signals]:
+    installed = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            loop.add_signal_handler(sig, stop.set)
+        except (NotImplementedError, RuntimeError, ValueError):  # not the main thread, or no signals here
+            continue
+        installed.append(sig)
+    return installed
+
+
+async def run_daemon(
+    cfg: ReceiverConfig,
+    *,
+    stop: asyncio.Event | None = None,
+    stats_out: TextIO | None = None,
+    max_frames: int | None = None,
+    handle_signals: bool = True,
+) -> DaemonStats:
+    """Run the receiver until ``stop`` is set (or SIGTERM/SIGINT), the recording ends or ``max_frames``
+    frames were captured. Statistics go to ``stats_out`` (default: stderr). Configuration problems raise
+    :class:`~ipt.errors.IptError` before any frame is read."""
+    out = stats_out if stats_out is not None else sys.stderr
+    loop = asyncio.get_running_loop()
+    stop = stop if stop is not None else asyncio.Event()
+
+    arena = load_arena_config(cfg.arena)
+    camera = load_camera_info(cfg.camera)
+    key = read_auth_key(cfg.auth_key_file) if cfg.auth_key_file is not None else None
+    pipeline = PaperPipeline(grid_tag_map(arena), camera, cfg.pipeline)
+    capture_stop = threading.Event()
+    source = make_source(cfg, arena, camera, capture_stop)
+
+    frames: FrameQueue[CapturedFrame] = FrameQueue(cfg.queue_size)
+    capture = CaptureThread(source, frames, loop, stop=capture_stop, max_frames=max_frames, report=out)
+    worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ipt-pipeline")
+    sender = UdpPoseSender(cfg.send_targets)
+    maker = PacketMaker(cfg.vehicle_id, key)
+    meter = _Meter()
+    errors_reported = 0
+
+    slots = asyncio.Semaphore(MAX_IN_FLIGHT)
+    results: asyncio.Queue[tuple[CapturedFrame, asyncio.Future[FrameResult]] | None] = asyncio.Queue()
+
+    async def submit() -> None:
+        """Frames from the capture queue to the pipeline worker, in capture order."""
+        try:
+            while True:
+                await slots.acquire()  # before taking a frame, so that a live source's newest one is taken
+                frame = await frames.get()
+                if frame is None:
+                    slots.release()
+                    return
+                fut = loop.run_in_executor(
+                    worker, pipeline.process, frame.index, frame.image_rgb, frame.capture_time_us
+                )
+                results.put_nowait((frame, fut))
+        finally:
+            results.put_nowait(None)
+
+    async def deliver() -> None:
+        """Results in submission order to the UDP targets."""
+        nonlocal errors_reported
+        while True:
+            item = await results.get()
+            if item is None:
+                return
+            frame, fut = item
+            try:
+                result = await fut
+            except Exception as exc:  # a bug or a library failure on one frame: report, count, go on
+                meter.frame("error")
+                if errors_reported < MAX_ERROR_REPORTS:
+                    errors_reported += 1
+                    _write(out, f"{PROG}: frame {frame.index}: processing failed: {type(exc).__name__}: {exc}")
+                continue
+            finally:
+                slots.release()
+            if result.pose is None:
+                meter.frame(result.reason)
+                continue
+            try:
+                data = maker.encode(result.pose, frame.capture_time_us)
+            except ProtocolError:  # e.g. a non-finite position: not sendable
+                meter.frame("bad_pose")
+                continue
+            meter.frame(result.reason)
+            sender.send(data)
+            meter.pose(time.monotonic() - frame.grabbed_s)
+
+    async def report_stats() -> None:
+        while True:
+            await asyncio.sleep(cfg.stats_interval_s)
+            _write(out, meter.interval_line(frames.dropped, sender.errors))
+
+    tasks: set[asyncio.Task[None]] = set()
+
+    def spawn(coro: Coroutine[Any, Any, None], name: str) -> asyncio.Task[None]:
+        task = loop.create_task(coro, name=name)
+        tasks.add(task)
+        task.add_done_callback(tasks.discard)
+        return task
+
+    handled = _install_signal_handlers(loop, stop) if handle_signals else []
+    stop_wait = spawn(_wait_event(stop), "ipt-stop")
+    deliver_task: asyncio.Task[None] | None = None
+    start = time.monotonic()
+    try:
+        await sender.open()
+        capture.start()
+        ready = asyncio.wrap_future(capture.ready)
+        await asyncio.wait({ready, stop_wait}, return_when=asyncio.FIRST_COMPLETED)
+        if not ready.done():
+            ready.cancel()
+        else:
+            ready.result()  # raises the error of a first open that is not retried (bad video file, ...)
+            start = meter.i_start = time.monotonic()
+            auth = ", authenticated" if key is not None else ""
+            _write(
+                out,
+                f"{PROG}: running: {source.name}{' (live)' if source.live else ''}, camera "
+                f"{camera.width_px}x{camera.height_px}, vehicle {cfg.vehicle_id} -> {', '.join(cfg.send)}{auth}",
+            )
+            spawn(submit(), "ipt-submit")
+            deliver_task = spawn(deliver(), "ipt-deliver")
+            spawn(report_stats(), "ipt-stats")
+            await asyncio.wait({deliver_task, stop_wait}, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        deadline = time.monotonic() + SHUTDOWN_BUDGET_S
+        await _shutdown(capture, frames, deliver_task, tasks, sender, deadline)
+        worker.shutdown(wait=False, cancel_futures=True)
+        # The read in progress (a render, a decode, a camera grab) ends by itself; wait for it within the
+        # budget. If it does not end, the thread is a daemon thread and `capture_running` tells the caller.
+        capture.join(max(0.0, deadline - time.monotonic()))
+        for sig in handled:
+            loop.remove_signal_handler(sig)
+
+    if deliver_task is not None and not deliver_task.cancelled() and deliver_task.exception() is not None:
+        raise RuntimeError("the delivery stage failed") from deliver_task.exception()
+    stats = DaemonStats(
+        frames_captured=capture.frames,
+        frames_processed=meter.frames,
+        poses=meter.poses,
+        packets_sent=sender.sent,
+        send_errors=sender.errors,
+        drops=frames.dropped,
+        capture_failures=capture.failures,
+        seconds=time.monotonic() - start,
+        latency_p50_ms=meter.latency.quantile_ms(0.5),
+        latency_p99_ms=meter.latency.quantile_ms(0.99),
+        reasons=dict(meter.reasons),
+        capture_running=not capture.join(0),
+    )
+    _write(out, stats.line())
+    if sender.last_error is not None:
+        _write(out, f"{PROG}: last send error: {sender.last_error}")
+    return stats
+
+
+async def _wait_event(event: asyncio.Event) -> None:
+    await event.wait()
+
+
+async def _shutdown(
+    capture: CaptureThread,
+    frames: FrameQueue[CapturedFrame],
+    deliver_task: asyncio.Task[None] | None,
+    tasks: set[asyncio.Task[None]],
+    sender: UdpPoseSender,
+    deadline: float,
+) -> None:
+    """Ordered: stop capture, drop queued frames, let submitted ones finish (bounded), close sockets."""
+    capture.stop()
+    frames.finish(discard=True)
+    if deliver_task is not None and not deliver_task.done():
+        await asyncio.wait({deliver_task}, timeout=max(0.0, min(DRAIN_TIMEOUT_S, deadline - time.monotonic())))
+    for task in list(tasks):
+        task.cancel()
+    if tasks:
+        await asyncio.gather(*tasks, return_exceptions=True)
+    await sender.close()
+
+
+def _loop_factory() -> Callable[[], asyncio.AbstractEventLoop] | None:
+    try:
+        import uvloop
+    except ImportError:  # not on every platform: the standard loop is fine
+        return None
+    return uvloop.new_event_loop
+
+
+def run(cfg: ReceiverConfig, *, max_frames: int | None = None) -> DaemonStats:
+    """Run the daemon on a fresh event loop (uvloop when installed) until it stops."""
+    with asyncio.Runner(loop_factory=_loop_factory()) as runner:
+        return runner.run(run_daemon(cfg, max_frames=max_frames))
+
+
+__all__ = ["DaemonStats", "LatencyHistogram", "make_source", "run", "run_daemon"]
