@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ipt.config.models import ArenaConfig
+from ipt.config.models import ArenaConfig, finite_float
 from ipt.errors import IptError
 from ipt.fileio import atomic_path, write_text_atomic
 
@@ -237,9 +237,10 @@ def _float_list(path: Path, where: str, value: Any, n: int) -> tuple[float, ...]
         raise TagMapError(f"{path}: {where}: expected a list of {n} numbers")
     out = []
     for v in value:
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-            raise TagMapError(f"{path}: {where}: expected finite numbers, got {v!r}")
-        out.append(float(v))
+        number = finite_float(v)
+        if number is None:
+            raise TagMapError(f"{path}: {where}: expected finite numbers, got {v!r:.40}")
+        out.append(number)
     return tuple(out)
 
 
@@ -258,7 +259,14 @@ def load_layout(path: str | Path) -> TagMap:
         raise TagMapError(f"{p}: expected an object with 'projector' and 'tags'")
     proj = data["projector"]
     w, h = proj.get("width_px"), proj.get("height_px")
-    if not isinstance(w, int) or not isinstance(h, int) or w <= 0 or h <= 0:
+    if (
+        isinstance(w, bool)
+        or isinstance(h, bool)
+        or not isinstance(w, int)
+        or not isinstance(h, int)
+        or w <= 0
+        or h <= 0
+    ):
         raise TagMapError(f"{p}: projector: width_px and height_px must be positive integers")
     raw_tags = data.get("tags")
     if not isinstance(raw_tags, list) or not raw_tags:

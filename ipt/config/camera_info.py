@@ -5,7 +5,6 @@ Pixel coordinates follow OpenCV: the centre of the top-left pixel is (0, 0).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -14,7 +13,7 @@ import numpy as np
 import numpy.typing as npt
 import yaml
 
-from ipt.config.models import read_yaml_mapping
+from ipt.config.models import finite_float, read_yaml_mapping
 from ipt.errors import IptError
 from ipt.fileio import write_text_atomic
 
@@ -89,9 +88,10 @@ def _matrix(path: Path, data: dict[str, Any], key: str, shapes: set[tuple[int, i
         raise CameraInfoError(f"{path}: {key}: {rows}x{cols} needs {rows * cols} values, got {len(values)}")
     out = []
     for v in values:
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(float(v)):
-            raise CameraInfoError(f"{path}: {key}: every value must be a finite number, got {v!r}")
-        out.append(float(v))
+        number = finite_float(v)
+        if number is None:
+            raise CameraInfoError(f"{path}: {key}: every value must be a finite number, got {v!r:.40}")
+        out.append(number)
     return out
 
 
@@ -99,9 +99,9 @@ def load_camera_info(path: str | Path) -> CameraInfo:
     """Read a ROS camera_info YAML file. Raises :class:`CameraInfoError` naming the file and the problem."""
     p = Path(path)
     data = read_yaml_mapping(p, CameraInfoError)
-    unknown = sorted(set(data) - _ROS_KEYS)
+    unknown = sorted(repr(k) for k in set(data) - _ROS_KEYS)
     if unknown:
-        raise CameraInfoError(f"{p}: unknown key(s) {', '.join(map(str, unknown))} (not a camera_info file?)")
+        raise CameraInfoError(f"{p}: unknown key(s) {', '.join(unknown)} (not a camera_info file?)")
     for key in ("image_width", "image_height"):
         v = data.get(key)
         if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 65536:

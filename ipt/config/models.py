@@ -6,6 +6,7 @@ instead of silently ignored.
 
 from __future__ import annotations
 
+import math
 from importlib import resources
 from pathlib import Path
 from typing import Any, Literal, TypeVar
@@ -156,6 +157,17 @@ class PipelineConfig(StrictModel):
     pose: PoseConfig = Field(default_factory=PoseConfig, description="Pose estimation.")
 
 
+def finite_float(value: object) -> float | None:
+    """``value`` as a float if it is a real number that fits one (not bool, not inf/nan), else None."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    try:
+        number = float(value)
+    except OverflowError:  # an integer too large for a float
+        return None
+    return number if math.isfinite(number) else None
+
+
 M = TypeVar("M", bound=BaseModel)
 
 
@@ -163,6 +175,8 @@ def _describe_validation_error(exc: ValidationError) -> str:
     parts = []
     for err in exc.errors():
         where = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        if not where.isprintable():
+            where = repr(where)
         msg = err["msg"]
         if err["type"] == "extra_forbidden":
             msg = "unknown key"

@@ -40,7 +40,7 @@ class TagDetection:
     """4x2 corners in OpenCV pixel coordinates, in AprilTag's order."""
 
 
-def _destroy_detector(det: Any) -> None:
+def free_pupil_detector(det: Any) -> None:
     """Free a pupil-apriltags detector in the order the C library needs.
 
     pupil-apriltags 1.0.4's ``Detector.__del__`` frees the tag family first and then calls
@@ -75,7 +75,9 @@ class TagDetector:
             refine_edges=int(cfg.refine_edges),
             decode_sharpening=cfg.decode_sharpening,
         )
-        self._finalizer = weakref.finalize(self, _destroy_detector, self._det)
+        self._finalizer = weakref.finalize(self, free_pupil_detector, self._det)
+        # pupil-apriltags 1.0.4 stores int(decode_sharpening), so 0.25 would reach the C detector as 0.
+        self._det.tag_detector_ptr.contents.decode_sharpening = cfg.decode_sharpening
 
     def close(self) -> None:
         """Free the C detector now (also done when this object is garbage-collected)."""

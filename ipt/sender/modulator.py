@@ -33,7 +33,8 @@ def phase_sign(output_index: int) -> int:
 
 def frames_per_input(input_rate_hz: float, output_rate_hz: float) -> int:
     """N = f_o / f_i, which Algorithm 1 needs to be a whole number."""
-    ratio = Fraction(output_rate_hz).limit_denominator(1000) / Fraction(input_rate_hz).limit_denominator(1000)
+    # 1001 keeps NTSC rates exact: 60000/1001 over 30000/1001 is 2.
+    ratio = Fraction(output_rate_hz).limit_denominator(1001) / Fraction(input_rate_hz).limit_denominator(1001)
     if ratio.denominator != 1 or ratio < 1:
         raise ModulationError(
             f"output rate {output_rate_hz:g} Hz is not a whole multiple of the input rate {input_rate_hz:g} Hz"
