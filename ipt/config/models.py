@@ -107,14 +107,27 @@ class DemodulationConfig(StrictModel):
         description="b: the largest alignment shift tried, in pixels. Default: the paper's 5 px at 640 px "
         "wide, scaled with the image width (motion in pixels grows with resolution).",
     )
-    blur_ksize: int = Field(3, ge=1, le=15, description="Side of the mean filter, in pixels.")
-    morph_ksize: int = Field(3, ge=1, le=15, description="Side of the square opening/closing element.")
+    blur_ksize: int | None = Field(
+        None,
+        ge=1,
+        le=31,
+        description="Side of the mean filter, in pixels. Default: 5 at 640 px wide, scaled with the width "
+        "(odd). The paper names the filter but not its size.",
+    )
+    morph_ksize: int | None = Field(
+        None,
+        ge=1,
+        le=31,
+        description="Side of the square opening/closing element. Default: as for blur_ksize.",
+    )
 
 
 class DetectorConfig(StrictModel):
     """AprilTag 3 (pupil-apriltags) settings."""
 
-    quad_decimate: float = Field(1.0, ge=1.0, le=8.0, description="Decimation before quad detection.")
+    quad_decimate: float = Field(
+        2.0, ge=1.0, le=8.0, description="Decimation before quad detection (edges are refined at full size)."
+    )
     quad_sigma: float = Field(0.0, ge=0.0, le=5.0, description="Gaussian blur sigma before quad detection.")
     refine_edges: bool = Field(True, description="Snap quad edges to strong gradients.")
     decode_sharpening: float = Field(0.25, ge=0.0, le=2.0, description="Sharpening of decoded images.")
@@ -131,21 +144,30 @@ class DetectorConfig(StrictModel):
 class PoseConfig(StrictModel):
     """Pose from tag corners (OpenCV solvePnP with IPPE)."""
 
-    min_tags: int = Field(1, ge=1, le=64, description="Fewest tags a pose may rest on.")
+    min_tags: int = Field(
+        2,
+        ge=1,
+        le=64,
+        description="Fewest tags a pose may rest on. One small tag leaves the tilt ambiguous (IPPE's two "
+        "solutions): on the simulated flight 37 % of single-tag poses were more than 5 cm off.",
+    )
     refine_lm: bool = Field(
         True,
         description="Refine IPPE's solution by Levenberg-Marquardt on the reprojection error. OpenCV's IPPE "
         "fits a homography to all points and does not minimise reprojection error; on the simulated "
         "arena refinement cuts the position error of a single frame from centimetres to millimetres.",
     )
-    max_reprojection_rms_px: float = Field(
-        3.0, gt=0, description="Poses whose corner reprojection RMS exceeds this are rejected."
+    max_reprojection_rms_px: float | None = Field(
+        None,
+        gt=0,
+        description="Poses whose corner reprojection RMS exceeds this are rejected. Default: 1.5 px at 640 px "
+        "wide, scaled with the width (corner noise from binarisation grows with the filter sizes).",
     )
-    outlier_tag_px: float = Field(
-        2.0,
+    outlier_tag_px: float | None = Field(
+        None,
         gt=0,
         description="A tag whose own reprojection RMS exceeds this (and three times the median) is dropped "
-        "and the pose solved again without it.",
+        "and the pose solved again without it. Default: 2 px at 640 px wide, scaled with the width.",
     )
 
 

@@ -24,6 +24,9 @@ from ipt.tagmap import TagMap
 
 F64 = npt.NDArray[np.float64]
 
+#: Image width the pixel thresholds' defaults are stated for (the paper's 640x360).
+REFERENCE_WIDTH_PX = 640
+
 
 @dataclass(frozen=True)
 class PoseEstimate:
@@ -79,6 +82,9 @@ def solve_pose(
     one tag at a time.
     """
     obj, img, ids = correspondences(detections, tag_map)
+    scale = camera.width_px / REFERENCE_WIDTH_PX
+    max_rms = cfg.max_reprojection_rms_px if cfg.max_reprojection_rms_px is not None else 1.5 * scale
+    outlier_px = cfg.outlier_tag_px if cfg.outlier_tag_px is not None else 2.0 * scale
     while len(ids) >= cfg.min_tags:
         fit = _fit(obj, img, camera, cfg.refine_lm)
         if fit is None:
@@ -86,13 +92,13 @@ def solve_pose(
         rvec, tvec, err = fit
         per_tag = np.sqrt(np.mean(err.reshape(-1, 4) ** 2, axis=1))
         worst = int(np.argmax(per_tag))
-        if len(ids) > 1 and per_tag[worst] > max(cfg.outlier_tag_px, 3.0 * float(np.median(per_tag))):
+        if len(ids) > 1 and per_tag[worst] > max(outlier_px, 3.0 * float(np.median(per_tag))):
             keep = np.repeat(np.arange(len(ids)) != worst, 4)
             obj, img = obj[keep], img[keep]
             ids = ids[:worst] + ids[worst + 1 :]
             continue
         rms = float(np.sqrt(np.mean(err**2)))
-        if not np.isfinite(rms) or rms > cfg.max_reprojection_rms_px:
+        if not np.isfinite(rms) or rms > max_rms:
             return None
         r_cam_arena, _ = cv2.Rodrigues(rvec)
         r_arena_cam = np.asarray(r_cam_arena, np.float64).T
