@@ -1,0 +1,108 @@
+"""Sender throughput with the AR overlay: output frames/s, frame-work p50/p99 and missed deadlines.
+
+Runs the real sender loop (generated map content, modulation, 8 vehicles drawn on the overlay) into the
+null sink, paced at the projector rate, for ``--seconds`` of wall time (SIGINT stops it early). The
+vehicles are fed straight to the :class:`~ipt.sender.scene.ArScene` at 30 Hz (no UDP): each circles the
+arena centre at its own radius and speed, nose along its path. The shipped arena is used with the
+projector size replaced by ``--width``/``--height`` (tags scaled to fit; the floor size is unchanged).
+Prints one JSON object.
+
+    ./dev run python benchmarks/sender.py                                  # 1920x2160, 30 s
+    ./dev run python benchmarks/sender.py --width 960 --height 1080 --seconds 30
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import os
+import sys
+import time
+from typing import Any
+
+from ipt.config.models import ArenaConfig, load_arena_config, shipped_config_path
+from ipt.geometry import R_BODY_CAM_DOWNWARD, quat_wxyz_from_matrix, rot_z
+from ipt.protocol import PosePacket
+from ipt.sender.content import GeneratedScene
+from ipt.sender.display import NullSink
+from ipt.sender.scene import ArScene
+from ipt.sender.server import run_sender
+
+POSE_RATE_HZ = 30.0
+
+
+def arena_for(width: int, height: int) -> ArenaConfig:
+    """The shipped arena at another projector size, with the tags scaled by the same factor."""
+    data: dict[str, Any] = load_arena_config(shipped_config_path("arena.yaml")).model_dump()
+    scale = min(width / data["projector"]["width_px"], height / data["projector"]["height_px"])
+    data["projector"].update(width_px=width, height_px=height)
+    data["tag_map"]["tag_size_px"] = max(16, int(data["tag_map"]["tag_size_px"] * scale) // 8 * 8)
+    return ArenaConfig.model_validate(data)
+
+
+async def feed_vehicles(ar: ArScene, count: int, stop: asyncio.Event) -> int:
+    """Update ``count`` vehicles at POSE_RATE_HZ until ``stop``; returns the number of poses fed."""
+    fed, seq, t0 = 0, 0, time.monotonic()
+    while not stop.is_set():
+        t = time.monotonic() - t0
+        seq += 1
+        for k in range(count):
+            radius = 0.25 + 0.1 * k
+            omega = (0.4 + 0.1 * k) * (1 if k % 2 else -1)
+            angle = omega * t + k * 2 * math.pi / count
+            yaw = angle + math.copysign(math.pi / 2, omega)  # along the path
+            quat = quat_wxyz_from_matrix(rot_z(yaw) @ R_BODY_CAM_DOWNWARD)
+            position = (radius * math.cos(angle), radius * math.sin(angle), 1.2)
+            ar.update(PosePacket(k + 1, seq, int(t * 1e6), position, tuple(quat.tolist())), time.monotonic())
+            fed += 1
+        await asyncio.sleep(1 / POSE_RATE_HZ)
+    return fed
+
+
+async def bench(width: int, height: int, seconds: float, vehicles: int) -> dict[str, Any]:
+    arena = arena_for(width, height)
+    ar = ArScene(arena)
+    scene = GeneratedScene(width, height)
+    stop = asyncio.Event()
+    feeder = asyncio.create_task(feed_vehicles(ar, vehicles, stop))
+    load_before = os.getloadavg()
+    asyncio.get_running_loop().call_later(seconds, stop.set)
+    try:
+        stats = await run_sender(arena, NullSink(), scene, listen=None, ar_scene=ar, stats_every_s=5.0, stop=stop)
+    finally:
+        stop.set()
+        fed = await feeder
+    return {
+        "benchmark": "sender",
+        "vehicles": vehicles,
+        "poses_fed": fed,
+        **stats.to_dict(),
+        "cpu_count": os.cpu_count(),
+        "load_avg_1min_before": round(load_before[0], 2),
+        "load_avg_1min_after": round(os.getloadavg()[0], 2),
+    }
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0] if __doc__ else None)
+    p.add_argument("--width", type=int, default=1920)
+    p.add_argument("--height", type=int, default=2160)
+    p.add_argument("--seconds", type=float, default=30.0)
+    p.add_argument("--vehicles", type=int, default=8)
+    args = p.parse_args()
+    try:
+        import uvloop
+    except ImportError:
+        result = asyncio.run(bench(args.width, args.height, args.seconds, args.vehicles))
+    else:
+        with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
+            result = runner.run(bench(args.width, args.height, args.seconds, args.vehicles))
+    json.dump(result, sys.stdout, indent=1)
+    print()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,183 @@
+"""``ipt-sender``: project the video with the hidden tags, and draw the drones it hears about on it."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+from collections.abc import Callable, Coroutine, Sequence
+from pathlib import Path
+from typing import Any, TypeVar
+
+from ipt import __version__
+from ipt.cliutil import Parser, run_main
+from ipt.config.models import ArenaConfig, load_arena_config, shipped_config_path
+from ipt.errors import IptError
+
+DEFAULT_ARENA = shipped_config_path("arena.yaml")
+T = TypeVar("T")
+
+
+class SenderCliError(IptError):
+    """A file named on the command line cannot be used."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``ipt-sender`` argument parser."""
+    p = Parser(
+        prog="ipt-sender",
+        description="The IPT sender: hide the arena's AprilTag map in a video as a lightness flicker at the "
+        "projector rate and show it (full screen, to a file, or nowhere for a benchmark). It listens for the "
+        "drones' pose packets and draws each drone, its heading and its trail on the video.",
+        epilog="Without --video or --image the built-in map-app animation is shown. Statistics go to stderr "
+        "every few seconds and when it stops (SIGINT or SIGTERM); the last line holds missed=<deadlines>.",
+    )
+    p.add_argument("--version", action="version", version=f"ipt-sender {__version__}")
+    p.add_argument("--config", metavar="ARENA.yaml", help=f"arena YAML (default: the shipped {DEFAULT_ARENA.name})")
+    content = p.add_mutually_exclusive_group()
+    content.add_argument("--video", metavar="IN", help="input video file or image folder, played in a loop")
+    content.add_argument("--image", metavar="IN", help="a still image to show")
+    p.add_argument(
+        "--sink",
+        choices=("window", "file", "null"),
+        default="window",
+        help="window: full screen with vsync (needs pygame-ce); file: lossless FFV1 to --output, as fast as "
+        "possible; null: discard (benchmarks). Default: window",
+    )
+    p.add_argument("--output", metavar="OUT.mkv", help="the video file of --sink file")
+    p.add_argument("--frames", type=int, metavar="N", help="stop after N output frames (default: run until stopped)")
+    p.add_argument(
+        "--listen",
+        metavar="HOST:PORT",
+        help="UDP address for pose packets (default 127.0.0.1:9870; with --sink file only when given)",
+    )
+    p.add_argument("--auth-key-file", metavar="F", help="accept only packets authenticated with this key")
+    p.add_argument("--vehicles", type=int, nargs="+", metavar="ID", help="accept packets from these vehicle ids only")
+    p.add_argument("--display", type=int, default=0, metavar="N", help="display index of --sink window (default 0)")
+    p.add_argument("--windowed", action="store_true", help="--sink window in a window rather than full screen")
+    p.add_argument("--stats-every", type=float, default=5.0, metavar="S", help="statistics interval (default 5 s)")
+    return p
+
+
+def _read_key(path: str) -> bytes:
+    """The key file's bytes, without one trailing line break (keys are often written with ``echo``)."""
+    try:
+        key = Path(path).read_bytes()
+    except OSError as exc:
+        raise SenderCliError(f"{path}: cannot read the key file ({exc.strerror or exc})") from None
+    for ending in (b"\r\n", b"\n"):
+        if key.endswith(ending):
+            return key[: -len(ending)]
+    return key
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise SenderCliError(f"{path}: not an image OpenCV can read")
+    return int(img.shape[1]), int(img.shape[0])
+
+
+def _scene(args: argparse.Namespace, arena: ArenaConfig) -> Any:
+    from ipt.sender.content import GeneratedScene, StillImageScene, VideoScene
+    from ipt.videoio import open_frames
+
+    w, h = arena.projector.width_px, arena.projector.height_px
+    if args.video is not None:
+        with open_frames(args.video) as source:
+            size = (source.width, source.height)
+        if size != (w, h):
+            print(f"ipt-sender: input video is {size[0]}x{size[1]}; frames are resized to {w}x{h}", file=sys.stderr)
+        return VideoScene(args.video, w, h)
+    if args.image is not None:
+        size = _image_size(Path(args.image))
+        if size != (w, h):
+            print(f"ipt-sender: input image is {size[0]}x{size[1]}; it is resized to {w}x{h}", file=sys.stderr)
+        return StillImageScene.from_file(args.image, w, h)
+    return GeneratedScene(w, h)
+
+
+def _run(make: Callable[[], Coroutine[Any, Any, T]]) -> T:
+    """Run a coroutine on uvloop where it is available, else on asyncio's own loop."""
+    try:
+        import uvloop
+    except ImportError:
+        return asyncio.run(make())
+    with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
+        return runner.run(make())
+
+
+def _main(argv: Sequence[str] | None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.sink == "file" and args.output is None:
+        parser.error("--sink file needs --output OUT.mkv")
+    if args.sink != "file" and args.output is not None:
+        parser.error("--output is only for --sink file")
+    if args.frames is not None and args.frames < 1:
+        parser.error(f"--frames must be at least 1, got {args.frames}")
+    if not args.stats_every > 0:
+        parser.error(f"--stats-every must be positive, got {args.stats_every}")
+
+    from ipt.protocol import PacketFilter
+    from ipt.sender.display import make_sink
+    from ipt.sender.modulator import frames_per_input
+    from ipt.sender.scene import ArScene
+    from ipt.sender.server import DEFAULT_LISTEN, parse_listen, run_sender
+
+    arena = load_arena_config(args.config if args.config is not None else DEFAULT_ARENA)
+    pr, mod = arena.projector, arena.modulation
+    n = frames_per_input(mod.input_rate_hz, pr.rate_hz)
+    if args.listen is not None:
+        listen: tuple[str, int] | None = parse_listen(args.listen)
+    else:
+        listen = None if args.sink == "file" else DEFAULT_LISTEN
+    key = _read_key(args.auth_key_file) if args.auth_key_file is not None else None
+    packet_filter = PacketFilter(key=key, vehicle_ids=args.vehicles, resync_after_s=10.0)
+    scene = _scene(args, arena)
+    sink = make_sink(
+        args.sink,
+        output=args.output,
+        fps=pr.rate_hz,
+        width=pr.width_px,
+        height=pr.height_px,
+        display_index=args.display,
+        fullscreen=not args.windowed,
+    )
+    print(
+        f"ipt-sender: {pr.width_px}x{pr.height_px} at {pr.rate_hz:g} Hz, input {mod.input_rate_hz:g} Hz "
+        f"(N={n}), ΔL {mod.delta_l:g}, sink {args.sink} ({'paced' if sink.paced else 'as fast as possible'})"
+        + ("" if key is None else ", authenticated packets only"),
+        file=sys.stderr,
+    )
+    try:
+        stats = _run(
+            lambda: run_sender(
+                arena,
+                sink,
+                scene,
+                frames=args.frames,
+                listen=listen,
+                packet_filter=packet_filter,
+                ar_scene=ArScene(arena),
+                stats_every_s=args.stats_every,
+            )
+        )
+    finally:
+        close = getattr(scene, "close", None)
+        if close is not None:
+            close()
+    if args.sink == "file":
+        print(f"ipt-sender: wrote {stats.frames} frames -> {args.output}")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``ipt-sender``."""
+    return run_main("ipt-sender", _main, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,253 @@
+"""Where the sender's output frames go: a window on a projector, a video file, or nowhere.
+
+Every sink has ``show(frame_rgb, index)`` (one H×W×3 uint8 RGB output frame; ``index`` is the output
+frame number j) and ``close()``, and says whether the sender should pace it at the output rate
+(``paced``) and whether ``show`` may block long enough to be run off the event loop (``threaded``).
+
+- :class:`NullSink` discards the frames (benchmarks, dry runs); paced.
+- :class:`FileSink` writes exactly the frames given to a lossless FFV1 file (:class:`ipt.videoio.FfvWriter`);
+  not paced: the sender renders as fast as it can.
+- :class:`WindowSink` shows them full screen on one display with pygame-ce, vsync on; paced. pygame-ce
+  is an optional dependency (``pip install 'ipt[display]'``), imported only when a window sink is made.
+  All its SDL calls happen on the thread that calls ``show`` and ``close`` (the sender uses one thread).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import warnings
+from pathlib import Path
+from typing import Any, Final, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from ipt.errors import IptError
+from ipt.videoio import FfvWriter
+
+U8 = npt.NDArray[np.uint8]
+
+SINK_NAMES: Final = ("window", "file", "null")
+
+
+class DisplayError(IptError):
+    """A sink cannot be opened or cannot take a frame."""
+
+
+class Sink(Protocol):
+    """Destination of output frames."""
+
+    name: str
+    paced: bool
+    """The sender should hand over frame j at its due time start + j / f_o (else: as fast as possible)."""
+    threaded: bool
+    """``show`` and ``close`` may block: call them from a worker thread, not the event loop."""
+    close_timeout_s: float
+    """How long the sender waits for ``close`` when stopping (a file must be completed)."""
+
+    def show(self, frame_rgb: U8, index: int) -> None:
+        """Output frame ``index``."""
+        ...
+
+    def close(self) -> None:
+        """Finish: everything shown so far is kept (a file is completed). Calling it again does nothing."""
+        ...
+
+    def abort(self) -> None:
+        """Give up after an error: release everything, keep nothing half-done."""
+        ...
+
+    @property
+    def quit_requested(self) -> bool:
+        """The user asked to stop through the sink itself (e.g. closed the window)."""
+        ...
+
+
+class NullSink:
+    """Discards every frame; counts them."""
+
+    name = "null"
+    paced = True
+    threaded = False
+    close_timeout_s = 0.1
+
+    def __init__(self) -> None:
+        self.frames_shown = 0
+        self.last_index: int | None = None
+
+    def show(self, frame_rgb: U8, index: int) -> None:
+        self.frames_shown += 1
+        self.last_index = index
+
+    def close(self) -> None:
+        pass
+
+    def abort(self) -> None:
+        pass
+
+    @property
+    def quit_requested(self) -> bool:
+        return False
+
+
+class FileSink:
+    """Writes exactly the frames given, in order, to a lossless FFV1/Matroska file at ``fps``.
+
+    With ``width`` and ``height`` the file is started at once (so that a bad path fails before any
+    rendering); otherwise at the first frame. The file appears at ``path`` only on :meth:`close`.
+    """
+
+    name = "file"
+    paced = False
+    threaded = True
+    close_timeout_s = 30.0
+
+    def __init__(self, path: str | Path, fps: float, width: int | None = None, height: int | None = None) -> None:
+        self.path = Path(path)
+        self.fps = fps
+        self._writer: FfvWriter | None = None
+        if width is not None and height is not None:
+            self._writer = FfvWriter(self.path, width, height, fps)
+
+    @property
+    def frames_written(self) -> int:
+        return 0 if self._writer is None else self._writer.frames_written
+
+    def show(self, frame_rgb: U8, index: int) -> None:
+        if self._writer is None:
+            h, w = frame_rgb.shape[:2]
+            self._writer = FfvWriter(self.path, w, h, self.fps)
+        self._writer.write(frame_rgb)
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+
+    def abort(self) -> None:
+        if self._writer is not None:
+            self._writer.abort()
+
+    @property
+    def quit_requested(self) -> bool:
+        return False
+
+
+_NEEDS_PYGAME: Final = "the window sink needs pygame-ce: pip install 'ipt[display]'"
+
+
+class WindowSink:
+    """Full-screen (or windowed) output on display ``display_index`` with pygame-ce, vsync on.
+
+    The window opens at the first frame, at that frame's size; in full screen SDL scales it to the
+    display (1:1 when the display runs at the projector's resolution). Closing the window or pressing
+    Esc or Q sets :attr:`quit_requested`.
+    """
+
+    name = "window"
+    paced = True
+    threaded = True
+    close_timeout_s = 0.5
+
+    def __init__(self, display_index: int = 0, fullscreen: bool = True, title: str = "ipt-sender") -> None:
+        if display_index < 0:
+            raise DisplayError(f"display index must be >= 0, got {display_index}")
+        os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
+        try:
+            import pygame
+        except ImportError:
+            raise DisplayError(_NEEDS_PYGAME) from None
+        self._pg: Any = pygame
+        self.display_index = display_index
+        self.fullscreen = fullscreen
+        self.title = title
+        self.vsync = False
+        self._screen: Any = None
+        self._size: tuple[int, int] | None = None
+        self._quit = False
+        self._closed = False
+
+    def _open(self, width: int, height: int) -> None:
+        pg = self._pg
+        try:
+            pg.display.init()
+            count = pg.display.get_num_displays()
+            if self.display_index >= count:
+                raise DisplayError(f"display {self.display_index} does not exist ({count} found)")
+            pg.display.set_caption(self.title)
+            flags = pg.SCALED | (pg.FULLSCREEN if self.fullscreen else 0)
+            # SDL warns through Python warnings (e.g. "no fast renderer available" without a GPU): report them.
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                try:
+                    self._screen = pg.display.set_mode((width, height), flags, display=self.display_index, vsync=1)
+                    self.vsync = True
+                except pg.error as exc:
+                    print(f"ipt-sender: vsync is not available ({exc}); showing frames without it", file=sys.stderr)
+                    self._screen = pg.display.set_mode((width, height), flags, display=self.display_index)
+            for w in caught:
+                print(f"ipt-sender: window: {w.message}", file=sys.stderr)
+            if self.fullscreen:
+                pg.mouse.set_visible(False)
+        except pg.error as exc:
+            raise DisplayError(f"cannot open a window on display {self.display_index}: {exc}") from None
+        self._size = (width, height)
+
+    def show(self, frame_rgb: U8, index: int) -> None:
+        if self._closed:
+            raise DisplayError("show() after the window was closed")
+        h, w = frame_rgb.shape[:2]
+        if self._size is None:
+            self._open(w, h)
+        elif self._size != (w, h):
+            raise DisplayError(f"frame is {w}x{h}, the window is {self._size[0]}x{self._size[1]}")
+        pg = self._pg
+        for event in pg.event.get():
+            if event.type == pg.QUIT or (event.type == pg.KEYDOWN and event.key in (pg.K_ESCAPE, pg.K_q)):
+                self._quit = True
+        frame = np.ascontiguousarray(frame_rgb)
+        self._screen.blit(pg.image.frombuffer(frame, (w, h), "RGB"), (0, 0))
+        pg.display.flip()  # with vsync: waits for the next refresh
+
+    def pixel(self, x: int, y: int) -> tuple[int, int, int]:
+        """The RGB colour of the window's pixel (x, y), as last shown (for tests)."""
+        if self._screen is None:
+            raise DisplayError("nothing shown yet")
+        c = self._screen.get_at((x, y))
+        return int(c.r), int(c.g), int(c.b)
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        if self._size is not None:
+            self._pg.display.quit()
+
+    def abort(self) -> None:
+        self.close()
+
+    @property
+    def quit_requested(self) -> bool:
+        return self._quit
+
+
+def make_sink(
+    name: str,
+    *,
+    output: str | Path | None = None,
+    fps: float = 60.0,
+    width: int | None = None,
+    height: int | None = None,
+    display_index: int = 0,
+    fullscreen: bool = True,
+) -> NullSink | FileSink | WindowSink:
+    """The sink called ``name`` (one of :data:`SINK_NAMES`)."""
+    if name == "null":
+        return NullSink()
+    if name == "file":
+        if output is None:
+            raise DisplayError("the file sink needs an output path")
+        return FileSink(output, fps, width, height)
+    if name == "window":
+        return WindowSink(display_index, fullscreen)
+    raise DisplayError(f"unknown sink {name!r}; choose one of {', '.join(SINK_NAMES)}")

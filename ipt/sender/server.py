@@ -1,0 +1,636 @@
+"""The sender daemon: a frame clock at the projector rate, a render thread, a sink, and a pose listener.
+
+Frames. Output frame ``j`` is due at ``start + j / f_o`` (``time.monotonic``), with ``f_o`` the
+projector rate. It shows input frame ``i = j // N`` (``N = f_o / f_i``) of the scene: when
+``j % N == 0`` the render thread asks the scene for input frame ``i``, draws the AR overlay on it,
+and converts it to CIELAB (:meth:`PaperModulator.prepare`); every output frame is then
+:meth:`PaperModulator.phase_frame` with ``phase_sign(j)``. The render thread works up to
+``lookahead`` frames ahead of the clock, one frame at a time and in order (OpenCV spreads each colour
+conversion over the cores itself). The clock never skips or repeats a frame: ``j`` counts every frame,
+so the phases keep alternating whatever happens. A frame whose rendering finished after its due time is
+still shown, at once, and counted as a missed deadline; a frame that was ready but is reached more than
+half a period late (the sink or the loop itself was behind) is shown at once and counted as late. In
+both cases the clock then restarts from that frame (``start`` moves on): the next frame is due one
+period later, instead of a burst of frames to catch up that no display could show anyway. So each
+counted frame is one stutter of the projection.
+
+Pacing. A sink that is ``paced`` (the window, the null sink) gets frame j at its due time. A file is
+not paced: frames are rendered and written as fast as possible, and there are no deadlines to miss.
+
+Packets. A UDP socket (an asyncio datagram endpoint on the event loop) feeds every datagram to a
+:class:`~ipt.protocol.PacketFilter`; accepted poses update the :class:`~ipt.sender.scene.ArScene`,
+rejected ones are counted by reason. Nothing in a datagram can stop the loop: anything unexpected is
+counted as ``error``.
+
+Stopping. SIGTERM and SIGINT only set a flag (a second SIGINT also skips the waits). The loop then
+stops taking frames, and shutdown runs in order with bounded waits: close the socket, let the render
+thread finish its frame, close the sink (a file is completed with the frames shown), print the final
+statistics line, which always contains ``missed=<count>``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import queue
+import signal
+import socket
+import sys
+import threading
+import time
+from collections import Counter, deque
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Any, Final
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from ipt.config.models import ArenaConfig
+from ipt.errors import IptError
+from ipt.protocol import ACCEPTED, PacketFilter
+from ipt.sender.content import GeneratedScene, Scene
+from ipt.sender.display import Sink
+from ipt.sender.modulator import PaperModulator, frames_per_input, phase_sign
+from ipt.sender.scene import ArScene
+from ipt.tagmap import grid_tag_map
+
+U8 = npt.NDArray[np.uint8]
+
+DEFAULT_LISTEN: Final = ("127.0.0.1", 9870)
+"""Where the sender listens for pose packets unless told otherwise."""
+
+RECEIVE_BUFFER_BYTES: Final = 1 << 20
+"""Receive buffer asked for on the UDP socket (the kernel may cap it), so bursts are not dropped."""
+
+ERROR: Final = "error"
+"""Key in the packet counts for datagrams whose handling raised (a bug; never expected)."""
+
+
+class SenderError(IptError):
+    """The sender cannot start (a bad address, a port in use) or was given unusable settings."""
+
+
+def parse_listen(spec: str) -> tuple[str, int]:
+    """``"HOST:PORT"`` (IPv6 as ``"[::1]:PORT"``) as ``(host, port)``; port 0 lets the system choose."""
+    host, sep, port_text = spec.rpartition(":")
+    if host.startswith("[") and host.endswith("]"):
+        host = host[1:-1]
+    if not sep or not host or not port_text.isdigit() or not 0 <= int(port_text) <= 65535:
+        raise SenderError(f"listen address must be HOST:PORT with a port 0..65535, got {spec!r}")
+    return host, int(port_text)
+
+
+class _Histogram:
+    """Durations in milliseconds, in 0.05 ms bins up to 2 s: bounded memory however long the run."""
+
+    BIN_MS: Final = 0.05
+    BINS: Final = 40_000
+
+    def __init__(self) -> None:
+        self.counts = np.zeros(self.BINS + 1, dtype=np.int64)
+        self.n = 0
+        self.max_ms = 0.0
+
+    def add(self, ms: float) -> None:
+        self.counts[min(self.BINS, max(0, int(ms / self.BIN_MS)))] += 1
+        self.n += 1
+        self.max_ms = max(self.max_ms, ms)
+
+    def percentile(self, p: float) -> float:
+        """The ``p``-th percentile (bin centre), NaN when empty."""
+        if self.n == 0:
+            return math.nan
+        rank = max(1, math.ceil(p / 100.0 * self.n))
+        index = int(np.searchsorted(np.cumsum(self.counts), rank))
+        return self.max_ms if index >= self.BINS else min(self.max_ms, (index + 0.5) * self.BIN_MS)
+
+    def clear(self) -> None:
+        self.counts[:] = 0
+        self.n = 0
+        self.max_ms = 0.0
+
+
+@dataclass
+class SenderStats:
+    """What the sender did; :meth:`line` is the statistics line it prints."""
+
+    width_px: int
+    height_px: int
+    rate_hz: float
+    paced: bool
+    frames: int = 0
+    """Output frames handed to the sink."""
+    missed: int = 0
+    """Frames whose rendering finished after their due time (paced sinks only)."""
+    late: int = 0
+    """Frames rendered in time but reached more than half a period after their due time, because the sink
+    or the loop was behind (paced sinks only)."""
+    elapsed_s: float = 0.0
+    """From showing the first frame to showing the last."""
+    work_ms: _Histogram = field(default_factory=_Histogram)
+    """Render time per output frame (scene, overlay, CIELAB conversion when due, phase frame)."""
+    overlay_ms: _Histogram = field(default_factory=_Histogram)
+    """Time of the AR overlay per input frame."""
+    overlay_errors: int = 0
+    packets: Counter[str] = field(default_factory=Counter)
+    """Datagram outcomes: ``accepted`` and each rejection reason (and ``error``)."""
+    vehicles: int = 0
+    """Vehicles on the overlay when the statistics were taken."""
+
+    @property
+    def frames_per_s(self) -> float:
+        """Output rate between the first frame shown and the last."""
+        return (self.frames - 1) / self.elapsed_s if self.frames > 1 and self.elapsed_s > 0 else math.nan
+
+    @property
+    def accepted(self) -> int:
+        return self.packets[ACCEPTED]
+
+    @property
+    def rejected(self) -> int:
+        return sum(v for k, v in self.packets.items() if k != ACCEPTED)
+
+    def line(self, frames: int | None = None, seconds: float | None = None, work: _Histogram | None = None) -> str:
+        """One line of statistics; ``frames``/``seconds``/``work`` override the totals (for an interval)."""
+        work = self.work_ms if work is None else work
+        if frames is None or seconds is None:
+            fps = self.frames_per_s
+        else:
+            fps = frames / seconds if seconds > 0 else math.nan
+        reasons = ", ".join(f"{k}={v}" for k, v in sorted(self.packets.items()) if k != ACCEPTED and v)
+        text = (
+            f"frames={self.frames} fps={fps:.2f} work_p50={work.percentile(50):.2f}ms "
+            f"work_p99={work.percentile(99):.2f}ms missed={self.missed} late={self.late} "
+            f"vehicles={self.vehicles} packets accepted={self.accepted} rejected={self.rejected}"
+        )
+        if reasons:
+            text += f" ({reasons})"
+        if self.overlay_errors:
+            text += f" overlay_errors={self.overlay_errors}"
+        return text
+
+    def to_dict(self) -> dict[str, Any]:
+        """The totals as plain JSON-able values."""
+        return {
+            "width_px": self.width_px,
+            "height_px": self.height_px,
+            "rate_hz": self.rate_hz,
+            "paced": self.paced,
+            "output_frames": self.frames,
+            "seconds": round(self.elapsed_s, 3),
+            "frames_per_s": round(self.frames_per_s, 3),
+            "work_p50_ms": round(self.work_ms.percentile(50), 3),
+            "work_p99_ms": round(self.work_ms.percentile(99), 3),
+            "work_max_ms": round(self.work_ms.max_ms, 3),
+            "overlay_p50_ms": round(self.overlay_ms.percentile(50), 3),
+            "overlay_p99_ms": round(self.overlay_ms.percentile(99), 3),
+            "missed_deadlines": self.missed,
+            "late_frames": self.late,
+            "packets": dict(sorted(self.packets.items())),
+        }
+
+
+class _Worker:
+    """One daemon thread running submitted calls in order; a stuck call never blocks interpreter exit."""
+
+    def __init__(self, name: str) -> None:
+        self._jobs: queue.SimpleQueue[tuple[Future[Any], Callable[..., Any], tuple[Any, ...]] | None] = (
+            queue.SimpleQueue()
+        )
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> Future[Any]:
+        fut: Future[Any] = Future()
+        self._jobs.put((fut, fn, args))
+        return fut
+
+    def stop(self) -> None:
+        """Finish the jobs already queued (cancelled ones are skipped), then end the thread."""
+        self._jobs.put(None)
+
+    def _run(self) -> None:
+        while (job := self._jobs.get()) is not None:
+            fut, fn, args = job
+            if not fut.set_running_or_notify_cancel():
+                continue
+            try:
+                fut.set_result(fn(*args))
+            except BaseException as exc:
+                fut.set_exception(exc)
+
+
+@dataclass
+class _Rendered:
+    index: int
+    frame: U8
+    work_s: float
+    overlay_s: float | None
+    ready_s: float  # time.monotonic() when the frame was finished
+
+
+class _Renderer:
+    """Makes output frame j; runs in the render thread, one frame at a time, in order."""
+
+    def __init__(
+        self, scene: Scene, modulator: PaperModulator, ar: ArScene | None, n: int, input_rate_hz: float
+    ) -> None:
+        self.scene = scene
+        self.modulator = modulator
+        self.ar = ar
+        self.n = n
+        self.input_rate_hz = input_rate_hz
+        self.overlay_errors = 0
+        self.first_overlay_error: str | None = None
+        self._lab: U8 | None = None
+        self._input = -1
+
+    def render(self, j: int) -> _Rendered:
+        t0 = time.perf_counter()
+        overlay_s = None
+        i = j // self.n
+        if self._lab is None or i != self._input:
+            rgb = self.scene.frame(i, self.input_rate_hz)
+            h, w = self.modulator.height_px, self.modulator.width_px
+            if rgb.shape[:2] != (h, w):
+                rgb = np.asarray(cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA), dtype=np.uint8)
+            if self.ar is not None:
+                t1 = time.perf_counter()
+                try:
+                    self.ar.draw(rgb, time.monotonic())
+                except Exception as exc:  # the overlay must never stop the projection
+                    self.overlay_errors += 1
+                    if self.first_overlay_error is None:
+                        self.first_overlay_error = f"{type(exc).__name__}: {exc}"
+                overlay_s = time.perf_counter() - t1
+            self._lab = self.modulator.prepare(rgb)
+            self._input = i
+        frame = self.modulator.phase_frame(self._lab, phase_sign(j))
+        return _Rendered(j, frame, time.perf_counter() - t0, overlay_s, time.monotonic())
+
+
+class _PoseListener(asyncio.DatagramProtocol):
+    """Every datagram goes through the filter; accepted poses update the overlay."""
+
+    def __init__(self, packet_filter: PacketFilter, ar: ArScene | None) -> None:
+        self.filter = packet_filter
+        self.ar = ar
+        self.errors = 0
+        self.socket_errors = 0
+
+    def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
+        now = time.monotonic()
+        try:
+            packet = self.filter.accept(data, now)
+            if packet is not None and self.ar is not None:
+                self.ar.update(packet, now)
+        except Exception:  # a bug somewhere below: count it, keep listening
+            self.errors += 1
+
+    def error_received(self, exc: Exception) -> None:
+        self.socket_errors += 1
+
+
+def _wrap(fut: Future[Any]) -> asyncio.Future[Any]:
+    """``fut`` as an asyncio future whose exception counts as seen (the run reports it its own way)."""
+    wrapped = asyncio.wrap_future(fut)
+    wrapped.add_done_callback(lambda f: f.cancelled() or f.exception())
+    return wrapped
+
+
+def _stderr_line(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+class Sender:
+    """One run of the sender; see the module doc. Use :func:`run_sender`."""
+
+    def __init__(
+        self,
+        arena: ArenaConfig,
+        sink: Sink,
+        scene: Scene,
+        *,
+        frames: int | None,
+        paced: bool,
+        listen: tuple[str, int] | None,
+        packet_filter: PacketFilter,
+        ar_scene: ArScene | None,
+        stats_every_s: float,
+        log: Callable[[str], None],
+        lookahead: int,
+        install_signal_handlers: bool,
+        stop: asyncio.Event | None,
+        shutdown_timeout_s: float,
+    ) -> None:
+        if frames is not None and frames < 0:
+            raise SenderError(f"frames must be >= 0, got {frames}")
+        if lookahead < 1:
+            raise SenderError(f"lookahead must be >= 1, got {lookahead}")
+        self.arena = arena
+        self.sink = sink
+        self.frames = frames
+        self.paced = paced
+        self.listen = listen
+        self.filter = packet_filter
+        self.ar = ar_scene
+        self.stats_every_s = stats_every_s
+        self.log = log
+        self.lookahead = lookahead
+        self.install_signal_handlers = install_signal_handlers
+        self.stop = stop
+        self.shutdown_timeout_s = shutdown_timeout_s
+        self.rate_hz = arena.projector.rate_hz
+        mod = arena.modulation
+        n = frames_per_input(mod.input_rate_hz, self.rate_hz)
+        modulator = PaperModulator(grid_tag_map(arena).render_mask(), mod.delta_l)
+        self.renderer = _Renderer(scene, modulator, ar_scene, n, mod.input_rate_hz)
+        self.stats = SenderStats(arena.projector.width_px, arena.projector.height_px, self.rate_hz, paced)
+        self.bound: tuple[str, int] | None = None
+        self.should_exit = False
+        self.force_exit = False
+        self._listener: _PoseListener | None = None
+        self._transport: asyncio.DatagramTransport | None = None
+        self._render: _Worker | None = None
+        self._display: _Worker | None = None
+        self._pending: deque[tuple[int, Future[Any]]] = deque()
+        self._next_submit = 0
+        self._signals: list[int] = []
+        self._interval_work = _Histogram()
+        self._overlay_error_logged = False
+        self._started = False
+
+    # -- signals: they only set flags --
+
+    def handle_exit(self, sig: int) -> None:
+        if self.should_exit and sig == signal.SIGINT:
+            self.force_exit = True
+        self.should_exit = True
+
+    def _install_signal_handlers(self, loop: asyncio.AbstractEventLoop) -> None:
+        if not self.install_signal_handlers or threading.current_thread() is not threading.main_thread():
+            return
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                loop.add_signal_handler(sig, self.handle_exit, sig)
+            except (NotImplementedError, RuntimeError):  # e.g. Windows: no loop signal handlers
+                continue
+            self._signals.append(sig)
+
+    def _remove_signal_handlers(self, loop: asyncio.AbstractEventLoop) -> None:
+        for sig in self._signals:
+            with contextlib.suppress(Exception):
+                loop.remove_signal_handler(sig)
+        self._signals.clear()
+
+    def _stopping(self) -> bool:
+        if self.stop is not None and self.stop.is_set():
+            self.should_exit = True
+        return self.should_exit
+
+    # -- the run --
+
+    async def run(self) -> SenderStats:
+        loop = asyncio.get_running_loop()
+        self._install_signal_handlers(loop)
+        ok = False
+        try:
+            await self._startup(loop)
+            await self._main_loop()
+            ok = True
+        finally:
+            try:
+                await self._shutdown(ok)
+            finally:
+                self._remove_signal_handlers(loop)
+        return self.stats
+
+    async def _startup(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._render = _Worker("ipt-render")
+        if self.sink.threaded:
+            self._display = _Worker("ipt-display")
+        if self.listen is not None:
+            self._listener = _PoseListener(self.filter, self.ar)
+            self._transport, self.bound = await self._bind(loop, *self.listen)
+            self.log(f"ipt-sender: listening for pose packets on udp {self.bound[0]}:{self.bound[1]}")
+        self._started = True
+
+    async def _bind(
+        self, loop: asyncio.AbstractEventLoop, host: str, port: int
+    ) -> tuple[asyncio.DatagramTransport, tuple[str, int]]:
+        assert self._listener is not None
+        listener = self._listener
+        try:
+            infos = await loop.getaddrinfo(host, port, type=socket.SOCK_DGRAM, flags=socket.AI_PASSIVE)
+            family, _, proto, _, address = infos[0]
+            sock = socket.socket(family, socket.SOCK_DGRAM, proto)
+        except OSError as exc:
+            raise SenderError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+        try:
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECEIVE_BUFFER_BYTES)
+            sock.bind(address)
+            sock.setblocking(False)
+            transport, _ = await loop.create_datagram_endpoint(lambda: listener, sock=sock)
+        except OSError as exc:
+            sock.close()
+            raise SenderError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from None
+        name = sock.getsockname()
+        return transport, (str(name[0]), int(name[1]))
+
+    def _fill(self) -> None:
+        """Keep ``lookahead`` frames queued for (or in) the render thread."""
+        assert self._render is not None
+        while len(self._pending) < self.lookahead and (self.frames is None or self._next_submit < self.frames):
+            j = self._next_submit
+            self._pending.append((j, self._render.submit(self.renderer.render, j)))
+            self._next_submit += 1
+
+    async def _wait_rendered(self, fut: Future[Any]) -> _Rendered | None:
+        """The frame of ``fut``, or None if a stop is asked for while waiting."""
+        wrapped = _wrap(fut)
+        while not wrapped.done():
+            await asyncio.wait([wrapped], timeout=0.05)
+            if not wrapped.done() and self._stopping():
+                return None
+        result: _Rendered = wrapped.result()
+        return result
+
+    async def _sleep_until(self, due: float) -> None:
+        while not self._stopping():
+            delay = due - time.monotonic()
+            if delay <= 0:
+                return
+            await asyncio.sleep(min(delay, 0.05))
+
+    async def _show(self, frame: U8, j: int) -> None:
+        if self._display is None:
+            self.sink.show(frame, j)
+        else:
+            await asyncio.wrap_future(self._display.submit(self.sink.show, frame, j))
+
+    async def _main_loop(self) -> None:
+        period = 1.0 / self.rate_hz
+        start: float | None = None  # due time of frame 0 (moved on after a late frame)
+        first = 0.0  # when frame 0 was shown
+        stats = self.stats
+        report_at = time.monotonic() + self.stats_every_s
+        interval_start, interval_frames = time.monotonic(), 0
+        j = 0
+        self._fill()
+        while not self._stopping() and (self.frames is None or j < self.frames):
+            rendered = await self._wait_rendered(self._pending[0][1])
+            if rendered is None:
+                break
+            self._pending.popleft()
+            self._fill()  # the render thread goes on with the next frames while this one waits
+            now = time.monotonic()
+            if start is None:
+                start = now  # frame 0 is due as soon as it is ready
+            due = start + j * period
+            if self.paced:
+                if rendered.ready_s > due or now > due + 0.5 * period:
+                    # Late: show it now and count it. The clock restarts from this frame (the next one is
+                    # due a period later) rather than rushing frames out to catch up.
+                    if rendered.ready_s > due:
+                        stats.missed += 1
+                    else:
+                        stats.late += 1
+                    start += now - due
+                else:
+                    await self._sleep_until(due)
+                    if self.should_exit:
+                        break
+            shown_at = time.monotonic()
+            if j == 0:
+                first = shown_at
+            await self._show(rendered.frame, j)
+            j += 1
+            stats.frames = j
+            stats.elapsed_s = shown_at - first
+            work_ms = rendered.work_s * 1e3
+            stats.work_ms.add(work_ms)
+            self._interval_work.add(work_ms)
+            interval_frames += 1
+            if rendered.overlay_s is not None:
+                stats.overlay_ms.add(rendered.overlay_s * 1e3)
+            if self.sink.quit_requested:
+                self.log("ipt-sender: the window was closed; stopping")
+                self.should_exit = True
+            now = time.monotonic()
+            if now >= report_at:
+                self._collect()
+                self.log(f"ipt-sender: t={stats.elapsed_s:.1f}s " + stats.line(
+                    interval_frames, now - interval_start, self._interval_work
+                ))  # fmt: skip
+                self._interval_work.clear()
+                interval_start, interval_frames = now, 0
+                report_at = now + self.stats_every_s
+
+    def _collect(self) -> None:
+        """Copy the counters kept elsewhere (filter, listener, renderer, overlay) into the stats."""
+        stats = self.stats
+        stats.packets = Counter(self.filter.counts)
+        if self._listener is not None and self._listener.errors:
+            stats.packets[ERROR] = self._listener.errors
+        stats.overlay_errors = self.renderer.overlay_errors
+        if self.ar is not None:
+            stats.vehicles = len(self.ar.vehicle_ids())
+        if self.renderer.first_overlay_error is not None and not self._overlay_error_logged:
+            self._overlay_error_logged = True
+            self.log(f"ipt-sender: overlay failed (frames are shown without it): {self.renderer.first_overlay_error}")
+
+    async def _shutdown(self, ok: bool) -> None:
+        """Ordered, each wait bounded: socket, render thread, sink, final statistics."""
+        t_end = time.monotonic() + (0.1 if self.force_exit else self.shutdown_timeout_s)
+        running = [fut for _, fut in self._pending if not fut.cancel()]  # cancel the frames not started
+        self._pending.clear()
+        if self._transport is not None:
+            self._transport.close()
+        if self._render is not None:
+            self._render.stop()
+            if running:
+                await asyncio.wait([_wrap(f) for f in running], timeout=max(0.0, t_end - time.monotonic()))
+        close = self.sink.close if ok else self.sink.abort
+        close_timeout = 0.1 if self.force_exit else self.sink.close_timeout_s
+        if self._display is None:
+            close()
+        else:
+            done, _ = await asyncio.wait([_wrap(self._display.submit(close))], timeout=close_timeout)
+            self._display.stop()
+            if not done:
+                self.log(f"ipt-sender: the {self.sink.name} sink did not close within {close_timeout:g} s")
+            else:
+                for d in done:
+                    if (exc := d.exception()) is not None and ok:
+                        raise exc
+        self._collect()
+        if self._started:
+            self.log("ipt-sender: done: " + self.stats.line())
+
+
+async def run_sender(
+    arena: ArenaConfig,
+    sink: Sink,
+    scene: Scene | None = None,
+    *,
+    frames: int | None = None,
+    paced: bool | None = None,
+    listen: tuple[str, int] | None = DEFAULT_LISTEN,
+    packet_filter: PacketFilter | None = None,
+    ar_scene: ArScene | None = None,
+    stats_every_s: float = 5.0,
+    log: Callable[[str], None] | None = None,
+    lookahead: int = 2,
+    install_signal_handlers: bool = True,
+    stop: asyncio.Event | None = None,
+    shutdown_timeout_s: float = 0.5,
+) -> SenderStats:
+    """Run the sender until ``frames`` output frames are shown, a signal, ``stop`` or the sink says stop.
+
+    Args:
+        arena: projector size and rate, tag map and modulation.
+        sink: where the frames go (:mod:`ipt.sender.display`).
+        scene: the content (default: the generated map at projector size).
+        frames: how many output frames to show; ``None`` runs until stopped.
+        paced: hand frame j to the sink at its due time; default: the sink's own ``paced``.
+        listen: ``(host, port)`` of the UDP pose listener, or ``None`` for none.
+        packet_filter: the gate for datagrams (default: any vehicle, no key, re-baselined after 10 s of
+            silence so that a restarted drone is seen again).
+        ar_scene: the overlay (default: a new :class:`ArScene`); it is also updated by the caller's
+            own code if it likes (it is thread-safe).
+        stats_every_s: interval of the statistics lines.
+        log: where lines go (default: stderr).
+        lookahead: frames the render thread may work ahead of the clock.
+        install_signal_handlers: SIGTERM/SIGINT stop the run (main thread only).
+        stop: set it to stop the run from elsewhere.
+        shutdown_timeout_s: bound on waiting for the render thread when stopping.
+    """
+    if not stats_every_s > 0:
+        raise SenderError(f"stats_every_s must be > 0, got {stats_every_s}")
+    w, h = arena.projector.width_px, arena.projector.height_px
+    try:
+        sender = Sender(
+            arena,
+            sink,
+            scene if scene is not None else GeneratedScene(w, h),
+            frames=frames,
+            paced=sink.paced if paced is None else paced,
+            listen=listen,
+            packet_filter=packet_filter if packet_filter is not None else PacketFilter(resync_after_s=10.0),
+            ar_scene=ar_scene if ar_scene is not None else ArScene(arena),
+            stats_every_s=stats_every_s,
+            log=log if log is not None else _stderr_line,
+            lookahead=lookahead,
+            install_signal_handlers=install_signal_handlers,
+            stop=stop,
+            shutdown_timeout_s=shutdown_timeout_s,
+        )
+    except BaseException:
+        sink.abort()  # nothing was shown: leave nothing behind (a file sink may have started its file)
+        raise
+    return await sender.run()
