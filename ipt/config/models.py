@@ -99,6 +99,24 @@ class ArenaConfig(StrictModel):
 class DemodulationConfig(StrictModel):
     """Recovering the tag image from two camera frames (the paper's Algorithm 2 and Section V-A/B)."""
 
+    pairing: Literal["opposite_phase", "previous"] = Field(
+        "opposite_phase",
+        description="Which earlier frame a frame is subtracted from. 'previous' is the paper's (lag 1: with a "
+        "120 FPS camera and 60 Hz phases only every other pair straddles a flip). 'opposite_phase' picks "
+        "the lag whose time step is closest to an odd number of projector periods (lag 2 at 120 FPS, lag 3 "
+        "at 180), falling back to the next best lags when it finds no tags.",
+    )
+    alignment: Literal["gradient", "sampled_lines"] = Field(
+        "gradient",
+        description="How the earlier frame is aligned to the current one. 'sampled_lines' is the paper's "
+        "integer shift from N columns and rows (equation 5). 'gradient' is a sub-pixel translation by phase "
+        "correlation of gradient magnitudes, which the tags' sign flip between phases does not disturb.",
+    )
+    polarity: Literal["tracked", "both"] = Field(
+        "tracked",
+        description="'both' runs the detector on the binary image and its inverse (the paper's phase is "
+        "unknown). 'tracked' predicts the phase from earlier detections and tries the other only on a miss.",
+    )
     sample_lines: int = Field(3, ge=1, le=64, description="N: columns (and rows) sampled for the alignment.")
     max_shift_px: int | None = Field(
         None,
@@ -163,6 +181,12 @@ class PoseConfig(StrictModel):
         description="Poses whose corner reprojection RMS exceeds this are rejected. Default: 1.5 px at 640 px "
         "wide, scaled with the width (corner noise from binarisation grows with the filter sizes).",
     )
+    max_speed_mps: float | None = Field(
+        3.0,
+        gt=0,
+        description="Motion gate: a pose farther from the last accepted one (within the last 0.25 s) than "
+        "this speed allows, plus 5 cm, is rejected as doubtful. None turns the gate off.",
+    )
     outlier_tag_px: float | None = Field(
         None,
         gt=0,
@@ -177,6 +201,27 @@ class PipelineConfig(StrictModel):
     demodulation: DemodulationConfig = Field(default_factory=DemodulationConfig, description="Demodulation.")
     detector: DetectorConfig = Field(default_factory=DetectorConfig, description="Tag detection.")
     pose: PoseConfig = Field(default_factory=PoseConfig, description="Pose estimation.")
+
+    @classmethod
+    def profile(cls, name: str) -> PipelineConfig:
+        """The settings of a named profile: ``ipt`` (the defaults) or ``paper`` (the paper as published)."""
+        if name == "ipt":
+            return cls()
+        if name == "paper":
+            return cls(
+                demodulation=DemodulationConfig(
+                    pairing="previous", alignment="sampled_lines", polarity="both", blur_ksize=3, morph_ksize=3
+                ),
+                detector=DetectorConfig(quad_decimate=1.0, border_margin_px=0.0),
+                pose=PoseConfig(
+                    min_tags=1, refine_lm=False, max_reprojection_rms_px=3.0, outlier_tag_px=1e9, max_speed_mps=None
+                ),
+            )
+        raise ConfigError(f"unknown pipeline profile '{name}' (choose from {', '.join(PROFILES)})")
+
+
+PROFILES = ("ipt", "paper")
+"""Named pipeline settings; ``paper`` keeps the published pipeline available beside ours."""
 
 
 def finite_float(value: object) -> float | None:

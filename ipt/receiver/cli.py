@@ -10,7 +10,7 @@ from pathlib import Path
 
 from ipt import __version__
 from ipt.cliutil import Parser, run_main
-from ipt.config.models import PipelineConfig, load_arena_config, shipped_config_path
+from ipt.config.models import PROFILES, PipelineConfig, load_arena_config, shipped_config_path
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
@@ -21,7 +21,13 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     if args.fps is not None and args.fps <= 0:
         raise ReplayError(f"--fps must be positive, got {args.fps}")
     summary = replay(
-        arena, grid_tag_map(arena), Path(args.camera), Path(args.video), Path(args.output), args.fps, PipelineConfig()
+        arena,
+        grid_tag_map(arena),
+        Path(args.camera),
+        Path(args.video),
+        Path(args.output),
+        args.fps,
+        PipelineConfig.profile(args.profile),
     )
     print(f"ipt-receiver replay: {summary.poses} poses from {summary.frames} frames -> {args.output}")
     return 0
@@ -86,6 +92,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--video", required=True, metavar="VIDEO|DIR", help="recording: video file or image folder")
     r.add_argument("--fps", type=float, help="camera frame rate (default: from the video file)")
     r.add_argument("--output", required=True, metavar="POSES.tum", help="where to write the poses")
+    r.add_argument(
+        "--profile",
+        choices=PROFILES,
+        default="ipt",
+        help="processing profile: 'ipt' (default: opposite-phase pairing, sub-pixel alignment, refined and "
+        "gated poses) or 'paper' (the published pipeline: lag-1 pairs, integer shift, IPPE alone)",
+    )
     r.set_defaults(func=_cmd_replay)
     d = sub.add_parser(
         "run",

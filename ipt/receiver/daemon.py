@@ -73,6 +73,9 @@ MAX_ERROR_REPORTS = 5
 
 PROG = "ipt-receiver"
 
+ResultHook = Callable[[CapturedFrame, FrameResult | None, int], None]
+"""``on_result(frame, result, datagrams_sent)`` of :func:`run_daemon`."""
+
 
 class LatencyHistogram:
     """Latencies in 0.1 ms bins up to 10 s (later ones in the last bin): constant memory, exact enough."""
@@ -225,10 +228,18 @@ async def run_daemon(
     stats_out: TextIO | None = None,
     max_frames: int | None = None,
     handle_signals: bool = True,
+    source: CaptureSource | None = None,
+    on_result: ResultHook | None = None,
 ) -> DaemonStats:
     """Run the receiver until ``stop`` is set (or SIGTERM/SIGINT), the recording ends or ``max_frames``
     frames were captured. Statistics go to ``stats_out`` (default: stderr). Configuration problems raise
-    :class:`~ipt.errors.IptError` before any frame is read."""
+    :class:`~ipt.errors.IptError` before any frame is read.
+
+    ``source`` replaces the frame source ``cfg.source`` describes (the closed-loop demo feeds its
+    simulation in this way); ``cfg.camera`` must still describe its frames. ``on_result`` is called on
+    the event loop for every frame taken from the queue, in capture order, once its packet (if any) was
+    handed to the kernel: with the frame, its :class:`FrameResult` (``None`` if processing raised) and
+    the number of datagrams sent for it."""
     out = stats_out if stats_out is not None else sys.stderr
     loop = asyncio.get_running_loop()
     stop = stop if stop is not None else asyncio.Event()
@@ -238,7 +249,8 @@ async def run_daemon(
     key = read_auth_key(cfg.auth_key_file) if cfg.auth_key_file is not None else None
     pipeline = PaperPipeline(grid_tag_map(arena), camera, cfg.pipeline)
     capture_stop = threading.Event()
-    source = make_source(cfg, arena, camera, capture_stop)
+    if source is None:
+        source = make_source(cfg, arena, camera, capture_stop)
 
     frames: FrameQueue[CapturedFrame] = FrameQueue(cfg.queue_size)
     capture = CaptureThread(source, frames, loop, stop=capture_stop, max_frames=max_frames, report=out)
@@ -275,6 +287,8 @@ async def run_daemon(
             if item is None:
                 return
             frame, fut = item
+            result: FrameResult | None = None
+            sent = 0
             try:
                 result = await fut
             except Exception as exc:  # a bug or a library failure on one frame: report, count, go on
@@ -282,20 +296,27 @@ async def run_daemon(
                 if errors_reported < MAX_ERROR_REPORTS:
                     errors_reported += 1
                     _write(out, f"{PROG}: frame {frame.index}: processing failed: {type(exc).__name__}: {exc}")
-                continue
             finally:
                 slots.release()
-            if result.pose is None:
-                meter.frame(result.reason)
-                continue
-            try:
-                data = maker.encode(result.pose, frame.capture_time_us)
-            except ProtocolError:  # e.g. a non-finite position: not sendable
-                meter.frame("bad_pose")
-                continue
+            if result is not None:
+                sent = deliver_one(frame, result)
+            if on_result is not None:
+                on_result(frame, result, sent)
+
+    def deliver_one(frame: CapturedFrame, result: FrameResult) -> int:
+        """Count one frame's result and send its pose; the number of datagrams sent."""
+        if result.pose is None:
             meter.frame(result.reason)
-            sender.send(data)
-            meter.pose(time.monotonic() - frame.grabbed_s)
+            return 0
+        try:
+            data = maker.encode(result.pose, frame.capture_time_us)
+        except ProtocolError:  # e.g. a non-finite position: not sendable
+            meter.frame("bad_pose")
+            return 0
+        meter.frame(result.reason)
+        sent = sender.send(data)
+        meter.pose(time.monotonic() - frame.grabbed_s)
+        return sent
 
     async def report_stats() -> None:
         while True:

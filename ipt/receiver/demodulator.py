@@ -42,7 +42,7 @@ class DemodResult:
 
     binary: U8
     """255/0 image; tags have dark borders if the current frame was the +ΔL phase."""
-    shift_px: tuple[int, int]
+    shift_px: tuple[float, float]
     """(dx, dy): content at (x, y) in the previous frame is at (x + dx, y + dy) in the current one."""
 
 
@@ -116,12 +116,88 @@ def ksize_for(configured: int | None, width_px: int) -> int:
     return 2 * round(BASE_KSIZE_PX / 2 * width_px / PAPER_WIDTH_PX - 0.5) + 1
 
 
+def _gradient_magnitude(img: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+    """Smoothed L1 gradient magnitude: the same for a tag in either phase, so the flip does not matter."""
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
+    return np.asarray(cv2.GaussianBlur(np.abs(gx) + np.abs(gy), (5, 5), 1.0), dtype=np.float32)
+
+
+def _translate(img: npt.NDArray[np.float32], dx: float, dy: float) -> npt.NDArray[np.float32]:
+    """``img`` moved by (dx, dy): what is at (x, y) ends up at (x + dx, y + dy); bilinear."""
+    h, w = img.shape
+    m = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy]], np.float32)
+    return np.asarray(cv2.warpAffine(img, m, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
+
+
+_HANNING: dict[tuple[int, int], npt.NDArray[np.float32]] = {}
+
+
+def _hanning(w: int, h: int) -> npt.NDArray[np.float32]:
+    if (w, h) not in _HANNING:
+        _HANNING[(w, h)] = np.asarray(cv2.createHanningWindow((w, h), cv2.CV_32F), dtype=np.float32)
+    return _HANNING[(w, h)]
+
+
+#: Lucas-Kanade steps after phase correlation, and the margin they ignore (half-resolution pixels).
+_LK_STEPS, _LK_MARGIN = 3, 16
+
+
+def gradient_shift(prev_l: U8, now_l: U8) -> tuple[float, float]:
+    """Sub-pixel (dx, dy) of the floor between two frames, from their gradient magnitudes.
+
+    Phase correlation at half resolution gives the shift to about 0.3 px, whatever its size; three
+    Lucas-Kanade steps refine it (to about 0.07 px on the simulated arena). Gradient magnitudes are used
+    because the tags change sign between the phases and would otherwise pull the match away.
+    """
+    a = _gradient_magnitude(cv2.pyrDown(prev_l).astype(np.float32))
+    b = _gradient_magnitude(cv2.pyrDown(now_l).astype(np.float32))
+    h, w = a.shape
+    (dx, dy), _ = cv2.phaseCorrelate(a, b, _hanning(w, h))
+    if h > 3 * _LK_MARGIN and w > 3 * _LK_MARGIN:
+        inner = (slice(_LK_MARGIN, h - _LK_MARGIN), slice(_LK_MARGIN, w - _LK_MARGIN))
+        for _ in range(_LK_STEPS):
+            moved = _translate(a, dx, dy)
+            gx = cv2.Sobel(moved, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)[inner]
+            gy = cv2.Sobel(moved, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)[inner]
+            r = (moved - b)[inner]
+            hess = np.array([[np.sum(gx * gx), np.sum(gx * gy)], [np.sum(gx * gy), np.sum(gy * gy)]], np.float64)
+            grad = np.array([np.sum(gx * r), np.sum(gy * r)], np.float64)
+            if abs(np.linalg.det(hess)) < 1e-9:
+                break
+            step = np.linalg.solve(hess, grad)
+            if not np.all(np.isfinite(step)) or np.abs(step).max() > 2.0:
+                break
+            dx, dy = dx + float(step[0]), dy + float(step[1])
+    return 2.0 * dx, 2.0 * dy
+
+
+def subpixel_difference(prev_l: U8, now_l: U8, dx: float, dy: float) -> npt.NDArray[np.float32]:
+    """now − prev moved by (dx, dy), zero on the strip the move leaves uncovered."""
+    h, w = now_l.shape
+    diff = now_l.astype(np.float32) - _translate(prev_l.astype(np.float32), dx, dy)
+    x0, x1 = max(0, int(np.ceil(dx))), w + min(0, int(np.floor(dx)))
+    y0, y1 = max(0, int(np.ceil(dy))), h + min(0, int(np.floor(dy)))
+    diff[:y0] = 0
+    diff[y1:] = 0
+    diff[:, :x0] = 0
+    diff[:, x1:] = 0
+    return diff
+
+
 def demodulate(prev_l: U8, now_l: U8, cfg: DemodulationConfig) -> DemodResult:
     """Algorithm 2, steps 4-10, on two lightness images of the same size."""
     if prev_l.shape != now_l.shape or prev_l.dtype != np.uint8 or now_l.dtype != np.uint8:
         raise DemodulationError(f"frames differ: {prev_l.shape} {prev_l.dtype} vs {now_l.shape} {now_l.dtype}")
-    dx, dy = estimate_shift(prev_l, now_l, cfg.sample_lines, max_shift_for(cfg, now_l.shape[1]))
-    diff = aligned_difference(prev_l, now_l, dx, dy)
+    diff: npt.NDArray[np.int16] | npt.NDArray[np.float32]
+    if cfg.alignment == "gradient":
+        fdx, fdy = gradient_shift(prev_l, now_l)
+        diff = subpixel_difference(prev_l, now_l, fdx, fdy)
+        shift = (fdx, fdy)
+    else:
+        dx, dy = estimate_shift(prev_l, now_l, cfg.sample_lines, max_shift_for(cfg, now_l.shape[1]))
+        diff = aligned_difference(prev_l, now_l, dx, dy)
+        shift = (float(dx), float(dy))
     norm = cv2.normalize(diff, None, 0, 255, cv2.NORM_MINMAX, dtype=cv2.CV_8U)
     width = now_l.shape[1]
     blur = ksize_for(cfg.blur_ksize, width)
@@ -134,4 +210,4 @@ def demodulate(prev_l: U8, now_l: U8, cfg: DemodulationConfig) -> DemodResult:
         kernel = np.ones((morph, morph), np.uint8)
         binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, kernel)
         binary = cv2.morphologyEx(binary, cv2.MORPH_CLOSE, kernel)
-    return DemodResult(binary=binary, shift_px=(dx, dy))
+    return DemodResult(binary=binary, shift_px=shift)

@@ -1,13 +1,24 @@
-"""One frame in, at most one pose out: demodulation → detection → pose, with the reason when none.
+"""One frame in, at most one pose out: pairing → demodulation → detection → pose, with the reason when none.
 
-Pure apart from the detector's C library: frames and their capture times go in, results come out. The
-``paper`` profile is the paper's Algorithm 2 as published: each frame is paired with the frame before it
-(lag 1), so only pairs that straddle a projector flip carry the tags.
+Pure apart from the detector's C library: frames and their capture times go in, results come out; the
+pipeline keeps only the last few lightness images and what it learnt about the projector's phase.
+
+Pairing (``demodulation.pairing``):
+- ``previous``: the paper's lag 1. With a 120 FPS camera and 60 Hz phases only every other pair
+  straddles a flip, so at most half the frames can carry the tags.
+- ``opposite_phase``: among the last few frames, the one whose time step is closest to an odd number of
+  projector periods (one period at 120 FPS: lag 2; lag 3 at 180 FPS), then the next best on a miss.
+  Timing comes from the frames' capture times, so dropped frames and drifting clocks are handled.
+
+Polarity (``demodulation.polarity``): the difference shows the tags with dark borders when the current
+frame is the ``+ΔL`` phase. ``both`` tries the image and its inverse (the paper's phase is unknown);
+``tracked`` predicts each frame's phase from what earlier detections revealed and tries the other only on
+a miss.
 """
 
 from __future__ import annotations
 
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,6 +33,17 @@ from ipt.tagmap import TagMap
 
 U8 = npt.NDArray[np.uint8]
 
+#: Frames kept for pairing (lags up to this many frames back).
+HISTORY = 4
+#: A pairing whose time step is this far (in projector periods) from an odd number is not tried.
+MAX_PHASE_ERROR = 0.45
+#: The motion gate compares with the last accepted pose only if it is this recent.
+GATE_WINDOW_US = 250_000
+#: After this many gated poses in a row the track is re-initialised (the earlier pose was the wrong one).
+GATE_RESET_AFTER = 4
+#: A gap in capture times longer than this (or time going backwards) starts pairing afresh.
+MAX_GAP_US = 100_000
+
 
 @dataclass(frozen=True)
 class FrameResult:
@@ -33,23 +55,30 @@ class FrameResult:
     num_detections: int
     reason: str
     """"pose" when a pose was made; otherwise why not (e.g. "first_frame", "no_tags", "bad_frame")."""
+    reset: bool = False
+    """The pose re-initialises the track (it disagreed with the previous ones, which were dropped)."""
 
 
-class PaperPipeline:
-    """The paper's receiver: lag-1 pairs, both polarities tried, IPPE pose."""
+@dataclass
+class _Past:
+    index: int
+    time_us: int
+    lightness: U8
 
-    profile = "paper"
 
-    def __init__(self, tag_map: TagMap, camera: CameraInfo, cfg: PipelineConfig) -> None:
+class Pipeline:
+    """The receiver's per-frame processing, for either profile (see :meth:`PipelineConfig.profile`)."""
+
+    def __init__(self, tag_map: TagMap, camera: CameraInfo, cfg: PipelineConfig, projector_hz: float = 60.0) -> None:
         self.tag_map, self.camera, self.cfg = tag_map, camera, cfg
+        self.projector_hz = projector_hz
         self.detector = TagDetector(cfg.detector, known_ids=tag_map.by_id)
-        self._prev_l: U8 | None = None
+        self._history: deque[_Past] = deque(maxlen=HISTORY)
+        self._phase: dict[int, int] = {}  # frame index -> +1 (the +ΔL phase) or -1, learnt from detections
+        self._last_pose: tuple[int, PoseEstimate] | None = None
+        self._gated_in_a_row = 0
         self.reasons: Counter[str] = Counter()
-
-    def _detect_both_polarities(self, binary: U8) -> tuple[TagDetection, ...]:
-        found = self.detector.detect(binary)
-        inverted = self.detector.detect(255 - binary)
-        return inverted if len(inverted) > len(found) else found
+        self.detector_runs = 0
 
     def process(self, index: int, frame_rgb: U8, capture_time_us: int) -> FrameResult:
         """Process camera frame ``index``; never raises for a bad frame (the reason says what happened)."""
@@ -57,20 +86,94 @@ class PaperPipeline:
         self.reasons[result.reason] += 1
         return result
 
+    # -- pairing -------------------------------------------------------------------------------------
+
+    def _phase_error(self, dt_us: int) -> float:
+        periods = dt_us * 1e-6 * self.projector_hz
+        return float(abs(periods - (2 * np.floor(periods / 2) + 1)))
+
+    def _candidates(self, now_us: int) -> list[_Past]:
+        past = list(self._history)
+        if self.cfg.demodulation.pairing == "previous":
+            return past[-1:]
+        scored = [(self._phase_error(now_us - p.time_us), -p.index, p) for p in past]
+        good = [(e, i, p) for e, i, p in scored if e < MAX_PHASE_ERROR]
+        good.sort(key=lambda t: (t[0], t[1]))
+        return [p for _, _, p in good[:2]]
+
+    def _predicted_sign(self, now_index: int, now_us: int, prev: _Past) -> int:
+        """+1 if the current frame is probably the +ΔL phase (tags with dark borders), else -1."""
+        if prev.index in self._phase:
+            return -self._phase[prev.index]
+        for p in reversed(self._history):
+            if p.index in self._phase:
+                flips = round((now_us - p.time_us) * 1e-6 * self.projector_hz)
+                return self._phase[p.index] * (-1 if flips % 2 else 1)
+        return 1
+
+    # -- detection -----------------------------------------------------------------------------------
+
+    def _detect(self, binary: U8, first_sign: int) -> tuple[tuple[TagDetection, ...], int]:
+        """Detections and the sign they were found with (+1: dark borders as is)."""
+        images = {1: binary, -1: 255 - binary}
+        if self.cfg.demodulation.polarity == "both":
+            self.detector_runs += 2
+            found = {s: self.detector.detect(img) for s, img in images.items()}
+            best = max((1, -1), key=lambda s: len(found[s]))
+            return found[best], best
+        for sign in (first_sign, -first_sign):
+            self.detector_runs += 1
+            dets = self.detector.detect(images[sign])
+            if len(dets) >= self.cfg.pose.min_tags:
+                return dets, sign
+        return (), first_sign
+
+    # -- the frame -----------------------------------------------------------------------------------
+
     def _process(self, index: int, frame_rgb: U8, capture_time_us: int) -> FrameResult:
         expected = (self.camera.height_px, self.camera.width_px, 3)
         if not isinstance(frame_rgb, np.ndarray) or frame_rgb.shape != expected or frame_rgb.dtype != np.uint8:
-            self._prev_l = None
+            self._history.clear()
             return FrameResult(index, capture_time_us, None, 0, "bad_frame")
         now_l = lightness(frame_rgb)
-        prev_l, self._prev_l = self._prev_l, now_l
-        if prev_l is None:
-            return FrameResult(index, capture_time_us, None, 0, "first_frame")
-        demod = demodulate(prev_l, now_l, self.cfg.demodulation)
-        detections = self._detect_both_polarities(demod.binary)
-        if not detections:
-            return FrameResult(index, capture_time_us, None, 0, "no_tags")
-        pose = solve_pose(detections, self.tag_map, self.camera, self.cfg.pose)
+        if self._history and not 0 < capture_time_us - self._history[-1].time_us <= MAX_GAP_US:
+            self._history.clear()  # a jump in the video, or time going backwards
+        candidates = self._candidates(capture_time_us)
+        result = FrameResult(index, capture_time_us, None, 0, "first_frame" if not self._history else "no_pair")
+        for prev in candidates:
+            demod = demodulate(prev.lightness, now_l, self.cfg.demodulation)
+            dets, sign = self._detect(demod.binary, self._predicted_sign(index, capture_time_us, prev))
+            if not dets:
+                result = FrameResult(index, capture_time_us, None, 0, "no_tags")
+                continue
+            self._phase[index], self._phase[prev.index] = sign, -sign
+            result = self._pose(index, capture_time_us, dets)
+            break
+        self._history.append(_Past(index, capture_time_us, now_l))
+        for old in [i for i in self._phase if i < index - 4 * HISTORY]:
+            del self._phase[old]
+        return result
+
+    def _pose(self, index: int, t_us: int, dets: tuple[TagDetection, ...]) -> FrameResult:
+        pose = solve_pose(dets, self.tag_map, self.camera, self.cfg.pose)
         if pose is None:
-            return FrameResult(index, capture_time_us, None, len(detections), "pose_rejected")
-        return FrameResult(index, capture_time_us, pose, len(detections), "pose")
+            return FrameResult(index, t_us, None, len(dets), "pose_rejected")
+        reset = False
+        max_speed = self.cfg.pose.max_speed_mps
+        if max_speed is not None and self._last_pose is not None:
+            last_us, last = self._last_pose
+            dt_us = t_us - last_us
+            if 0 < dt_us <= GATE_WINDOW_US:
+                allowed_m = 0.05 + max_speed * dt_us * 1e-6
+                if float(np.linalg.norm(pose.position_m - last.position_m)) > allowed_m:
+                    self._gated_in_a_row += 1
+                    if self._gated_in_a_row < GATE_RESET_AFTER:
+                        return FrameResult(index, t_us, None, len(dets), "motion_jump")
+                    reset = True
+        self._gated_in_a_row = 0
+        self._last_pose = (t_us, pose)
+        return FrameResult(index, t_us, pose, len(dets), "pose", reset)
+
+
+#: The earlier name, kept for callers written before the profiles existed.
+PaperPipeline = Pipeline

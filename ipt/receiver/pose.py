@@ -10,7 +10,7 @@ takes camera (OpenCV optical) vectors into the arena frame.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -26,6 +26,37 @@ F64 = npt.NDArray[np.float64]
 
 #: Image width the pixel thresholds' defaults are stated for (the paper's 640x360).
 REFERENCE_WIDTH_PX = 640
+#: Floor on the corner noise used for the covariance (a perfect fit does not make a perfect pose).
+MIN_CORNER_SIGMA_PX = 0.3
+
+
+def _pose_of(rvec: F64, tvec: F64) -> tuple[F64, F64]:
+    r_cam_arena, _ = cv2.Rodrigues(rvec)
+    r_arena_cam = np.asarray(r_cam_arena, np.float64).T
+    return -r_arena_cam @ tvec.reshape(3), r_arena_cam
+
+
+def _covariances(obj: F64, rvec: F64, tvec: F64, camera: CameraInfo, sigma_px: float) -> tuple[F64, F64]:
+    """Position and attitude covariances: sigma² (JᵀJ)⁻¹ of the PnP fit, carried to the camera pose."""
+    _, jac = cv2.projectPoints(obj, rvec, tvec, camera.camera_matrix, camera.dist_coeffs)
+    j = np.asarray(jac, np.float64)[:, :6]
+    try:
+        cov_rt = sigma_px**2 * np.linalg.inv(j.T @ j)
+    except np.linalg.LinAlgError:
+        nan = np.full((3, 3), np.nan)
+        return nan, nan
+    position0, r0 = _pose_of(rvec, tvec)
+    jp = np.zeros((3, 6))
+    ja = np.zeros((3, 6))
+    eps = 1e-6
+    for i in range(6):
+        d = np.zeros(6)
+        d[i] = eps
+        position1, r1 = _pose_of(rvec.reshape(3) + d[:3], tvec.reshape(3) + d[3:])
+        jp[:, i] = (position1 - position0) / eps
+        rot, _ = cv2.Rodrigues(r1 @ r0.T)  # the small rotation, about arena axes
+        ja[:, i] = np.asarray(rot, np.float64).reshape(3) / eps
+    return jp @ cov_rt @ jp.T, ja @ cov_rt @ ja.T
 
 
 @dataclass(frozen=True)
@@ -38,6 +69,21 @@ class PoseEstimate:
     """3x3 rotation camera→arena."""
     tag_ids: tuple[int, ...]
     reprojection_rms_px: float
+    position_cov_m2: F64 = field(default_factory=lambda: np.full((3, 3), np.nan))
+    """3x3 covariance of ``position_m`` from the PnP geometry (corner noise = the fit's RMS, at least
+    :data:`MIN_CORNER_SIGMA_PX`)."""
+    attitude_cov_rad2: F64 = field(default_factory=lambda: np.full((3, 3), np.nan))
+    """3x3 covariance of a small rotation about the arena axes applied to ``r_arena_cam``."""
+
+    @property
+    def position_std_m(self) -> F64:
+        """Per-axis standard deviation of the position."""
+        return np.sqrt(np.clip(np.diag(self.position_cov_m2), 0.0, None))
+
+    @property
+    def attitude_std_rad(self) -> F64:
+        """Per-axis (arena x, y, z) standard deviation of the attitude."""
+        return np.sqrt(np.clip(np.diag(self.attitude_cov_rad2), 0.0, None))
 
     @property
     def quat_wxyz(self) -> F64:
@@ -100,8 +146,7 @@ def solve_pose(
         rms = float(np.sqrt(np.mean(err**2)))
         if not np.isfinite(rms) or rms > max_rms:
             return None
-        r_cam_arena, _ = cv2.Rodrigues(rvec)
-        r_arena_cam = np.asarray(r_cam_arena, np.float64).T
-        position_m = -r_arena_cam @ tvec.reshape(3)
-        return PoseEstimate(position_m, r_arena_cam, ids, rms)
+        position_m, r_arena_cam = _pose_of(rvec, tvec)
+        cov_p, cov_a = _covariances(obj, rvec, tvec, camera, max(rms, MIN_CORNER_SIGMA_PX))
+        return PoseEstimate(position_m, r_arena_cam, ids, rms, cov_p, cov_a)
     return None

@@ -16,7 +16,7 @@ from ipt.config.camera_info import load_camera_info
 from ipt.config.models import ArenaConfig, PipelineConfig
 from ipt.errors import IptError
 from ipt.fileio import atomic_path
-from ipt.receiver.pipeline import PaperPipeline
+from ipt.receiver.pipeline import Pipeline
 from ipt.tagmap import TagMap
 from ipt.tum import TUM_HEADER, format_tum_line
 from ipt.videoio import open_frames
@@ -61,7 +61,6 @@ def replay(
     progress: TextIO | None = sys.stderr,
 ) -> ReplaySummary:
     """Run the recording at ``video_path`` through the pipeline; write one TUM line per pose."""
-    del arena  # the tag map already carries what the receiver needs from the arena
     camera = load_camera_info(camera_path)
     with open_frames(video_path) as source:
         if (source.width, source.height) != (camera.width_px, camera.height_px):
@@ -72,7 +71,7 @@ def replay(
         rate = fps if fps is not None else source.fps
         if rate is None or rate <= 0:
             raise ReplayError(f"{video_path}: the frame rate is unknown; give it with --fps")
-        pipeline = PaperPipeline(tag_map, camera, pipeline_cfg)
+        pipeline = Pipeline(tag_map, camera, pipeline_cfg, projector_hz=arena.projector.rate_hz)
         total = source.frame_count
         frames = poses = 0
         start = last_report = time.monotonic()
