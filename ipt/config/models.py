@@ -178,7 +178,7 @@ class PoseConfig(StrictModel):
     max_reprojection_rms_px: float | None = Field(
         None,
         gt=0,
-        description="Poses whose corner reprojection RMS exceeds this are rejected. Default: 1.5 px at 640 px "
+        description="Poses whose corner reprojection RMS exceeds this are rejected. Default: 2.5 px at 640 px "
         "wide, scaled with the width (corner noise from binarisation grows with the filter sizes).",
     )
     max_speed_mps: float | None = Field(

@@ -35,8 +35,10 @@ U8 = npt.NDArray[np.uint8]
 
 #: Frames kept for pairing (lags up to this many frames back).
 HISTORY = 4
-#: A pairing whose time step is this far (in projector periods) from an odd number is not tried.
-MAX_PHASE_ERROR = 0.45
+#: A pairing whose time step is this far (in projector periods) from an odd number is not tried. Half a
+#: period is still tried as a fallback: when an exposure straddles a flip, its lag-2 partner straddles the
+#: same way and the signal cancels, while the neighbour on the other side of the flip keeps half of it.
+MAX_PHASE_ERROR = 0.55
 #: The motion gate compares with the last accepted pose only if it is this recent.
 GATE_WINDOW_US = 250_000
 #: After this many gated poses in a row the track is re-initialised (the earlier pose was the wrong one).

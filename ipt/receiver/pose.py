@@ -129,7 +129,7 @@ def solve_pose(
     """
     obj, img, ids = correspondences(detections, tag_map)
     scale = camera.width_px / REFERENCE_WIDTH_PX
-    max_rms = cfg.max_reprojection_rms_px if cfg.max_reprojection_rms_px is not None else 1.5 * scale
+    max_rms = cfg.max_reprojection_rms_px if cfg.max_reprojection_rms_px is not None else 2.5 * scale
     outlier_px = cfg.outlier_tag_px if cfg.outlier_tag_px is not None else 2.0 * scale
     while len(ids) >= cfg.min_tags:
         fit = _fit(obj, img, camera, cfg.refine_lm)
