@@ -19,7 +19,6 @@ from ipt.sim.arena import SimulatedArena
 from ipt.sim.config import SimCameraConfig, SimConfig
 from ipt.sim.flight import GRAVITY_MPS2, FlightState, RectangleFlight
 from ipt.sim.render import CameraRenderer, Exposure, camera_info_of, linear_to_srgb_u8, srgb_to_linear
-from ipt.sim.run import simulate_to_folder
 from ipt.tagmap import arena_to_pixel_matrix, grid_tag_map
 from ipt.tum import read_tum
 
@@ -106,13 +105,6 @@ def test_projector_crop_is_the_modulated_frame() -> None:
     diff = (plus - minus).sum(axis=2)
     assert diff[mask > 0].mean() > 5 > abs(diff[mask == 0].mean())
     assert diff[mask < 0].mean() < -5
-
-
-@pytest.fixture(scope="module")
-def short_flight(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("flight")
-    simulate_to_folder(ARENA, SimConfig(), GeneratedScene(1920, 2160), out, 0.5, progress=None)
-    return out
 
 
 @pytest.mark.slow

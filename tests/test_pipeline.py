@@ -1,0 +1,140 @@
+"""The per-frame pipeline: pairing, polarity, gates, profiles and bad frames, on real simulated frames."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ipt.config.camera_info import load_camera_info
+from ipt.config.models import ArenaConfig, ConfigError, PipelineConfig
+from ipt.receiver.pipeline import Pipeline
+from ipt.receiver.pose import PoseEstimate
+from ipt.tagmap import grid_tag_map
+from ipt.tum import read_tum
+from ipt.videoio import open_frames
+
+ARENA = ArenaConfig()
+FPS = 120.0
+
+
+def _t_us(k: int) -> int:
+    return round(k / FPS * 1e6)
+
+
+@pytest.fixture(scope="module")
+def frames(short_flight: Path) -> list[np.ndarray]:
+    with open_frames(short_flight / "frames.mkv") as src:
+        return list(src)
+
+
+def _pipeline(short_flight: Path, cfg: PipelineConfig) -> Pipeline:
+    return Pipeline(grid_tag_map(ARENA), load_camera_info(short_flight / "camera.yaml"), cfg, 60.0)
+
+
+def _run(p: Pipeline, frames: list[np.ndarray]) -> list:  # type: ignore[type-arg]
+    return [p.process(k, f, _t_us(k)) for k, f in enumerate(frames)]
+
+
+def test_opposite_phase_pairing_prefers_one_projector_period(short_flight: Path) -> None:
+    p = _pipeline(short_flight, PipelineConfig())
+    # (capture times are whole microseconds, hence the tolerance)
+    assert p._phase_error(_t_us(2)) == pytest.approx(0.0, abs=1e-4)  # lag 2 at 120 FPS: one 60 Hz period
+    assert p._phase_error(_t_us(1)) == pytest.approx(0.5, abs=1e-4)
+    assert p._phase_error(_t_us(4)) == pytest.approx(1.0, abs=1e-4)  # two periods: the same phase
+    assert p._phase_error(round(3 / 180 * 1e6)) == pytest.approx(0.0, abs=1e-4)  # lag 3 at 180 FPS
+
+
+def test_ipt_profile_beats_the_paper_profile_on_the_same_frames(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]
+    truth = read_tum(short_flight / "groundtruth.tum")
+    yields, errors = {}, {}
+    for name in ("ipt", "paper"):
+        results = _run(_pipeline(short_flight, PipelineConfig.profile(name)), frames)
+        posed = [r for r in results if r.pose is not None]
+        yields[name] = len(posed) / len(frames)
+        errors[name] = max(np.linalg.norm(r.pose.position_m - truth.positions_m[r.index]) for r in posed)
+    assert yields["ipt"] >= 0.85
+    assert yields["ipt"] > yields["paper"]
+    assert errors["ipt"] < 0.05
+
+
+def test_tracked_polarity_runs_the_detector_about_once_a_frame(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]
+    tracked = _pipeline(short_flight, PipelineConfig())
+    _run(tracked, frames)
+    both = _pipeline(short_flight, PipelineConfig.profile("paper"))
+    _run(both, frames)
+    assert tracked.detector_runs < 1.3 * len(frames)
+    assert both.detector_runs == 2 * (len(frames) - 1)
+
+
+def test_bad_frames_are_counted_not_raised(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]
+    p = _pipeline(short_flight, PipelineConfig())
+    h, w = frames[0].shape[:2]
+    inputs = [
+        frames[0],
+        frames[1],
+        np.zeros((h // 2, w, 3), np.uint8),  # wrong size
+        frames[2].astype(np.float32),  # wrong type
+        np.zeros((h, w, 3), np.uint8),  # black
+        np.full((h, w, 3), 255, np.uint8),  # saturated
+        frames[5],
+    ]
+    results = [p.process(k, f, _t_us(k)) for k, f in enumerate(inputs)]  # type: ignore[arg-type]
+    assert [r.reason for r in results[2:4]] == ["bad_frame", "bad_frame"]
+    assert all(r.pose is None for r in results[2:6])
+    assert results[4].reason == "first_frame"  # pairing starts afresh after a bad frame
+    assert p.reasons["bad_frame"] == 2
+
+
+def test_a_jump_in_time_restarts_pairing(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]
+    p = _pipeline(short_flight, PipelineConfig())
+    for k in range(4):
+        p.process(k, frames[k], _t_us(k))
+    assert p.process(4, frames[4], _t_us(4) + 500_000).reason == "first_frame"
+    assert p.process(5, frames[5], _t_us(3)).reason == "first_frame"  # time going backwards
+
+
+def test_motion_gate_rejects_a_jump_then_reinitialises(short_flight: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import ipt.receiver.pipeline as pipeline_module
+
+    # Poses 8 ms apart: three at the origin, then the solver "jumps" 0.5 m (more than 3 m/s allows).
+    xs = iter([0.0, 0.001, 0.002, 0.5, 0.5, 0.5, 0.5, 0.5])
+
+    def fake_solve(*_: object) -> PoseEstimate:
+        return PoseEstimate(np.array([next(xs), 0.0, 0.8]), np.eye(3), (1, 2), 0.5)
+
+    monkeypatch.setattr(pipeline_module, "solve_pose", fake_solve)
+    p = _pipeline(short_flight, PipelineConfig())
+    results = [p._pose(k, _t_us(k), ()) for k in range(8)]
+    reasons = [r.reason for r in results]
+    assert reasons[:3] == ["pose"] * 3
+    assert reasons[3:6] == ["motion_jump"] * 3
+    assert reasons[6] == "pose"  # the fourth jump in a row re-initialises the track at the new place
+    assert results[6].reset
+    assert reasons[7] == "pose"
+    assert not results[7].reset
+
+
+def test_poses_carry_a_covariance_that_grows_with_fewer_tags(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]
+    results = [r for r in _run(_pipeline(short_flight, PipelineConfig()), frames) if r.pose is not None]
+    by_tags: dict[int, list[float]] = {}
+    for r in results:
+        std = r.pose.position_std_m
+        assert np.all(np.isfinite(std))
+        assert np.all(std > 0)
+        assert np.all(np.isfinite(r.pose.attitude_std_rad))
+        by_tags.setdefault(len(r.pose.tag_ids), []).append(float(np.linalg.norm(std)))
+    counts = sorted(by_tags)
+    assert len(counts) >= 2
+    assert np.median(by_tags[counts[0]]) > np.median(by_tags[counts[-1]])
+
+
+def test_profiles_are_named() -> None:
+    paper = PipelineConfig.profile("paper")
+    assert paper.demodulation.pairing == "previous"
+    assert paper.demodulation.alignment == "sampled_lines"
+    assert paper.pose.refine_lm is False
+    assert PipelineConfig.profile("ipt") == PipelineConfig()
+    with pytest.raises(ConfigError, match="unknown pipeline profile"):
+        PipelineConfig.profile("fast")
