@@ -38,6 +38,23 @@ def atomic_path(target: str | Path) -> Iterator[Path]:
         tmp_path.unlink(missing_ok=True)
 
 
+def read_text_file(path: Path, error: type[Exception], expected: str) -> str:
+    """The UTF-8 text of ``path``; any problem becomes ``error`` with one line naming the file.
+
+    ``expected`` says what the file should be, for the message about a directory (e.g. "a YAML file").
+    """
+    try:
+        return path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise error(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise error(f"{path}: is a directory, expected {expected}") from None
+    except UnicodeDecodeError:
+        raise error(f"{path}: not a text file (expected {expected})") from None
+    except OSError as exc:
+        raise error(f"{path}: cannot read ({exc.strerror or exc})") from None
+
+
 def write_text_atomic(target: str | Path, text: str) -> None:
     """Write ``text`` (UTF-8) to ``target`` atomically."""
     with atomic_path(target) as tmp:

@@ -29,7 +29,7 @@ import numpy.typing as npt
 
 from ipt.config.models import ArenaConfig, finite_float
 from ipt.errors import IptError
-from ipt.fileio import atomic_path, write_text_atomic
+from ipt.fileio import atomic_path, read_text_file, write_text_atomic
 
 TAG36H11_CELLS = 10
 """Cells across a rendered tag36h11 tag: a one-cell white quiet zone around the 8-cell black border."""
@@ -247,12 +247,9 @@ def _float_list(path: Path, where: str, value: Any, n: int) -> tuple[float, ...]
 def load_layout(path: str | Path) -> TagMap:
     """Read a layout JSON (the shape :func:`export_map` writes) and check it thoroughly."""
     p = Path(path)
+    text = read_text_file(p, TagMapError, "a layout JSON file")
     try:
-        data = json.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise TagMapError(f"{p}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise TagMapError(f"{p}: cannot read ({exc})") from None
+        data = json.loads(text)
     except json.JSONDecodeError as exc:
         raise TagMapError(f"{p}: not valid JSON (line {exc.lineno}: {exc.msg})") from None
     if not isinstance(data, dict) or not isinstance(data.get("projector"), dict):

@@ -25,7 +25,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.errors import IptError
-from ipt.fileio import write_text_atomic
+from ipt.fileio import read_text_file, write_text_atomic
 
 F64 = npt.NDArray[np.float64]
 
@@ -97,14 +97,7 @@ def read_tum(path: str | Path) -> Trajectory:
     missing or unreadable file or one without any pose.
     """
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise TumError(f"{p}: no such file") from None
-    except IsADirectoryError:
-        raise TumError(f"{p}: is a directory, not a TUM file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise TumError(f"{p}: cannot read ({exc})") from None
+    text = read_text_file(p, TumError, "a TUM file")
 
     rows: list[list[float]] = []
     prev_t = -math.inf

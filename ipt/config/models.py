@@ -15,6 +15,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from ipt.errors import IptError
+from ipt.fileio import read_text_file
 
 
 class ConfigError(IptError):
@@ -255,14 +256,7 @@ def _describe_validation_error(exc: ValidationError) -> str:
 
 def read_yaml_mapping(path: Path, error: type[IptError] = ConfigError) -> dict[str, Any]:
     """Read a YAML file whose top level is a mapping; raise ``error`` naming the file otherwise."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise error(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise error(f"{path}: is a directory, expected a YAML file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise error(f"{path}: cannot read ({exc})") from None
+    text = read_text_file(path, error, "a YAML file")
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
