@@ -237,11 +237,18 @@ class _Renderer:
     """Makes output frame j; runs in the render thread, one frame at a time, in order."""
 
     def __init__(
-        self, scene: Scene, modulator: PaperModulator, ar: ArScene | None, n: int, input_rate_hz: float
+        self,
+        scene: Scene,
+        modulator: PaperModulator,
+        ar: ArScene | None,
+        n: int,
+        input_rate_hz: float,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.scene = scene
         self.modulator = modulator
         self.ar = ar
+        self.clock = clock
         self.n = n
         self.input_rate_hz = input_rate_hz
         self.overlay_errors = 0
@@ -261,7 +268,7 @@ class _Renderer:
             if self.ar is not None:
                 t1 = time.perf_counter()
                 try:
-                    self.ar.draw(rgb, time.monotonic())
+                    self.ar.draw(rgb, self.clock())
                 except Exception as exc:  # the overlay must never stop the projection
                     self.overlay_errors += 1
                     if self.first_overlay_error is None:
@@ -276,9 +283,12 @@ class _Renderer:
 class _PoseListener(asyncio.DatagramProtocol):
     """Every datagram goes through the filter; accepted poses update the overlay."""
 
-    def __init__(self, packet_filter: PacketFilter, ar: ArScene | None) -> None:
+    def __init__(
+        self, packet_filter: PacketFilter, ar: ArScene | None, clock: Callable[[], float] | None = None
+    ) -> None:
         self.filter = packet_filter
         self.ar = ar
+        self.clock = clock
         self.errors = 0
         self.socket_errors = 0
 
@@ -287,7 +297,7 @@ class _PoseListener(asyncio.DatagramProtocol):
         try:
             packet = self.filter.accept(data, now)
             if packet is not None and self.ar is not None:
-                self.ar.update(packet, now)
+                self.ar.update(packet, now if self.clock is None else self.clock())
         except Exception:  # a bug somewhere below: count it, keep listening
             self.errors += 1
 
@@ -326,6 +336,8 @@ class Sender:
         install_signal_handlers: bool,
         stop: asyncio.Event | None,
         shutdown_timeout_s: float,
+        overlay_clock: Callable[[], float] | None = None,
+        on_listening: Callable[[tuple[str, int]], None] | None = None,
     ) -> None:
         if frames is not None and frames < 0:
             raise SenderError(f"frames must be >= 0, got {frames}")
@@ -344,11 +356,14 @@ class Sender:
         self.install_signal_handlers = install_signal_handlers
         self.stop = stop
         self.shutdown_timeout_s = shutdown_timeout_s
+        self.overlay_clock = overlay_clock if overlay_clock is not None else time.monotonic
+        self._listener_clock = overlay_clock  # None: the listener's own receive time
+        self.on_listening = on_listening
         self.rate_hz = arena.projector.rate_hz
         mod = arena.modulation
         n = frames_per_input(mod.input_rate_hz, self.rate_hz)
         modulator = PaperModulator(grid_tag_map(arena).render_mask(), mod.delta_l)
-        self.renderer = _Renderer(scene, modulator, ar_scene, n, mod.input_rate_hz)
+        self.renderer = _Renderer(scene, modulator, ar_scene, n, mod.input_rate_hz, self.overlay_clock)
         self.stats = SenderStats(arena.projector.width_px, arena.projector.height_px, self.rate_hz, paced)
         self.bound: tuple[str, int] | None = None
         self.should_exit = False
@@ -414,9 +429,11 @@ class Sender:
         if self.sink.threaded:
             self._display = _Worker("ipt-display")
         if self.listen is not None:
-            self._listener = _PoseListener(self.filter, self.ar)
+            self._listener = _PoseListener(self.filter, self.ar, self._listener_clock)
             self._transport, self.bound = await self._bind(loop, *self.listen)
             self.log(f"ipt-sender: listening for pose packets on udp {self.bound[0]}:{self.bound[1]}")
+            if self.on_listening is not None:
+                self.on_listening(self.bound)
         self._started = True
 
     async def _bind(
@@ -589,6 +606,8 @@ async def run_sender(
     install_signal_handlers: bool = True,
     stop: asyncio.Event | None = None,
     shutdown_timeout_s: float = 0.5,
+    overlay_clock: Callable[[], float] | None = None,
+    on_listening: Callable[[tuple[str, int]], None] | None = None,
 ) -> SenderStats:
     """Run the sender until ``frames`` output frames are shown, a signal, ``stop`` or the sink says stop.
 
@@ -609,6 +628,11 @@ async def run_sender(
         install_signal_handlers: SIGTERM/SIGINT stop the run (main thread only).
         stop: set it to stop the run from elsewhere.
         shutdown_timeout_s: bound on waiting for the render thread when stopping.
+        overlay_clock: the time (seconds) the overlay runs on: given to :meth:`ArScene.update` for each
+            accepted pose and to :meth:`ArScene.draw` for each input frame, so it sets fading and trails
+            (default ``time.monotonic``; the closed-loop demo passes the simulation's clock).
+        on_listening: called with the bound ``(host, port)`` once the pose listener is up (useful with
+            port 0).
     """
     if not stats_every_s > 0:
         raise SenderError(f"stats_every_s must be > 0, got {stats_every_s}")
@@ -629,6 +653,8 @@ async def run_sender(
             install_signal_handlers=install_signal_handlers,
             stop=stop,
             shutdown_timeout_s=shutdown_timeout_s,
+            overlay_clock=overlay_clock,
+            on_listening=on_listening,
         )
     except BaseException:
         sink.abort()  # nothing was shown: leave nothing behind (a file sink may have started its file)
