@@ -4,12 +4,12 @@ Three stages, each on its own thread, joined by bounded queues::
 
     capture thread ──FrameQueue(queue_size)──▶ event loop ──▶ pipeline thread ──▶ event loop ──▶ UDP
     (blocking reads;       (live: newest wins,      (submits      (one worker:         (packets,
-     paced if real time)    oldest dropped)          in order)     PaperPipeline)       stats)
+     paced if real time)    oldest dropped)          in order)     Pipeline)            stats)
 
 - The **capture thread** (:class:`~ipt.receiver.capture.CaptureThread`) does every blocking read and
   hands frames over; a live source never waits, a recording waits for room.
 - The **event loop** takes frames in capture order and submits them to a single-worker executor that
-  runs :meth:`PaperPipeline.process`, keeping at most :data:`MAX_IN_FLIGHT` frames there: while frame
+  runs :meth:`Pipeline.process`, keeping at most :data:`MAX_IN_FLIGHT` frames there: while frame
   ``k`` is processed, frame ``k + 1`` is already waiting, so the worker never idles for a round trip
   through the loop, and capture (decode or render) overlaps with processing on another core.
 - **In order**: the pipeline is stateful (each frame is demodulated against the one before), so it
@@ -58,7 +58,7 @@ from ipt.receiver.capture import (
     sim_camera_from,
 )
 from ipt.receiver.outputs import PacketMaker, UdpPoseSender
-from ipt.receiver.pipeline import FrameResult, PaperPipeline
+from ipt.receiver.pipeline import FrameResult, Pipeline
 from ipt.sim.config import SimCameraConfig, SimConfig
 from ipt.tagmap import grid_tag_map
 
@@ -247,7 +247,7 @@ async def run_daemon(
     arena = load_arena_config(cfg.arena)
     camera = load_camera_info(cfg.camera)
     key = read_auth_key(cfg.auth_key_file) if cfg.auth_key_file is not None else None
-    pipeline = PaperPipeline(grid_tag_map(arena), camera, cfg.pipeline)
+    pipeline = Pipeline(grid_tag_map(arena), camera, cfg.pipeline, projector_hz=arena.projector.rate_hz)
     capture_stop = threading.Event()
     if source is None:
         source = make_source(cfg, arena, camera, capture_stop)

@@ -175,7 +175,3 @@ class Pipeline:
         self._gated_in_a_row = 0
         self._last_pose = (t_us, pose)
         return FrameResult(index, t_us, pose, len(dets), "pose", reset)
-
-
-#: The earlier name, kept for callers written before the profiles existed.
-PaperPipeline = Pipeline
