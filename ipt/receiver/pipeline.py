@@ -103,7 +103,7 @@ class Pipeline:
         good.sort(key=lambda t: (t[0], t[1]))
         return [p for _, _, p in good[:2]]
 
-    def _predicted_sign(self, now_index: int, now_us: int, prev: _Past) -> int:
+    def _predicted_sign(self, now_us: int, prev: _Past) -> int:
         """+1 if the current frame is probably the +ΔL phase (tags with dark borders), else -1."""
         if prev.index in self._phase:
             return -self._phase[prev.index]
@@ -144,7 +144,7 @@ class Pipeline:
         result = FrameResult(index, capture_time_us, None, 0, "first_frame" if not self._history else "no_pair")
         for prev in candidates:
             demod = demodulate(prev.lightness, now_l, self.cfg.demodulation)
-            dets, sign = self._detect(demod.binary, self._predicted_sign(index, capture_time_us, prev))
+            dets, sign = self._detect(demod.binary, self._predicted_sign(capture_time_us, prev))
             if not dets:
                 result = FrameResult(index, capture_time_us, None, 0, "no_tags")
                 continue
