@@ -7,11 +7,15 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ipt import __version__
 from ipt.cliutil import Parser, run_main
 from ipt.config.models import ArenaConfig, load_arena_config, load_yaml_model, shipped_config_path
 from ipt.errors import IptError
+
+if TYPE_CHECKING:  # the content module is imported only by the commands that render
+    from ipt.sender.content import Scene
 
 DEFAULT_ARENA = shipped_config_path("arena.yaml")
 
@@ -20,7 +24,7 @@ def _arena(path: str | None) -> ArenaConfig:
     return load_arena_config(path if path is not None else DEFAULT_ARENA)
 
 
-def _scene(spec: str, arena: ArenaConfig, seed: int) -> object:
+def _scene(spec: str, arena: ArenaConfig, seed: int) -> Scene:
     from ipt.sender.content import GeneratedScene, StillImageScene, VideoScene
 
     w, h = arena.projector.width_px, arena.projector.height_px
@@ -79,7 +83,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     if args.seed is not None:
         sim = sim.model_copy(update={"seed": args.seed})
     scene = _scene(args.content, arena, sim.seed)
-    n = simulate_to_folder(arena, sim, scene, Path(args.out), args.seconds)  # type: ignore[arg-type]
+    n = simulate_to_folder(arena, sim, scene, Path(args.out), args.seconds)
     print(f"ipt sim: {n} frames -> {args.out}/frames.mkv, camera.yaml, groundtruth.tum")
     return 0
 

@@ -97,6 +97,11 @@ class ArenaConfig(StrictModel):
         return self
 
 
+#: Image width the receiver's pixel-sized defaults are stated for (the paper's 640x360 camera); they
+#: scale with the actual width, since blur, motion and corner noise in pixels grow with resolution.
+REFERENCE_WIDTH_PX = 640
+
+
 class DemodulationConfig(StrictModel):
     """Recovering the tag image from two camera frames (the paper's Algorithm 2 and Section V-A/B)."""
 

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ipt.config.models import DemodulationConfig
+from ipt.config.models import REFERENCE_WIDTH_PX, DemodulationConfig
 from ipt.errors import IptError
 
 U8 = npt.NDArray[np.uint8]
@@ -93,16 +93,15 @@ def _median_u8(img: U8) -> int:
     return int(np.searchsorted(np.cumsum(hist), (img.size + 1) // 2))
 
 
-#: The paper's shift bound b and the image width it was chosen for.
+#: The paper's shift bound b (chosen for a 640 px wide image, :data:`REFERENCE_WIDTH_PX`).
 PAPER_MAX_SHIFT_PX = 5
-PAPER_WIDTH_PX = 640
 
 
 def max_shift_for(cfg: DemodulationConfig, width_px: int) -> int:
     """The shift bound b for an image ``width_px`` wide (configured, or the paper's scaled to the width)."""
     if cfg.max_shift_px is not None:
         return cfg.max_shift_px
-    return max(PAPER_MAX_SHIFT_PX, round(PAPER_MAX_SHIFT_PX * width_px / PAPER_WIDTH_PX))
+    return max(PAPER_MAX_SHIFT_PX, round(PAPER_MAX_SHIFT_PX * width_px / REFERENCE_WIDTH_PX))
 
 
 #: Filter size that suits a 640 px wide image (measured on the simulated arena: 5 finds 1.7x the tags of 3).
@@ -113,7 +112,7 @@ def ksize_for(configured: int | None, width_px: int) -> int:
     """A filter side: as configured, or :data:`BASE_KSIZE_PX` scaled with the width to the nearest odd size."""
     if configured is not None:
         return configured
-    return 2 * round(BASE_KSIZE_PX / 2 * width_px / PAPER_WIDTH_PX - 0.5) + 1
+    return 2 * round(BASE_KSIZE_PX / 2 * width_px / REFERENCE_WIDTH_PX - 0.5) + 1
 
 
 def _gradient_magnitude(img: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:

@@ -17,15 +17,13 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.config.camera_info import CameraInfo
-from ipt.config.models import PoseConfig
+from ipt.config.models import REFERENCE_WIDTH_PX, PoseConfig
 from ipt.geometry import quat_wxyz_from_matrix
 from ipt.receiver.detector import TagDetection
 from ipt.tagmap import TagMap
 
 F64 = npt.NDArray[np.float64]
 
-#: Image width the pixel thresholds' defaults are stated for (the paper's 640x360).
-REFERENCE_WIDTH_PX = 640
 #: Floor on the corner noise used for the covariance (a perfect fit does not make a perfect pose).
 MIN_CORNER_SIGMA_PX = 0.3
 

@@ -11,13 +11,13 @@ from __future__ import annotations
 from collections import OrderedDict
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Protocol
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
 from ipt.config.models import ArenaConfig
+from ipt.sender.content import Scene
 from ipt.sender.modulator import PaperModulator, frames_per_input, phase_sign
 from ipt.sim.config import SimConfig
 from ipt.sim.flight import FlightState, RectangleFlight
@@ -25,12 +25,6 @@ from ipt.sim.render import CameraRenderer, Exposure
 from ipt.tagmap import TagMap, arena_to_pixel_matrix, grid_tag_map
 
 U8 = npt.NDArray[np.uint8]
-
-
-class Scene(Protocol):
-    """Video content: input frame ``index`` at ``rate_hz`` as an RGB image."""
-
-    def frame(self, index: int, rate_hz: float) -> U8: ...
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,8 @@ from ipt.config.models import ArenaConfig
 from ipt.errors import IptError
 from ipt.fileio import write_text_atomic
 from ipt.geometry import quat_wxyz_from_matrix
-from ipt.sim.arena import Scene, SimulatedArena
+from ipt.sender.content import Scene
+from ipt.sim.arena import SimulatedArena
 from ipt.sim.config import SimConfig
 from ipt.sim.render import camera_info_of
 from ipt.tagmap import TagMap
