@@ -105,7 +105,9 @@ def test_motion_gate_rejects_a_jump_then_reinitialises(short_flight: Path, monke
         return PoseEstimate(np.array([next(xs), 0.0, 0.8]), np.eye(3), (1, 2), 0.5)
 
     monkeypatch.setattr(pipeline_module, "solve_pose", fake_solve)
-    p = _pipeline(short_flight, PipelineConfig())
+    cfg = PipelineConfig()
+    cfg = cfg.model_copy(update={"pose": cfg.pose.model_copy(update={"max_prediction_error_m": None})})
+    p = _pipeline(short_flight, cfg)
     results = [p._pose(k, _t_us(k), ()) for k in range(8)]
     reasons = [r.reason for r in results]
     assert reasons[:3] == ["pose"] * 3
@@ -114,6 +116,46 @@ def test_motion_gate_rejects_a_jump_then_reinitialises(short_flight: Path, monke
     assert results[6].reset
     assert reasons[7] == "pose"
     assert not results[7].reset
+
+
+def _fake_poses(monkeypatch: pytest.MonkeyPatch, xs: list[float]) -> None:
+    import ipt.receiver.pipeline as pipeline_module
+
+    it = iter(xs)
+
+    def fake_solve(*_: object) -> PoseEstimate:
+        return PoseEstimate(np.array([next(it), 0.0, 0.8]), np.eye(3), (1, 2), 0.5)
+
+    monkeypatch.setattr(pipeline_module, "solve_pose", fake_solve)
+
+
+def test_consistency_gate_rejects_a_pose_off_the_recent_motion(
+    short_flight: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Moving at 0.6 m/s (5 mm per 8.3 ms frame); frame 8 is 25 mm off the line (within the speed gate's
+    # 5 cm + 3 m/s, so only the consistency gate can catch it).
+    xs = [0.005 * k for k in range(12)]
+    xs[8] += 0.025
+    _fake_poses(monkeypatch, xs)
+    p = _pipeline(short_flight, PipelineConfig())
+    reasons = [p._pose(k, _t_us(k), ()).reason for k in range(12)]
+    assert reasons[8] == "inconsistent"
+    assert reasons[:8] == ["pose"] * 8
+    assert reasons[9:] == ["pose"] * 3  # the doubtful pose did not drag the prediction along
+
+
+def test_consistency_gate_follows_a_track_that_really_moved(
+    short_flight: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The first poses were a wrong lock 40 mm off; every later one agrees on the true place. The gate
+    # rejects them only until they outnumber the wrong ones in its window, then follows.
+    xs = [0.04] * 8 + [0.0] * 30
+    _fake_poses(monkeypatch, xs)
+    p = _pipeline(short_flight, PipelineConfig())
+    reasons = [p._pose(k, _t_us(k), ()).reason for k in range(len(xs))]
+    assert reasons[:8] == ["pose"] * 8
+    assert "inconsistent" in reasons[8:]
+    assert reasons[-10:] == ["pose"] * 10
 
 
 def test_poses_carry_a_covariance_that_grows_with_fewer_tags(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]

@@ -495,3 +495,68 @@ def test_solve_pose_min_tags_and_reprojection_gate() -> None:
     loose = solve_pose(noisy, tm, CAMERA, PoseConfig(max_reprojection_rms_px=50.0))
     assert loose is not None
     assert loose.reprojection_rms_px > 1.0
+
+
+# --- alignment of a pair that moved more than a translation ----------------------------------------------------
+
+
+def _corner_error_px(detections: tuple[TagDetection, ...], scene: Scene) -> float:
+    errors = []
+    for d in detections:
+        tag = scene.tag_map.by_id[d.tag_id]
+        true_uv = cv2.perspectiveTransform(np.asarray(tag.corners_px, np.float64)[None], scene.homography)[0]
+        errors.append(np.linalg.norm(d.corners_px - true_uv, axis=1))
+    return float(np.median(np.concatenate(errors)))
+
+
+def test_predicted_floor_warp_aligns_a_yawed_and_tilted_pair(scene: Scene, detector: TagDetector) -> None:
+    from ipt.receiver.motion import floor_warp
+
+    # The previous frame saw the floor from 8 mm away, yawed 1.5° and tilted 1°: no single shift aligns it.
+    r_before = rot_z(np.deg2rad(1.5)) @ rot_x(np.deg2rad(1.0)) @ R_ARENA_CAM
+    pos_before = CAM_POS_M + np.array([-0.008, 0.003, 0.004])
+    background = _textured_background(ARENA.projector.height_px, ARENA.projector.width_px, seed=5)
+    plus, minus = PaperModulator(scene.tag_map.render_mask(), ARENA.modulation.delta_l).modulate(background, 0, 2)
+    prev_l = lightness(_warp(minus, _edge_to_camera_homography(r_before, pos_before)))
+    now_l = lightness(_warp(plus, scene.homography))
+    cfg = DemodulationConfig()
+    predicted = floor_warp(CAMERA.camera_matrix, (pos_before, r_before), (CAM_POS_M, R_ARENA_CAM))
+    assert predicted is not None
+    with_warp = demodulate(prev_l, now_l, cfg, predicted=predicted)
+    shift_only = demodulate(prev_l, now_l, cfg)
+    found_with, found_without = _detect_both(detector, with_warp.binary), _detect_both(detector, shift_only.binary)
+    assert with_warp.shift_px == pytest.approx((0.0, 0.0), abs=0.2), "the prediction was exact"
+    assert len(found_with) >= 4
+    assert len(found_with) >= len(found_without)
+    err_with = _corner_error_px(found_with, scene)
+    assert err_with < 0.6
+    if found_without:
+        assert err_with < _corner_error_px(found_without, scene)
+
+
+def test_clipping_keeps_content_edges_from_swamping_the_tags(scene: Scene, detector: TagDetector) -> None:
+    # Half a pixel of misalignment on busy, high-contrast content: its edges in the difference are many
+    # times the tags' ±2ΔL. Clipping the difference to about the tags' amplitude keeps them decodable.
+    rng = np.random.default_rng(9)
+    w, h = ARENA.projector.width_px, ARENA.projector.height_px
+    coarse = rng.choice(np.array([20, 235], np.uint8), (h // 24, w // 24))
+    sharp = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_NEAREST)
+    background = np.repeat(sharp[:, :, None], 3, axis=2)
+    plus, minus = PaperModulator(scene.tag_map.render_mask(), ARENA.modulation.delta_l).modulate(background, 0, 2)
+    nudge = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    prev_l = lightness(_warp(minus, scene.homography @ nudge))
+    now_l = lightness(_warp(plus, scene.homography))
+    # Pretend alignment: the half pixel is left in on purpose (the alignment is not under test here).
+    cfg = DemodulationConfig(alignment="sampled_lines", max_shift_px=0)
+    clipped = _detect_both(detector, demodulate(prev_l, now_l, cfg).binary)
+    unclipped = _detect_both(detector, demodulate(prev_l, now_l, cfg.model_copy(update={"clip_factor": None})).binary)
+    assert len(clipped) >= 4
+    assert len(clipped) > len(unclipped)
+
+
+def test_luma_lightness_matches_cielab_on_grey_and_stays_close_on_colour() -> None:
+    grey = np.repeat(np.arange(256, dtype=np.uint8)[None, :, None], 3, axis=2)
+    assert np.array_equal(lightness(grey, "luma"), lightness(grey, "cielab"))
+    colours = np.random.default_rng(4).integers(0, 256, (64, 64, 3), dtype=np.uint8)
+    gap = np.abs(lightness(colours, "luma").astype(int) - lightness(colours, "cielab").astype(int))
+    assert np.median(gap) <= 12

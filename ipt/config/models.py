@@ -123,6 +123,26 @@ class DemodulationConfig(StrictModel):
         description="'both' runs the detector on the binary image and its inverse (the paper's phase is "
         "unknown). 'tracked' predicts the phase from earlier detections and tries the other only on a miss.",
     )
+    predict_warp: bool = Field(
+        True,
+        description="With 'gradient' alignment: warp the earlier frame by the floor homography predicted from "
+        "the recent poses before refining the shift, so that yaw, tilt and height changes between the "
+        "paired frames are aligned too, not only the translation.",
+    )
+    lightness: Literal["cielab", "luma"] = Field(
+        "luma",
+        description="How lightness is taken from a camera frame. 'cielab' is the paper's 8-bit CIELAB L. "
+        "'luma' maps the BT.601 luma of the frame through a table to L: the same for grey pixels, a "
+        "fifth of the cost, and the difference of two phases shows the tags just as well.",
+    )
+    clip_factor: float | None = Field(
+        1.2,
+        gt=0.0,
+        le=100.0,
+        description="The difference image is clipped to ± this many times its median magnitude before it is "
+        "normalised, so that edges of the video left by motion (tens of L units) cannot outweigh the tags' "
+        "2ΔL in the mean filter. None: no clipping (the paper).",
+    )
     sample_lines: int = Field(3, ge=1, le=64, description="N: columns (and rows) sampled for the alignment.")
     max_shift_px: int | None = Field(
         None,
@@ -193,6 +213,14 @@ class PoseConfig(StrictModel):
         description="Motion gate: a pose farther from the last accepted one (within the last 0.25 s) than "
         "this speed allows, plus 5 cm, is rejected as doubtful. None turns the gate off.",
     )
+    max_prediction_error_m: float | None = Field(
+        0.015,
+        gt=0,
+        description="Consistency gate: a pose farther than this from where the recent poses (a constant-"
+        "velocity fit over the last 0.15 s) put the camera at its capture time is rejected as doubtful. "
+        "It catches the tilt/translation ambiguity of a view with few tags, where a 2° tilt error moves "
+        "the position several centimetres. None turns the gate off.",
+    )
     outlier_tag_px: float | None = Field(
         None,
         gt=0,
@@ -216,11 +244,23 @@ class PipelineConfig(StrictModel):
         if name == "paper":
             return cls(
                 demodulation=DemodulationConfig(
-                    pairing="previous", alignment="sampled_lines", polarity="both", blur_ksize=3, morph_ksize=3
+                    pairing="previous",
+                    alignment="sampled_lines",
+                    polarity="both",
+                    predict_warp=False,
+                    lightness="cielab",
+                    clip_factor=None,
+                    blur_ksize=3,
+                    morph_ksize=3,
                 ),
                 detector=DetectorConfig(quad_decimate=1.0, border_margin_px=0.0),
                 pose=PoseConfig(
-                    min_tags=1, refine_lm=False, max_reprojection_rms_px=3.0, outlier_tag_px=1e9, max_speed_mps=None
+                    min_tags=1,
+                    refine_lm=False,
+                    max_reprojection_rms_px=3.0,
+                    outlier_tag_px=1e9,
+                    max_speed_mps=None,
+                    max_prediction_error_m=None,
                 ),
             )
         raise ConfigError(f"unknown pipeline profile '{name}' (choose from {', '.join(PROFILES)})")

@@ -43,13 +43,31 @@ class DemodResult:
     binary: U8
     """255/0 image; tags have dark borders if the current frame was the +ΔL phase."""
     shift_px: tuple[float, float]
-    """(dx, dy): content at (x, y) in the previous frame is at (x + dx, y + dy) in the current one."""
+    """(dx, dy): content at (x, y) in the previous frame is at (x + dx, y + dy) in the current one (after
+    the predicted warp, if one was given)."""
+    warp: npt.NDArray[np.float64]
+    """The whole 3x3 warp that carried the previous frame onto the current one."""
 
 
-def lightness(frame_rgb: U8) -> U8:
-    """The L channel of 8-bit CIELAB (L scaled to 0..255), as in Algorithm 2 step 2-3."""
+def _luma_to_lightness_table() -> U8:
+    ramp = np.repeat(np.arange(256, dtype=np.uint8)[:, None, None], 3, axis=2)
+    return np.asarray(cv2.cvtColor(ramp, cv2.COLOR_RGB2Lab)[:, 0, 0], dtype=np.uint8)
+
+
+#: 8-bit CIELAB L of the grey pixel (v, v, v), indexed by v.
+_LUMA_TO_L = _luma_to_lightness_table()
+
+
+def lightness(frame_rgb: U8, method: str = "cielab") -> U8:
+    """The L channel of 8-bit CIELAB (L scaled to 0..255), as in Algorithm 2 step 2-3.
+
+    ``method="luma"`` takes the BT.601 luma instead and maps it through the grey ramp's L: exact for grey
+    pixels, close for colours, and about five times cheaper than the full conversion.
+    """
     if frame_rgb.ndim != 3 or frame_rgb.shape[2] != 3 or frame_rgb.dtype != np.uint8:
         raise DemodulationError(f"expected an H×W×3 uint8 RGB frame, got {frame_rgb.shape} {frame_rgb.dtype}")
+    if method == "luma":
+        return np.asarray(cv2.LUT(cv2.cvtColor(frame_rgb, cv2.COLOR_RGB2GRAY), _LUMA_TO_L), dtype=np.uint8)
     return np.asarray(cv2.cvtColor(frame_rgb, cv2.COLOR_RGB2Lab)[:, :, 0], dtype=np.uint8)
 
 
@@ -89,7 +107,7 @@ def aligned_difference(prev_l: U8, now_l: U8, dx: int, dy: int) -> npt.NDArray[n
 
 
 def _median_u8(img: U8) -> int:
-    hist = np.bincount(img.ravel(), minlength=256)
+    hist = np.asarray(cv2.calcHist([img], [0], None, [256], [0, 256]), dtype=np.float64).ravel()
     return int(np.searchsorted(np.cumsum(hist), (img.size + 1) // 2))
 
 
@@ -115,24 +133,54 @@ def ksize_for(configured: int | None, width_px: int) -> int:
     return 2 * round(BASE_KSIZE_PX / 2 * width_px / REFERENCE_WIDTH_PX - 0.5) + 1
 
 
-def _gradient_magnitude(img: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
+F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
+
+
+def _gradient_magnitude(img: F32) -> F32:
     """Smoothed L1 gradient magnitude: the same for a tag in either phase, so the flip does not matter."""
     gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
     return np.asarray(cv2.GaussianBlur(np.abs(gx) + np.abs(gy), (5, 5), 1.0), dtype=np.float32)
 
 
-def _translate(img: npt.NDArray[np.float32], dx: float, dy: float) -> npt.NDArray[np.float32]:
+def alignment_features(lightness_u8: U8) -> F32:
+    """What :func:`gradient_shift` matches: the gradient magnitude at half resolution.
+
+    A frame is paired more than once (as the current frame, then as the earlier one), so callers may
+    compute this once per frame and pass it in.
+    """
+    return _gradient_magnitude(np.asarray(cv2.pyrDown(lightness_u8), dtype=np.float32))
+
+
+def _translate(img: F32, dx: float, dy: float) -> F32:
     """``img`` moved by (dx, dy): what is at (x, y) ends up at (x + dx, y + dy); bilinear."""
     h, w = img.shape
     m = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy]], np.float32)
     return np.asarray(cv2.warpAffine(img, m, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
 
 
-_HANNING: dict[tuple[int, int], npt.NDArray[np.float32]] = {}
+def _warp(img: F32, warp: F64, border: int = cv2.BORDER_REPLICATE) -> F32:
+    """``img`` carried by the 3x3 ``warp`` (what is at p ends up at warp·p); bilinear."""
+    h, w = img.shape
+    if np.allclose(warp[2], (0.0, 0.0, 1.0)):
+        return np.asarray(cv2.warpAffine(img, warp[:2], (w, h), flags=cv2.INTER_LINEAR, borderMode=border))
+    return np.asarray(cv2.warpPerspective(img, warp, (w, h), flags=cv2.INTER_LINEAR, borderMode=border))
 
 
-def _hanning(w: int, h: int) -> npt.NDArray[np.float32]:
+_HALF = np.diag([0.5, 0.5, 1.0])
+_DOUBLE = np.diag([2.0, 2.0, 1.0])
+
+
+def translation(dx: float, dy: float) -> F64:
+    """The 3x3 warp that moves content by (dx, dy)."""
+    return np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
+
+
+_HANNING: dict[tuple[int, int], F32] = {}
+
+
+def _hanning(w: int, h: int) -> F32:
     if (w, h) not in _HANNING:
         _HANNING[(w, h)] = np.asarray(cv2.createHanningWindow((w, h), cv2.CV_32F), dtype=np.float32)
     return _HANNING[(w, h)]
@@ -142,15 +190,26 @@ def _hanning(w: int, h: int) -> npt.NDArray[np.float32]:
 _LK_STEPS, _LK_MARGIN = 3, 16
 
 
-def gradient_shift(prev_l: U8, now_l: U8) -> tuple[float, float]:
+def gradient_shift(
+    prev_l: U8,
+    now_l: U8,
+    predicted: F64 | None = None,
+    features: tuple[F32, F32] | None = None,
+) -> tuple[float, float]:
     """Sub-pixel (dx, dy) of the floor between two frames, from their gradient magnitudes.
+
+    ``predicted`` (3x3, full-resolution pixels) is a warp of the earlier frame onto the current one known
+    beforehand, e.g. the floor homography from the recent poses; the shift returned is what remains after
+    it, so the whole warp is ``translation(dx, dy) @ predicted``. ``features`` are the two frames'
+    :func:`alignment_features` if already computed.
 
     Phase correlation at half resolution gives the shift to about 0.3 px, whatever its size; three
     Lucas-Kanade steps refine it (to about 0.07 px on the simulated arena). Gradient magnitudes are used
     because the tags change sign between the phases and would otherwise pull the match away.
     """
-    a = _gradient_magnitude(cv2.pyrDown(prev_l).astype(np.float32))
-    b = _gradient_magnitude(cv2.pyrDown(now_l).astype(np.float32))
+    a, b = features if features is not None else (alignment_features(prev_l), alignment_features(now_l))
+    if predicted is not None:
+        a = _warp(a, _HALF @ predicted @ _DOUBLE)
     h, w = a.shape
     (dx, dy), _ = cv2.phaseCorrelate(a, b, _hanning(w, h))
     if h > 3 * _LK_MARGIN and w > 3 * _LK_MARGIN:
@@ -171,32 +230,54 @@ def gradient_shift(prev_l: U8, now_l: U8) -> tuple[float, float]:
     return 2.0 * dx, 2.0 * dy
 
 
-def subpixel_difference(prev_l: U8, now_l: U8, dx: float, dy: float) -> npt.NDArray[np.float32]:
-    """now − prev moved by (dx, dy), zero on the strip the move leaves uncovered."""
+def subpixel_difference(prev_l: U8, now_l: U8, dx: float, dy: float, predicted: F64 | None = None) -> F32:
+    """now − prev carried by ``translation(dx, dy) @ predicted``, zero where prev does not reach."""
+    warp = translation(dx, dy) if predicted is None else translation(dx, dy) @ predicted
+    moved = _warp(prev_l.astype(np.float32), warp, border=cv2.BORDER_CONSTANT)
+    diff = np.asarray(cv2.subtract(now_l.astype(np.float32), moved), dtype=np.float32)
     h, w = now_l.shape
-    diff = now_l.astype(np.float32) - _translate(prev_l.astype(np.float32), dx, dy)
-    x0, x1 = max(0, int(np.ceil(dx))), w + min(0, int(np.floor(dx)))
-    y0, y1 = max(0, int(np.ceil(dy))), h + min(0, int(np.floor(dy)))
-    diff[:y0] = 0
-    diff[y1:] = 0
-    diff[:, :x0] = 0
-    diff[:, x1:] = 0
+    if predicted is None:
+        x0, x1 = max(0, int(np.ceil(dx))), w + min(0, int(np.floor(dx)))
+        y0, y1 = max(0, int(np.ceil(dy))), h + min(0, int(np.floor(dy)))
+        diff[:y0] = 0
+        diff[y1:] = 0
+        diff[:, :x0] = 0
+        diff[:, x1:] = 0
+    else:
+        covered = _warp(np.ones((h, w), np.float32), warp, border=cv2.BORDER_CONSTANT)
+        diff[covered < 0.999] = 0
     return diff
 
 
-def demodulate(prev_l: U8, now_l: U8, cfg: DemodulationConfig) -> DemodResult:
-    """Algorithm 2, steps 4-10, on two lightness images of the same size."""
+def demodulate(
+    prev_l: U8,
+    now_l: U8,
+    cfg: DemodulationConfig,
+    *,
+    predicted: F64 | None = None,
+    features: tuple[F32, F32] | None = None,
+) -> DemodResult:
+    """Algorithm 2, steps 4-10, on two lightness images of the same size.
+
+    ``predicted`` and ``features`` are passed to :func:`gradient_shift` ('gradient' alignment only).
+    """
     if prev_l.shape != now_l.shape or prev_l.dtype != np.uint8 or now_l.dtype != np.uint8:
         raise DemodulationError(f"frames differ: {prev_l.shape} {prev_l.dtype} vs {now_l.shape} {now_l.dtype}")
-    diff: npt.NDArray[np.int16] | npt.NDArray[np.float32]
+    diff: npt.NDArray[np.int16] | F32
     if cfg.alignment == "gradient":
-        fdx, fdy = gradient_shift(prev_l, now_l)
-        diff = subpixel_difference(prev_l, now_l, fdx, fdy)
+        fdx, fdy = gradient_shift(prev_l, now_l, predicted, features)
+        diff = subpixel_difference(prev_l, now_l, fdx, fdy, predicted)
         shift = (fdx, fdy)
+        warp = translation(fdx, fdy) if predicted is None else translation(fdx, fdy) @ predicted
     else:
         dx, dy = estimate_shift(prev_l, now_l, cfg.sample_lines, max_shift_for(cfg, now_l.shape[1]))
         diff = aligned_difference(prev_l, now_l, dx, dy)
         shift = (float(dx), float(dy))
+        warp = translation(dx, dy)
+    if cfg.clip_factor is not None:
+        amplitude = float(np.median(np.abs(diff[::4, ::4])))
+        limit = max(cfg.clip_factor * amplitude, 1.0)
+        diff = np.asarray(cv2.min(cv2.max(diff.astype(np.float32), -limit), limit), dtype=np.float32)
     norm = cv2.normalize(diff, None, 0, 255, cv2.NORM_MINMAX, dtype=cv2.CV_8U)
     width = now_l.shape[1]
     blur = ksize_for(cfg.blur_ksize, width)
@@ -209,4 +290,4 @@ def demodulate(prev_l: U8, now_l: U8, cfg: DemodulationConfig) -> DemodResult:
         kernel = np.ones((morph, morph), np.uint8)
         binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, kernel)
         binary = cv2.morphologyEx(binary, cv2.MORPH_CLOSE, kernel)
-    return DemodResult(binary=binary, shift_px=shift)
+    return DemodResult(binary=binary, shift_px=shift, warp=warp)

@@ -26,12 +26,15 @@ import numpy.typing as npt
 
 from ipt.config.camera_info import CameraInfo
 from ipt.config.models import PipelineConfig
-from ipt.receiver.demodulator import demodulate, lightness
+from ipt.receiver.demodulator import alignment_features, demodulate, lightness
 from ipt.receiver.detector import TagDetection, TagDetector
+from ipt.receiver.motion import MotionTrack, floor_warp
 from ipt.receiver.pose import PoseEstimate, solve_pose
 from ipt.tagmap import TagMap
 
 U8 = npt.NDArray[np.uint8]
+F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
 
 #: Frames kept for pairing (lags up to this many frames back).
 HISTORY = 4
@@ -66,6 +69,12 @@ class _Past:
     index: int
     time_us: int
     lightness: U8
+    features: F32 | None
+    """The frame's alignment features ('gradient' alignment), computed once."""
+
+
+#: A predicted warp that moves the image centre further than this fraction of the width is not trusted.
+MAX_PREDICTED_MOVE = 0.25
 
 
 class Pipeline:
@@ -78,6 +87,7 @@ class Pipeline:
         self._history: deque[_Past] = deque(maxlen=HISTORY)
         self._phase: dict[int, int] = {}  # frame index -> +1 (the +ΔL phase) or -1, learnt from detections
         self._last_pose: tuple[int, PoseEstimate] | None = None
+        self._track = MotionTrack()
         self._gated_in_a_row = 0
         self.reasons: Counter[str] = Counter()
         self.detector_runs = 0
@@ -132,18 +142,42 @@ class Pipeline:
 
     # -- the frame -----------------------------------------------------------------------------------
 
+    def _predicted_warp(self, prev_us: int, now_us: int) -> F64 | None:
+        """The floor homography from the earlier frame to this one, from the recent poses (or None)."""
+        demod = self.cfg.demodulation
+        if demod.alignment != "gradient" or not demod.predict_warp:
+            return None
+        before, after = self._track.pose_at(prev_us), self._track.pose_at(now_us)
+        if before is None or after is None:
+            return None
+        warp = floor_warp(self.camera.camera_matrix, before, after)
+        if warp is None:
+            return None
+        centre = np.array([self.camera.width_px / 2, self.camera.height_px / 2, 1.0])
+        moved = warp @ centre
+        if moved[2] <= 0:
+            return None
+        if np.linalg.norm(moved[:2] / moved[2] - centre[:2]) > MAX_PREDICTED_MOVE * self.camera.width_px:
+            return None
+        return warp
+
     def _process(self, index: int, frame_rgb: U8, capture_time_us: int) -> FrameResult:
         expected = (self.camera.height_px, self.camera.width_px, 3)
         if not isinstance(frame_rgb, np.ndarray) or frame_rgb.shape != expected or frame_rgb.dtype != np.uint8:
             self._history.clear()
             return FrameResult(index, capture_time_us, None, 0, "bad_frame")
-        now_l = lightness(frame_rgb)
+        demod_cfg = self.cfg.demodulation
+        now_l = lightness(frame_rgb, demod_cfg.lightness)
+        now_f = alignment_features(now_l) if demod_cfg.alignment == "gradient" else None
         if self._history and not 0 < capture_time_us - self._history[-1].time_us <= MAX_GAP_US:
             self._history.clear()  # a jump in the video, or time going backwards
+            self._track.clear()
         candidates = self._candidates(capture_time_us)
         result = FrameResult(index, capture_time_us, None, 0, "first_frame" if not self._history else "no_pair")
         for prev in candidates:
-            demod = demodulate(prev.lightness, now_l, self.cfg.demodulation)
+            features = (prev.features, now_f) if prev.features is not None and now_f is not None else None
+            predicted = self._predicted_warp(prev.time_us, capture_time_us)
+            demod = demodulate(prev.lightness, now_l, demod_cfg, predicted=predicted, features=features)
             dets, sign = self._detect(demod.binary, self._predicted_sign(capture_time_us, prev))
             if not dets:
                 result = FrameResult(index, capture_time_us, None, 0, "no_tags")
@@ -151,27 +185,44 @@ class Pipeline:
             self._phase[index], self._phase[prev.index] = sign, -sign
             result = self._pose(index, capture_time_us, dets)
             break
-        self._history.append(_Past(index, capture_time_us, now_l))
+        self._history.append(_Past(index, capture_time_us, now_l, now_f))
         for old in [i for i in self._phase if i < index - 4 * HISTORY]:
             del self._phase[old]
         return result
+
+    def _doubtful(self, t_us: int, pose: PoseEstimate) -> str | None:
+        """Why ``pose`` disagrees with the recent motion (the reason counted), or None if it does not."""
+        cfg = self.cfg.pose
+        if cfg.max_prediction_error_m is not None:
+            predicted = self._track.pose_at(t_us)
+            off_m = None if predicted is None else float(np.linalg.norm(pose.position_m - predicted[0]))
+            if off_m is not None and off_m > cfg.max_prediction_error_m:
+                return "inconsistent"
+        if cfg.max_speed_mps is not None and self._last_pose is not None:
+            last_us, last = self._last_pose
+            dt_us = t_us - last_us
+            if 0 < dt_us <= GATE_WINDOW_US:
+                allowed_m = 0.05 + cfg.max_speed_mps * dt_us * 1e-6
+                if float(np.linalg.norm(pose.position_m - last.position_m)) > allowed_m:
+                    return "motion_jump"
+        return None
 
     def _pose(self, index: int, t_us: int, dets: tuple[TagDetection, ...]) -> FrameResult:
         pose = solve_pose(dets, self.tag_map, self.camera, self.cfg.pose)
         if pose is None:
             return FrameResult(index, t_us, None, len(dets), "pose_rejected")
+        doubt = self._doubtful(t_us, pose)
+        # Every solved pose goes into the track, gated or not: its fit is robust, and a gate that fed only
+        # on what it let through could lock onto a wrong track and reject every good pose after it.
+        self._track.add(t_us, pose.position_m, pose.r_arena_cam)
         reset = False
-        max_speed = self.cfg.pose.max_speed_mps
-        if max_speed is not None and self._last_pose is not None:
-            last_us, last = self._last_pose
-            dt_us = t_us - last_us
-            if 0 < dt_us <= GATE_WINDOW_US:
-                allowed_m = 0.05 + max_speed * dt_us * 1e-6
-                if float(np.linalg.norm(pose.position_m - last.position_m)) > allowed_m:
-                    self._gated_in_a_row += 1
-                    if self._gated_in_a_row < GATE_RESET_AFTER:
-                        return FrameResult(index, t_us, None, len(dets), "motion_jump")
-                    reset = True
+        if doubt == "inconsistent":
+            return FrameResult(index, t_us, None, len(dets), doubt)
+        if doubt == "motion_jump":
+            self._gated_in_a_row += 1
+            if self._gated_in_a_row < GATE_RESET_AFTER:
+                return FrameResult(index, t_us, None, len(dets), doubt)
+            reset = True
         self._gated_in_a_row = 0
         self._last_pose = (t_us, pose)
         return FrameResult(index, t_us, pose, len(dets), "pose", reset)

@@ -52,8 +52,10 @@ def _covariances(obj: F64, rvec: F64, tvec: F64, camera: CameraInfo, sigma_px: f
         d[i] = eps
         position1, r1 = _pose_of(rvec.reshape(3) + d[:3], tvec.reshape(3) + d[3:])
         jp[:, i] = (position1 - position0) / eps
-        rot, _ = cv2.Rodrigues(r1 @ r0.T)  # the small rotation, about arena axes
-        ja[:, i] = np.asarray(rot, np.float64).reshape(3) / eps
+        # The small rotation about arena axes: r1 r0ᵀ ≈ I + [δ]×. (cv2.Rodrigues returns 0 for angles this
+        # small, which once made every attitude covariance zero.)
+        m = r1 @ r0.T
+        ja[:, i] = np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]]) / (2.0 * eps)
     return jp @ cov_rt @ jp.T, ja @ cov_rt @ ja.T
 
 

@@ -1,0 +1,111 @@
+"""The camera's recent motion, for predicting how the floor moves between two frames of a pair.
+
+Pure: every pose the pipeline solved (gated or not) and its capture time go in; out come the pose at
+another time (constant velocity and rotation rate, fitted robustly over the last poses so that one bad
+pose does not swing the prediction) and the homography the floor plane induces between two such poses.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+F64 = npt.NDArray[np.float64]
+
+#: Poses older than this (before the newest) are not used for the fit.
+WINDOW_US = 150_000
+#: At least this many poses, spanning at least :data:`MIN_SPAN_US`, are needed for a prediction.
+MIN_POSES, MIN_SPAN_US = 5, 30_000
+#: A pose closer than this to the fit through the others is never left out of it.
+MIN_OUTLIER_M = 0.005
+#: No prediction further than this past the newest pose.
+MAX_HORIZON_US = 100_000
+
+
+def _rotvec(r: F64) -> F64:
+    vec, _ = cv2.Rodrigues(r)
+    return np.asarray(vec, np.float64).reshape(3)
+
+
+def _matrix(rotvec: F64) -> F64:
+    mat, _ = cv2.Rodrigues(rotvec.reshape(3, 1))
+    return np.asarray(mat, np.float64)
+
+
+class MotionTrack:
+    """The last solved poses of one camera and a robust constant-rate fit through them."""
+
+    def __init__(self, maxlen: int = 32) -> None:
+        self._poses: deque[tuple[int, F64, F64]] = deque(maxlen=maxlen)
+
+    def __len__(self) -> int:
+        return len(self._poses)
+
+    def clear(self) -> None:
+        """Forget everything (after a jump in the video or a re-initialised track)."""
+        self._poses.clear()
+
+    def add(self, time_us: int, position_m: F64, r_arena_cam: F64) -> None:
+        """Record a solved pose; a time not after the newest one starts the track afresh."""
+        if self._poses and time_us <= self._poses[-1][0]:
+            self._poses.clear()
+        self._poses.append((time_us, np.asarray(position_m, np.float64), np.asarray(r_arena_cam, np.float64)))
+
+    def pose_at(self, time_us: int) -> tuple[F64, F64] | None:
+        """(position_m, r_arena_cam) at ``time_us``, or None if the recent poses are too few or too old.
+
+        The fit is robust: poses far from the line through the others (beyond three robust standard
+        deviations, and at least :data:`MIN_OUTLIER_M`) are left out of it, so a doubtful pose that was
+        recorded cannot drag the prediction along.
+        """
+        if not self._poses:
+            return None
+        t_ref, _, r_ref = self._poses[-1]
+        if time_us - t_ref > MAX_HORIZON_US:
+            return None
+        recent = [p for p in self._poses if t_ref - p[0] <= WINDOW_US]
+        if len(recent) < MIN_POSES or t_ref - recent[0][0] < MIN_SPAN_US:
+            return None
+        dt_s = np.array([(t - t_ref) * 1e-6 for t, _, _ in recent])
+        design = np.stack([np.ones_like(dt_s), dt_s], axis=1)
+        positions = np.stack([p for _, p, _ in recent])
+        inliers = np.ones(len(recent), bool)
+        for _ in range(3):
+            coef_p, *_ = np.linalg.lstsq(design[inliers], positions[inliers], rcond=None)
+            residual = np.linalg.norm(positions - design @ coef_p, axis=1)
+            scale = 1.4826 * float(np.median(residual[inliers]))
+            keep = residual <= max(3.0 * scale, MIN_OUTLIER_M)
+            if keep.sum() < MIN_POSES or np.array_equal(keep, inliers):
+                break
+            inliers = keep
+        rotvecs = np.stack([_rotvec(r @ r_ref.T) for _, _, r in recent])  # small rotations about arena axes
+        coef_r, *_ = np.linalg.lstsq(design[inliers], rotvecs[inliers], rcond=None)
+        dt = (time_us - t_ref) * 1e-6
+        position_m = coef_p[0] + coef_p[1] * dt
+        r_arena_cam = _matrix(coef_r[0] + coef_r[1] * dt) @ r_ref
+        return position_m, r_arena_cam
+
+
+def floor_homography(camera_matrix: F64, position_m: F64, r_arena_cam: F64) -> F64:
+    """The 3x3 map from floor points (x, y) in arena metres (z = 0) to undistorted pixels of the camera."""
+    r_cam_arena = r_arena_cam.T
+    t_cam = -r_cam_arena @ position_m
+    return np.asarray(camera_matrix @ np.column_stack([r_cam_arena[:, 0], r_cam_arena[:, 1], t_cam]), np.float64)
+
+
+def floor_warp(camera_matrix: F64, before: tuple[F64, F64], after: tuple[F64, F64]) -> F64 | None:
+    """The homography that carries the floor's image at pose ``before`` onto its image at pose ``after``.
+
+    None if either pose does not look at the floor from above it (a degenerate map).
+    """
+    h_before = floor_homography(camera_matrix, *before)
+    h_after = floor_homography(camera_matrix, *after)
+    if abs(np.linalg.det(h_before)) < 1e-12:
+        return None
+    warp = h_after @ np.linalg.inv(h_before)
+    if not np.all(np.isfinite(warp)) or abs(warp[2, 2]) < 1e-12:
+        return None
+    return np.asarray(warp / warp[2, 2], np.float64)

@@ -1,0 +1,97 @@
+"""The motion track and the floor homography that the pipeline uses to predict how a frame pair is warped."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+import pytest
+
+from ipt.geometry import R_BODY_CAM_DOWNWARD, rot_x, rot_z, rotation_angle_rad
+from ipt.receiver.motion import MotionTrack, floor_homography, floor_warp
+
+F64 = npt.NDArray[np.float64]
+K = np.array([[460.0, 0.0, 319.5], [0.0, 460.0, 179.5], [0.0, 0.0, 1.0]])
+VELOCITY_MPS = np.array([0.6, -0.3, 0.05])
+YAW_RATE_RADPS = np.deg2rad(20.0)
+
+
+def _true_pose(t_us: int) -> tuple[F64, F64]:
+    t = t_us * 1e-6
+    return np.array([0.1, 0.2, 0.8]) + VELOCITY_MPS * t, rot_z(0.3 + YAW_RATE_RADPS * t) @ R_BODY_CAM_DOWNWARD
+
+
+def _track(times_us: list[int]) -> MotionTrack:
+    track = MotionTrack()
+    for t in times_us:
+        track.add(t, *_true_pose(t))
+    return track
+
+
+def test_constant_motion_is_extrapolated_exactly() -> None:
+    times = [round(k * 1e6 / 120) for k in range(12)]
+    predicted = _track(times).pose_at(times[-1] + 16_667)
+    assert predicted is not None
+    position, rotation = predicted
+    true_position, true_rotation = _true_pose(times[-1] + 16_667)
+    assert np.linalg.norm(position - true_position) < 1e-9
+    assert rotation_angle_rad(rotation.T @ true_rotation) < 1e-6
+
+
+def test_one_bad_pose_does_not_drag_the_prediction() -> None:
+    track = MotionTrack()
+    for k in range(14):
+        t = round(k * 1e6 / 120)
+        position, rotation = _true_pose(t)
+        if k == 10:
+            position = position + np.array([0.04, 0.0, 0.0])
+            rotation = rot_x(np.deg2rad(3.0)) @ rotation
+        track.add(t, position, rotation)
+    t_next = round(14 * 1e6 / 120)
+    predicted = track.pose_at(t_next)
+    assert predicted is not None
+    true_position, true_rotation = _true_pose(t_next)
+    assert np.linalg.norm(predicted[0] - true_position) < 1e-6
+    assert rotation_angle_rad(predicted[1].T @ true_rotation) < 1e-6
+
+
+@pytest.mark.parametrize(
+    ("times_us", "at_us"),
+    [
+        ([], 0),  # nothing yet
+        ([0, 8_333, 16_667], 25_000),  # too few poses
+        ([0, 5_000, 10_000, 15_000, 20_000], 25_000),  # enough poses, too short a span to fit a rate
+        ([round(k * 1e6 / 120) for k in range(12)], 91_667 + 100_001),  # too far past the newest pose
+    ],
+)
+def test_no_prediction_without_enough_recent_poses(times_us: list[int], at_us: int) -> None:
+    assert _track(times_us).pose_at(at_us) is None
+
+
+def test_time_going_backwards_starts_afresh() -> None:
+    track = _track([round(k * 1e6 / 120) for k in range(12)])
+    track.add(0, *_true_pose(0))
+    assert len(track) == 1
+
+
+def test_floor_warp_carries_floor_points_between_views() -> None:
+    before, after = _true_pose(0), _true_pose(16_667)
+    floor_m = np.array([[0.0, 0.0, 0.0], [0.3, 0.1, 0.0], [-0.2, 0.35, 0.0], [0.25, -0.3, 0.0]])
+
+    def project(pose: tuple[F64, F64]) -> F64:
+        r_cam_arena = pose[1].T
+        rvec, _ = cv2.Rodrigues(r_cam_arena)
+        uv, _ = cv2.projectPoints(floor_m, rvec, -r_cam_arena @ pose[0], K, np.zeros(5))
+        return np.asarray(uv, np.float64).reshape(-1, 2)
+
+    uv_before, uv_after = project(before), project(after)
+    h = floor_homography(K, *before)
+    np.testing.assert_allclose(cv2.perspectiveTransform(floor_m[None, :, :2], h)[0], uv_before, atol=1e-9)
+    warp = floor_warp(K, before, after)
+    assert warp is not None
+    np.testing.assert_allclose(cv2.perspectiveTransform(uv_before[None], warp)[0], uv_after, atol=1e-6)
+
+
+def test_floor_warp_refuses_a_camera_in_the_floor() -> None:
+    level = (np.array([0.0, 0.0, 0.0]), rot_x(np.pi / 2))  # on the floor, looking along it
+    assert floor_warp(K, level, _true_pose(0)) is None
