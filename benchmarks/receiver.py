@@ -4,7 +4,8 @@
 
 DIR holds frames.mkv, camera.yaml and groundtruth.tum (as ``ipt sim`` writes them); without it a flight
 of S seconds (default 15, the paper's test unit) is simulated first into a temporary folder. For each
-profile: yield, MAE/STD per axis, tilt and yaw error, poses more than 10 cm off, and processing speed.
+profile: yield, MAE/STD per axis, tilt and yaw error, poses more than 10 cm off, and processing speed
+(whole frames and per stage: lightness, demodulate, detect, pose).
 Speed counts the pipeline only (frames are decoded beforehand), single-threaded (OpenCV limited to one
 thread); pin the process to one core for the paper's comparison: ``taskset -c 0 python benchmarks/...``.
 """
@@ -67,6 +68,7 @@ def run_profile(folder: Path, frames: list[np.ndarray], profile: str, fps: float
     out["frames_per_second"] = len(frames) / sum(per_frame_s)
     out["frame_ms_median"] = 1e3 * statistics.median(per_frame_s)
     out["frame_ms_p99"] = 1e3 * float(np.percentile(per_frame_s, 99))
+    out["stage_ms_per_frame"] = {k: 1e3 * v / len(frames) for k, v in pipeline.stage_seconds.items()}
     out["detector_runs_per_frame"] = pipeline.detector_runs / len(frames)
     out["reasons"] = dict(pipeline.reasons)
     return out

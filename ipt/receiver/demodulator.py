@@ -230,23 +230,55 @@ def gradient_shift(
     return 2.0 * dx, 2.0 * dy
 
 
+def covered_box(warp: F64, width: int, height: int) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1): the largest axis-aligned box, in whole pixels, that the earlier frame still covers
+    after ``warp`` (a few pixels of the warped frame's slanted edges are given up for a cheap slice)."""
+    corners = np.array([[[0.0, 0.0], [width - 1.0, 0.0], [width - 1.0, height - 1.0], [0.0, height - 1.0]]])
+    (tl, tr, br, bl) = np.asarray(cv2.perspectiveTransform(corners, warp), np.float64)[0]
+    x0 = max(0, int(np.ceil(max(tl[0], bl[0]))))
+    x1 = min(width, int(np.floor(min(tr[0], br[0]))) + 1)
+    y0 = max(0, int(np.ceil(max(tl[1], tr[1]))))
+    y1 = min(height, int(np.floor(min(bl[1], br[1]))) + 1)
+    return x0, y0, max(x0, x1), max(y0, y1)
+
+
+def _outside_box(img: npt.NDArray[np.generic], box: tuple[int, int, int, int], value: float) -> None:
+    x0, y0, x1, y1 = box
+    img[:y0] = value
+    img[y1:] = value
+    img[:, :x0] = value
+    img[:, x1:] = value
+
+
 def subpixel_difference(prev_l: U8, now_l: U8, dx: float, dy: float, predicted: F64 | None = None) -> F32:
     """now − prev carried by ``translation(dx, dy) @ predicted``, zero where prev does not reach."""
     warp = translation(dx, dy) if predicted is None else translation(dx, dy) @ predicted
     moved = _warp(prev_l.astype(np.float32), warp, border=cv2.BORDER_CONSTANT)
     diff = np.asarray(cv2.subtract(now_l.astype(np.float32), moved), dtype=np.float32)
-    h, w = now_l.shape
-    if predicted is None:
-        x0, x1 = max(0, int(np.ceil(dx))), w + min(0, int(np.floor(dx)))
-        y0, y1 = max(0, int(np.ceil(dy))), h + min(0, int(np.floor(dy)))
-        diff[:y0] = 0
-        diff[y1:] = 0
-        diff[:, :x0] = 0
-        diff[:, x1:] = 0
-    else:
-        covered = _warp(np.ones((h, w), np.float32), warp, border=cv2.BORDER_CONSTANT)
-        diff[covered < 0.999] = 0
+    _outside_box(diff, covered_box(warp, now_l.shape[1], now_l.shape[0]), 0.0)
     return diff
+
+
+def clipped_difference(prev_l: U8, now_l: U8, warp: F64, clip_factor: float) -> U8:
+    """now − prev carried by ``warp``, clipped to ± ``clip_factor`` times its median magnitude and mapped
+    onto 0..255 (128: no difference, also where prev does not reach), in 8-bit arithmetic throughout.
+
+    The same as clipping :func:`subpixel_difference` and normalising it, up to the rounding of the warped
+    frame to whole lightness units, at a fraction of the float passes.
+    """
+    h, w = now_l.shape
+    if np.allclose(warp[2], (0.0, 0.0, 1.0)):
+        moved = cv2.warpAffine(prev_l, warp[:2], (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    else:
+        moved = cv2.warpPerspective(prev_l, warp, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    box = covered_box(warp, w, h)
+    x0, y0, x1, y1 = box
+    magnitude = cv2.absdiff(now_l[y0:y1, x0:x1], moved[y0:y1, x0:x1])
+    limit = max(clip_factor * _median_u8(np.asarray(magnitude, np.uint8)), 1.0)
+    gain = 127.5 / limit
+    out = np.asarray(cv2.addWeighted(now_l, gain, moved, -gain, 127.5, dtype=cv2.CV_8U), dtype=np.uint8)
+    _outside_box(out, box, 128)
+    return out
 
 
 def demodulate(
@@ -266,26 +298,34 @@ def demodulate(
     diff: npt.NDArray[np.int16] | F32
     if cfg.alignment == "gradient":
         fdx, fdy = gradient_shift(prev_l, now_l, predicted, features)
-        diff = subpixel_difference(prev_l, now_l, fdx, fdy, predicted)
         shift = (fdx, fdy)
         warp = translation(fdx, fdy) if predicted is None else translation(fdx, fdy) @ predicted
+        if cfg.clip_factor is not None:
+            return _binarise(clipped_difference(prev_l, now_l, warp, cfg.clip_factor), cfg, shift, warp)
+        diff = subpixel_difference(prev_l, now_l, fdx, fdy, predicted)
     else:
         dx, dy = estimate_shift(prev_l, now_l, cfg.sample_lines, max_shift_for(cfg, now_l.shape[1]))
         diff = aligned_difference(prev_l, now_l, dx, dy)
         shift = (float(dx), float(dy))
         warp = translation(dx, dy)
     if cfg.clip_factor is not None:
-        amplitude = float(np.median(np.abs(diff[::4, ::4])))
-        limit = max(cfg.clip_factor * amplitude, 1.0)
+        magnitude = np.abs(diff[::4, ::4])
+        limit = max(cfg.clip_factor * float(np.median(magnitude)), 1.0)
         diff = np.asarray(cv2.min(cv2.max(diff.astype(np.float32), -limit), limit), dtype=np.float32)
-    norm = cv2.normalize(diff, None, 0, 255, cv2.NORM_MINMAX, dtype=cv2.CV_8U)
-    width = now_l.shape[1]
+    norm = np.asarray(cv2.normalize(diff, None, 0, 255, cv2.NORM_MINMAX, dtype=cv2.CV_8U), dtype=np.uint8)
+    return _binarise(norm, cfg, shift, warp)
+
+
+def _binarise(norm: U8, cfg: DemodulationConfig, shift: tuple[float, float], warp: F64) -> DemodResult:
+    """Steps 7-10: mean filter, threshold at the median, opening and closing."""
+    width = norm.shape[1]
     blur = ksize_for(cfg.blur_ksize, width)
     morph = ksize_for(cfg.morph_ksize, width)
     if blur > 1:
         norm = cv2.blur(norm, (blur, blur))
     thresh = _median_u8(norm)
-    binary = np.where(norm > thresh, np.uint8(255), np.uint8(0))
+    _, thresholded = cv2.threshold(norm, thresh, 255, cv2.THRESH_BINARY)  # 255 where norm > thresh
+    binary = np.asarray(thresholded, dtype=np.uint8)
     if morph > 1:
         kernel = np.ones((morph, morph), np.uint8)
         binary = cv2.morphologyEx(binary, cv2.MORPH_OPEN, kernel)

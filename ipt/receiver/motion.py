@@ -40,6 +40,8 @@ class MotionTrack:
 
     def __init__(self, maxlen: int = 32) -> None:
         self._poses: deque[tuple[int, F64, F64]] = deque(maxlen=maxlen)
+        self._fit: tuple[int, F64, F64, F64] | None = None  # (t_ref, position coef, rotation coef, r_ref)
+        self._fitted = False
 
     def __len__(self) -> int:
         return len(self._poses)
@@ -47,25 +49,37 @@ class MotionTrack:
     def clear(self) -> None:
         """Forget everything (after a jump in the video or a re-initialised track)."""
         self._poses.clear()
+        self._fitted = False
 
     def add(self, time_us: int, position_m: F64, r_arena_cam: F64) -> None:
         """Record a solved pose; a time not after the newest one starts the track afresh."""
         if self._poses and time_us <= self._poses[-1][0]:
             self._poses.clear()
         self._poses.append((time_us, np.asarray(position_m, np.float64), np.asarray(r_arena_cam, np.float64)))
+        self._fitted = False
 
     def pose_at(self, time_us: int) -> tuple[F64, F64] | None:
         """(position_m, r_arena_cam) at ``time_us``, or None if the recent poses are too few or too old.
 
         The fit is robust: poses far from the line through the others (beyond three robust standard
         deviations, and at least :data:`MIN_OUTLIER_M`) are left out of it, so a doubtful pose that was
-        recorded cannot drag the prediction along.
+        recorded cannot drag the prediction along. It is computed once per added pose.
         """
+        if not self._fitted:
+            self._fit = self._fit_recent()
+            self._fitted = True
+        if self._fit is None:
+            return None
+        t_ref, coef_p, coef_r, r_ref = self._fit
+        if time_us - t_ref > MAX_HORIZON_US:
+            return None
+        dt = (time_us - t_ref) * 1e-6
+        return coef_p[0] + coef_p[1] * dt, _matrix(coef_r[0] + coef_r[1] * dt) @ r_ref
+
+    def _fit_recent(self) -> tuple[int, F64, F64, F64] | None:
         if not self._poses:
             return None
         t_ref, _, r_ref = self._poses[-1]
-        if time_us - t_ref > MAX_HORIZON_US:
-            return None
         recent = [p for p in self._poses if t_ref - p[0] <= WINDOW_US]
         if len(recent) < MIN_POSES or t_ref - recent[0][0] < MIN_SPAN_US:
             return None
@@ -83,10 +97,7 @@ class MotionTrack:
             inliers = keep
         rotvecs = np.stack([_rotvec(r @ r_ref.T) for _, _, r in recent])  # small rotations about arena axes
         coef_r, *_ = np.linalg.lstsq(design[inliers], rotvecs[inliers], rcond=None)
-        dt = (time_us - t_ref) * 1e-6
-        position_m = coef_p[0] + coef_p[1] * dt
-        r_arena_cam = _matrix(coef_r[0] + coef_r[1] * dt) @ r_ref
-        return position_m, r_arena_cam
+        return t_ref, np.asarray(coef_p, np.float64), np.asarray(coef_r, np.float64), r_ref
 
 
 def floor_homography(camera_matrix: F64, position_m: F64, r_arena_cam: F64) -> F64:

@@ -18,9 +18,11 @@ a miss.
 
 from __future__ import annotations
 
-from collections import Counter, deque
+import time
+from collections import Counter, defaultdict, deque
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -90,6 +92,8 @@ class Pipeline:
         self._track = MotionTrack()
         self._gated_in_a_row = 0
         self.reasons: Counter[str] = Counter()
+        self.stage_seconds: dict[str, float] = defaultdict(float)
+        """Processor time spent per stage (lightness, demodulate, detect, pose), for benchmarks."""
         self.detector_runs = 0
 
     def process(self, index: int, frame_rgb: U8, capture_time_us: int) -> FrameResult:
@@ -127,20 +131,29 @@ class Pipeline:
 
     def _detect(self, binary: U8, first_sign: int) -> tuple[tuple[TagDetection, ...], int]:
         """Detections and the sign they were found with (+1: dark borders as is)."""
-        images = {1: binary, -1: 255 - binary}
+
+        def image(sign: int) -> U8:
+            return binary if sign == 1 else np.asarray(cv2.bitwise_not(binary), dtype=np.uint8)
+
         if self.cfg.demodulation.polarity == "both":
             self.detector_runs += 2
-            found = {s: self.detector.detect(img) for s, img in images.items()}
+            found = {s: self.detector.detect(image(s)) for s in (1, -1)}
             best = max((1, -1), key=lambda s: len(found[s]))
             return found[best], best
         for sign in (first_sign, -first_sign):
             self.detector_runs += 1
-            dets = self.detector.detect(images[sign])
+            dets = self.detector.detect(image(sign))
             if len(dets) >= self.cfg.pose.min_tags:
                 return dets, sign
         return (), first_sign
 
     # -- the frame -----------------------------------------------------------------------------------
+
+    def _lap(self, stage: str, t0: float) -> float:
+        """Add the time since ``t0`` to ``stage`` in :attr:`stage_seconds`; returns the time now."""
+        t1 = time.perf_counter()
+        self.stage_seconds[stage] += t1 - t0
+        return t1
 
     def _predicted_warp(self, prev_us: int, now_us: int) -> F64 | None:
         """The floor homography from the earlier frame to this one, from the recent poses (or None)."""
@@ -167,8 +180,10 @@ class Pipeline:
             self._history.clear()
             return FrameResult(index, capture_time_us, None, 0, "bad_frame")
         demod_cfg = self.cfg.demodulation
+        t0 = time.perf_counter()
         now_l = lightness(frame_rgb, demod_cfg.lightness)
         now_f = alignment_features(now_l) if demod_cfg.alignment == "gradient" else None
+        t0 = self._lap("lightness", t0)
         if self._history and not 0 < capture_time_us - self._history[-1].time_us <= MAX_GAP_US:
             self._history.clear()  # a jump in the video, or time going backwards
             self._track.clear()
@@ -178,12 +193,15 @@ class Pipeline:
             features = (prev.features, now_f) if prev.features is not None and now_f is not None else None
             predicted = self._predicted_warp(prev.time_us, capture_time_us)
             demod = demodulate(prev.lightness, now_l, demod_cfg, predicted=predicted, features=features)
+            t0 = self._lap("demodulate", t0)
             dets, sign = self._detect(demod.binary, self._predicted_sign(capture_time_us, prev))
+            t0 = self._lap("detect", t0)
             if not dets:
                 result = FrameResult(index, capture_time_us, None, 0, "no_tags")
                 continue
             self._phase[index], self._phase[prev.index] = sign, -sign
             result = self._pose(index, capture_time_us, dets)
+            self._lap("pose", t0)
             break
         self._history.append(_Past(index, capture_time_us, now_l, now_f))
         for old in [i for i in self._phase if i < index - 4 * HISTORY]:
