@@ -95,3 +95,20 @@ def test_floor_warp_carries_floor_points_between_views() -> None:
 def test_floor_warp_refuses_a_camera_in_the_floor() -> None:
     level = (np.array([0.0, 0.0, 0.0]), rot_x(np.pi / 2))  # on the floor, looking along it
     assert floor_warp(K, level, _true_pose(0)) is None
+
+
+def test_uncertain_poses_count_less_than_certain_ones() -> None:
+    # Every other pose is a two-tag view 35 mm off with a large uncertainty: too many to be left out as
+    # outliers by a plain fit, but weighted by their uncertainty they barely move the prediction.
+    track = MotionTrack()
+    for k in range(16):
+        t = round(k * 1e6 / 120)
+        position, rotation = _true_pose(t)
+        if k % 2:
+            track.add(t, position + np.array([0.035, -0.01, 0.0]), rotation, position_std_m=0.03)
+        else:
+            track.add(t, position, rotation, position_std_m=0.003)
+    t_next = round(16 * 1e6 / 120)
+    predicted = track.pose_at(t_next)
+    assert predicted is not None
+    assert np.linalg.norm(predicted[0] - _true_pose(t_next)[0]) < 0.002

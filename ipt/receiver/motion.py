@@ -19,6 +19,8 @@ F64 = npt.NDArray[np.float64]
 WINDOW_US = 150_000
 #: At least this many poses, spanning at least :data:`MIN_SPAN_US`, are needed for a prediction.
 MIN_POSES, MIN_SPAN_US = 5, 30_000
+#: Floor on a pose's position uncertainty in the weighted fit (and the weight of a pose without one).
+MIN_STD_M = 0.002
 #: A pose closer than this to the fit through the others is never left out of it.
 MIN_OUTLIER_M = 0.005
 #: No prediction further than this past the newest pose.
@@ -36,10 +38,11 @@ def _matrix(rotvec: F64) -> F64:
 
 
 class MotionTrack:
-    """The last solved poses of one camera and a robust constant-rate fit through them."""
+    """The last solved poses of one camera and a robust constant-rate fit through them, each pose weighted
+    by its own uncertainty (a view of two tags counts far less than one of six)."""
 
     def __init__(self, maxlen: int = 32) -> None:
-        self._poses: deque[tuple[int, F64, F64]] = deque(maxlen=maxlen)
+        self._poses: deque[tuple[int, F64, F64, float]] = deque(maxlen=maxlen)
         self._fit: tuple[int, F64, F64, F64] | None = None  # (t_ref, position coef, rotation coef, r_ref)
         self._fitted = False
 
@@ -51,11 +54,14 @@ class MotionTrack:
         self._poses.clear()
         self._fitted = False
 
-    def add(self, time_us: int, position_m: F64, r_arena_cam: F64) -> None:
-        """Record a solved pose; a time not after the newest one starts the track afresh."""
+    def add(self, time_us: int, position_m: F64, r_arena_cam: F64, position_std_m: float | None = None) -> None:
+        """Record a solved pose and how uncertain its position is (the norm of its per-axis standard
+        deviation; unknown: :data:`MIN_STD_M`). A time not after the newest one starts the track afresh."""
         if self._poses and time_us <= self._poses[-1][0]:
             self._poses.clear()
-        self._poses.append((time_us, np.asarray(position_m, np.float64), np.asarray(r_arena_cam, np.float64)))
+        std_m = MIN_STD_M if position_std_m is None or not np.isfinite(position_std_m) else position_std_m
+        pose = (time_us, np.asarray(position_m, np.float64), np.asarray(r_arena_cam, np.float64), max(std_m, MIN_STD_M))
+        self._poses.append(pose)
         self._fitted = False
 
     def pose_at(self, time_us: int) -> tuple[F64, F64] | None:
@@ -79,24 +85,27 @@ class MotionTrack:
     def _fit_recent(self) -> tuple[int, F64, F64, F64] | None:
         if not self._poses:
             return None
-        t_ref, _, r_ref = self._poses[-1]
+        t_ref, _, r_ref, _ = self._poses[-1]
         recent = [p for p in self._poses if t_ref - p[0] <= WINDOW_US]
         if len(recent) < MIN_POSES or t_ref - recent[0][0] < MIN_SPAN_US:
             return None
-        dt_s = np.array([(t - t_ref) * 1e-6 for t, _, _ in recent])
+        dt_s = np.array([(p[0] - t_ref) * 1e-6 for p in recent])
+        std_m = np.array([p[3] for p in recent])
+        root_w = (1.0 / std_m)[:, None]  # weighted least squares: rows scaled by 1/σ
         design = np.stack([np.ones_like(dt_s), dt_s], axis=1)
-        positions = np.stack([p for _, p, _ in recent])
+        positions = np.stack([p[1] for p in recent])
         inliers = np.ones(len(recent), bool)
         for _ in range(3):
-            coef_p, *_ = np.linalg.lstsq(design[inliers], positions[inliers], rcond=None)
+            coef_p, *_ = np.linalg.lstsq((design * root_w)[inliers], (positions * root_w)[inliers], rcond=None)
             residual = np.linalg.norm(positions - design @ coef_p, axis=1)
-            scale = 1.4826 * float(np.median(residual[inliers]))
-            keep = residual <= max(3.0 * scale, MIN_OUTLIER_M)
+            z = residual / std_m
+            scale = max(1.4826 * float(np.median(z[inliers])), 1.0)
+            keep = (residual <= MIN_OUTLIER_M) | (z <= 3.0 * scale)
             if keep.sum() < MIN_POSES or np.array_equal(keep, inliers):
                 break
             inliers = keep
-        rotvecs = np.stack([_rotvec(r @ r_ref.T) for _, _, r in recent])  # small rotations about arena axes
-        coef_r, *_ = np.linalg.lstsq(design[inliers], rotvecs[inliers], rcond=None)
+        rotvecs = np.stack([_rotvec(p[2] @ r_ref.T) for p in recent])  # small rotations about arena axes
+        coef_r, *_ = np.linalg.lstsq((design * root_w)[inliers], (rotvecs * root_w)[inliers], rcond=None)
         return t_ref, np.asarray(coef_p, np.float64), np.asarray(coef_r, np.float64), r_ref
 
 

@@ -232,7 +232,7 @@ class Pipeline:
         doubt = self._doubtful(t_us, pose)
         # Every solved pose goes into the track, gated or not: its fit is robust, and a gate that fed only
         # on what it let through could lock onto a wrong track and reject every good pose after it.
-        self._track.add(t_us, pose.position_m, pose.r_arena_cam)
+        self._track.add(t_us, pose.position_m, pose.r_arena_cam, float(np.linalg.norm(pose.position_std_m)))
         reset = False
         if doubt == "inconsistent":
             return FrameResult(index, t_us, None, len(dets), doubt)
