@@ -37,7 +37,7 @@ COMMON_SETTINGS = {
         "User": "ipt",
         "Group": "ipt",
         "Restart": "on-failure",
-        "RestartSec": "1",
+        "RestartSec": "300ms",
         "TimeoutStopSec": "5",
         "KillSignal": "SIGTERM",
         "NoNewPrivileges": "yes",

@@ -1,0 +1,237 @@
+"""Faults a lab meets, survived by the real daemon in process: a camera that goes away and comes back,
+and a pose destination that refuses every datagram."""
+
+from __future__ import annotations
+
+import asyncio
+import io
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+import pytest
+
+from ipt.config.models import shipped_config_path
+from ipt.config.receiver import ReceiverConfig
+from ipt.receiver.capture import CapturedFrame, CaptureError
+from ipt.receiver.daemon import run_daemon
+from ipt.receiver.pipeline import FrameResult
+from ipt.videoio import open_frames
+
+FPS = 120.0
+
+
+class _UnpluggedCamera:
+    """A live camera (frames of a recorded flight, paced at 120 FPS, stamped with the monotonic clock)
+    that is unplugged after ``fail_after`` frames for ``outage_s`` seconds: reads and reopens fail."""
+
+    name = "test-camera"
+    live = True
+    retry_open = True
+
+    def __init__(self, frames: list[npt.NDArray[np.uint8]], fail_after: int, outage_s: float, total: int) -> None:
+        self.frames, self.fail_after, self.outage_s, self.total = frames, fail_after, outage_s, total
+        self.k = 0
+        self.unplugged_at: float | None = None
+        self.back_at: float | None = None
+        self.back_index: int | None = None
+
+    def _gone(self) -> bool:
+        if self.unplugged_at is None:
+            return False
+        return time.monotonic() < self.unplugged_at + self.outage_s
+
+    def open(self) -> None:
+        if self._gone():
+            raise CaptureError("/dev/video0: no such device")
+
+    def read(self) -> CapturedFrame | None:
+        if self.k >= self.total:
+            return None
+        if self.k == self.fail_after and self.unplugged_at is None:
+            self.unplugged_at = time.monotonic()
+        if self._gone():
+            raise CaptureError("/dev/video0: no such device")
+        if self.unplugged_at is not None and self.back_at is None:
+            self.back_at, self.back_index = time.monotonic(), self.k
+        time.sleep(1.0 / FPS)
+        image = self.frames[self.k % len(self.frames)]
+        self.k += 1
+        return CapturedFrame(self.k - 1, time.monotonic_ns() // 1000, image)
+
+    def close(self) -> None:
+        pass
+
+
+@pytest.fixture(scope="module")
+def flight_frames(short_flight: Path) -> list[npt.NDArray[np.uint8]]:
+    with open_frames(short_flight / "frames.mkv") as src:
+        return list(src)
+
+
+def _config(short_flight: Path, send: list[str]) -> ReceiverConfig:
+    return ReceiverConfig(
+        arena=shipped_config_path("arena.yaml"), camera=short_flight / "camera.yaml", send=send, stats_interval_s=0.5
+    )
+
+
+@pytest.mark.slow
+@pytest.mark.asyncio
+async def test_camera_unplugged_and_back_poses_resume_within_two_seconds(
+    short_flight: Path, flight_frames: list[npt.NDArray[np.uint8]], tmp_path: Path
+) -> None:
+    listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    listener.bind(("127.0.0.1", 0))
+    listener.setblocking(False)
+    port = listener.getsockname()[1]
+    camera = _UnpluggedCamera(flight_frames, fail_after=30, outage_s=2.5, total=90)
+    poses_at: list[tuple[int, float]] = []
+
+    def on_result(frame: CapturedFrame, result: FrameResult | None, sent: int) -> None:
+        if result is not None and result.pose is not None:
+            poses_at.append((frame.index, time.monotonic()))
+
+    report = io.StringIO()
+    try:
+        stats = await asyncio.wait_for(
+            run_daemon(
+                _config(short_flight, [f"127.0.0.1:{port}"]),
+                stats_out=report,
+                handle_signals=False,
+                source=camera,
+                on_result=on_result,
+            ),
+            30.0,
+        )
+        received = 0
+        while True:
+            try:
+                listener.recv(2048)
+                received += 1
+            except BlockingIOError:
+                break
+    finally:
+        listener.close()
+    assert camera.back_at is not None
+    assert camera.back_index is not None
+    before = [i for i, _ in poses_at if i < camera.fail_after]
+    after = [t for i, t in poses_at if i >= camera.back_index]
+    assert before, "poses before the outage"
+    assert after, "poses after the camera came back"
+    resumed_s = after[0] - camera.back_at
+    assert resumed_s < 2.0, f"first pose {resumed_s:.2f} s after the camera returned"
+    assert "no such device" in report.getvalue()
+    assert stats.capture_failures >= 2
+    assert received == stats.packets_sent == len(poses_at), "the same socket kept sending after the outage"
+
+
+@pytest.mark.asyncio
+async def test_refused_sends_keep_the_daemon_localising(
+    short_flight: Path, flight_frames: list[npt.NDArray[np.uint8]], tmp_path: Path
+) -> None:
+    # Port 9 (discard) on loopback has no listener: every datagram is refused (ICMP port unreachable).
+    camera = _UnpluggedCamera(flight_frames, fail_after=10_000, outage_s=0.0, total=40)
+    report = io.StringIO()
+    stats = await asyncio.wait_for(
+        run_daemon(
+            _config(short_flight, ["127.0.0.1:9"]),
+            stats_out=report,
+            handle_signals=False,
+            source=camera,
+        ),
+        30.0,
+    )
+    assert stats.frames_processed + stats.drops == 40  # a live camera: newest frame wins on a busy machine
+    assert stats.poses >= 0.75 * stats.frames_processed, "localising went on while every send failed"
+    assert stats.send_errors > 0
+
+
+# --- SIGKILL, then a restart as systemd does it (Restart=on-failure, RestartSec=300ms) -------------------
+
+RESTART_SEC = 0.3
+"""deploy/systemd/ipt-receiver.service's RestartSec."""
+
+
+@pytest.mark.slow
+def test_killed_daemon_restarted_resumes_poses_within_two_seconds(short_flight: Path) -> None:
+    # No systemd runs the tests' processes, so this does its part: SIGKILL, wait RestartSec, start the
+    # same command again. Nothing the first process held (sockets, files) may stand in the way.
+    listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    listener.bind(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+    cmd = [
+        sys.executable, "-m", "ipt.receiver.cli", "run",
+        "--camera", str(short_flight / "camera.yaml"),
+        "--source", f"video:{short_flight / 'frames.mkv'}",
+        "--fps", str(FPS), "--realtime",
+        "--send", f"127.0.0.1:{port}",
+    ]  # fmt: skip
+    first = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        listener.settimeout(20.0)
+        listener.recv(2048)  # it is localising
+        first.kill()
+        killed_at = time.monotonic()
+        first.wait(5.0)
+        time.sleep(RESTART_SEC)
+        second = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        try:
+            listener.settimeout(0.05)
+            while True:  # what the first one sent before it died
+                try:
+                    listener.recv(2048)
+                except TimeoutError:
+                    break
+            listener.settimeout(10.0)
+            listener.recv(2048)
+            resumed_s = time.monotonic() - killed_at
+        finally:
+            second.terminate()
+            _, err = second.communicate(timeout=5.0)
+        assert second.returncode == 0, err.decode()
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+        listener.close()
+    assert resumed_s < 2.0, f"poses resumed {resumed_s:.2f} s after the kill"
+
+
+@pytest.mark.slow
+def test_killed_sender_leaves_its_port_free_for_the_next_start(tmp_path: Path) -> None:
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    cmd = [sys.executable, "-m", "ipt.sender.cli", "--sink", "null", "--listen", f"127.0.0.1:{port}"]
+    first = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 20.0
+        while time.monotonic() < deadline:  # wait until it holds the port
+            busy = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            try:
+                busy.bind(("127.0.0.1", port))
+            except OSError:
+                break
+            finally:
+                busy.close()
+            time.sleep(0.1)
+        else:
+            pytest.fail("the sender never bound its port")
+        first.kill()
+        first.wait(5.0)
+        second = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        time.sleep(3.0)
+        still_running = second.poll() is None
+        second.terminate()
+        _, err = second.communicate(timeout=10.0)
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+    assert still_running, err.decode()
+    assert second.returncode == 0, err.decode()
