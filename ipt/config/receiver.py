@@ -7,7 +7,9 @@ moved together. Paths given on the command line are relative to the working dire
 
 from __future__ import annotations
 
+import importlib.util
 import re
+import termios
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -28,41 +30,47 @@ DEFAULT_SEND_TARGET = "127.0.0.1:9870"
 MIN_KEY_BYTES = 16
 """Shortest authentication key accepted (the protocol's minimum, 128 bits)."""
 
-SourceKind = Literal["sim", "video", "device"]
+SourceKind = Literal["sim", "video", "images", "device", "picamera2"]
+
+SOURCE_FORMS = "sim, video:PATH, images:DIR, device:N or picamera2[:N]"
 
 
 @dataclass(frozen=True)
 class SourceSpec:
-    """A parsed ``source`` value: ``sim``, ``video:PATH`` or ``device:N``."""
+    """A parsed ``source`` value: ``sim``, ``video:PATH``, ``images:DIR``, ``device:N`` or ``picamera2[:N]``."""
 
     kind: SourceKind
     path: Path | None = None
-    """The recording, for ``video``."""
+    """The recording, for ``video`` (a file or a folder) and ``images`` (a folder)."""
     device: int | None = None
-    """The V4L2 device number (``/dev/videoN``), for ``device``."""
+    """The V4L2 device number (``/dev/videoN``) for ``device``; the camera number for ``picamera2``."""
 
     def __str__(self) -> str:
-        if self.kind == "video":
-            return f"video:{self.path}"
-        if self.kind == "device":
-            return f"device:{self.device}"
+        if self.kind in ("video", "images"):
+            return f"{self.kind}:{self.path}"
+        if self.kind in ("device", "picamera2"):
+            return f"{self.kind}:{self.device}"
         return "sim"
 
 
 def parse_source(text: str) -> SourceSpec:
-    """``"sim"``, ``"video:PATH"`` or ``"device:N"`` as a :class:`SourceSpec`; ``ValueError`` otherwise."""
+    """A ``source`` value as a :class:`SourceSpec`; ``ValueError`` naming the accepted forms otherwise."""
     if text == "sim":
         return SourceSpec("sim")
+    if text == "picamera2":
+        return SourceSpec("picamera2", device=0)
     kind, sep, arg = text.partition(":")
-    if sep and kind == "video":
+    if sep and kind in ("video", "images"):
         if not arg:
-            raise ValueError("video: needs a path, as in video:flight.mkv")
-        return SourceSpec("video", path=Path(arg))
-    if sep and kind == "device":
+            raise ValueError(f"{kind}: needs a path, as in {kind}:{'flight.mkv' if kind == 'video' else 'frames/'}")
+        if "\0" in arg:
+            raise ValueError(f"{kind}: the path cannot contain a NUL character")
+        return SourceSpec("video" if kind == "video" else "images", path=Path(arg))
+    if sep and kind in ("device", "picamera2"):
         if not re.fullmatch(r"[0-9]{1,3}", arg):
-            raise ValueError(f"device: needs a device number, as in device:0, got {arg!r}")
-        return SourceSpec("device", device=int(arg))
-    raise ValueError(f"source must be sim, video:PATH or device:N, got {text!r}")
+            raise ValueError(f"{kind}: needs a camera number, as in {kind}:0, got {arg!r}")
+        return SourceSpec("device" if kind == "device" else "picamera2", device=int(arg))
+    raise ValueError(f"source must be {SOURCE_FORMS}, got {text!r}")
 
 
 def parse_host_port(text: str) -> tuple[str, int]:
@@ -75,6 +83,187 @@ def parse_host_port(text: str) -> tuple[str, int]:
     if not 1 <= port <= 65535:
         raise ValueError(f"send target {text!r}: port {port} is outside 1..65535")
     return host, port
+
+
+@dataclass(frozen=True)
+class LinkSpec:
+    """A parsed MAVLink link: ``udpout:HOST:PORT`` or ``serial:DEVICE:BAUD``."""
+
+    kind: Literal["udpout", "serial"]
+    host: str = ""
+    port: int = 0
+    device: str = ""
+    baud: int = 0
+
+    def __str__(self) -> str:
+        if self.kind == "udpout":
+            host = f"[{self.host}]" if ":" in self.host else self.host
+            return f"udpout:{host}:{self.port}"
+        return f"serial:{self.device}:{self.baud}"
+
+
+def parse_link(text: str) -> LinkSpec:
+    """``udpout:HOST:PORT`` or ``serial:DEVICE:BAUD`` as a :class:`LinkSpec`; ``ValueError`` otherwise."""
+    kind, sep, rest = text.partition(":")
+    if sep and kind == "udpout":
+        try:
+            host, port = parse_host_port(rest)
+        except ValueError:
+            raise ValueError(f"udpout: needs HOST:PORT, as in udpout:127.0.0.1:14540, got {text!r}") from None
+        return LinkSpec("udpout", host=host, port=port)
+    if sep and kind == "serial":
+        device, sep2, baud_text = rest.rpartition(":")
+        if not sep2 or not device or not re.fullmatch(r"[0-9]{3,8}", baud_text):
+            raise ValueError(f"serial: needs DEVICE:BAUD, as in serial:/dev/ttyAMA0:921600, got {text!r}")
+        baud = int(baud_text)
+        if not hasattr(termios, f"B{baud}"):
+            raise ValueError(f"serial: {baud} is not a baud rate this system supports (e.g. 57600, 115200, 921600)")
+        return LinkSpec("serial", device=device, baud=baud)
+    raise ValueError(f"a MAVLink link must be udpout:HOST:PORT or serial:DEVICE:BAUD, got {text!r}")
+
+
+Vector3 = tuple[float, float, float]
+Matrix3 = tuple[Vector3, Vector3, Vector3]
+
+
+class MavlinkConfig(StrictModel):
+    """MAVLink to the flight controller (see docs/flight-controllers.md): off unless ``link`` is set."""
+
+    link: str | None = Field(
+        None,
+        description="Where the autopilot is: 'udpout:HOST:PORT' (UDP to that address, replies read from it) or "
+        "'serial:DEVICE:BAUD' (e.g. serial:/dev/ttyAMA0:921600). null: no MAVLink output.",
+    )
+    dialect: str = Field(
+        "common",
+        description="pymavlink dialect to encode with (common, ardupilotmega, development, ...); every one that "
+        "includes common.xml has the messages used here.",
+    )
+    system_id: int = Field(
+        1, ge=1, le=255, description="MAVLink system id: the vehicle's (the autopilot's MAV_SYS_ID / SYSID_THISMAV)."
+    )
+    component_id: int = Field(
+        197,
+        ge=1,
+        le=255,
+        description="MAVLink component id of this receiver (197: MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY).",
+    )
+    odometry: bool = Field(True, description="Send ODOMETRY (frame MAV_FRAME_LOCAL_FRD, child MAV_FRAME_BODY_FRD).")
+    vision_position_estimate: bool = Field(
+        False, description="Also send VISION_POSITION_ESTIMATE (for autopilots that do not take ODOMETRY)."
+    )
+    r_frd_cam: Matrix3 | None = Field(
+        None,
+        description="Camera mounting: the 3x3 rotation camera (OpenCV optical: x right, y down, z forward) -> body "
+        "FRD, as three rows. null: looking straight down with the top of the image towards the nose, i.e. "
+        "[[0, -1, 0], [1, 0, 0], [0, 0, 1]].",
+    )
+    camera_position_frd_m: Vector3 = Field(
+        (0.0, 0.0, 0.0),
+        description="The camera's optical centre from the body origin, body FRD metres. Set it here OR in the "
+        "autopilot (EKF2_EV_POS_X/Y/Z, VISO_POS_X/Y/Z), never both: here, the poses sent are the body origin's.",
+    )
+    fix_timeout_s: float = Field(
+        0.5,
+        gt=0,
+        le=60,
+        description="No pose for this long after one: the fix is lost (STATUSTEXT, HEARTBEAT standby).",
+    )
+    reset_jump_m: float = Field(
+        0.5,
+        gt=0,
+        description="A pose this far from the previous one sent increments reset_counter (as does a re-initialised "
+        "track), so the autopilot resets to it rather than fighting the step.",
+    )
+    zero_quality_std_m: float = Field(
+        0.1,
+        gt=0,
+        description="quality falls linearly from 100 (no position uncertainty) to 1 at this 3-D position standard "
+        "deviation.",
+    )
+    min_attitude_std_rad: float = Field(
+        0.005,
+        ge=0,
+        le=1,
+        description="Floor on each attitude standard deviation reported (radians; 0.005 is 0.3 degrees): the pose's "
+        "own attitude uncertainty is used when larger.",
+    )
+    autopilot_timeout_s: float = Field(
+        5.0, gt=0, le=600, description="Say so on stderr when no autopilot HEARTBEAT was heard for this long."
+    )
+
+    @field_validator("link")
+    @classmethod
+    def _check_link(cls, value: str | None) -> str | None:
+        if value is not None:
+            parse_link(value)
+        return value
+
+    @field_validator("dialect")
+    @classmethod
+    def _check_dialect(cls, value: str) -> str:
+        if (
+            not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", value)
+            or importlib.util.find_spec(f"pymavlink.dialects.v20.{value}") is None
+        ):
+            raise ValueError(f"unknown MAVLink dialect {value!r} (e.g. common, ardupilotmega, development)")
+        return value
+
+    @field_validator("r_frd_cam")
+    @classmethod
+    def _check_rotation(cls, value: Matrix3 | None) -> Matrix3 | None:
+        if value is None:
+            return value
+        r = [list(row) for row in value]
+        for i in range(3):
+            for j in range(3):
+                dot = sum(r[k][i] * r[k][j] for k in range(3))
+                if abs(dot - (1.0 if i == j else 0.0)) > 1e-4:
+                    raise ValueError("must be a rotation matrix (orthonormal rows)")
+        det = (
+            r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1])
+            - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
+            + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0])
+        )
+        if det < 0:
+            raise ValueError("must be a rotation (determinant +1), not a reflection")
+        return value
+
+    @property
+    def link_spec(self) -> LinkSpec | None:
+        """The parsed :attr:`link`."""
+        return None if self.link is None else parse_link(self.link)
+
+
+class CameraControls(StrictModel):
+    """Settings of a real camera (device:N or picamera2), applied when it is opened."""
+
+    exposure_us: float | None = Field(
+        None,
+        gt=0,
+        le=1_000_000,
+        description="Manual exposure time in microseconds (keep it under one frame; short exposures blur less). "
+        "null: leave the camera's current exposure.",
+    )
+    gain: float | None = Field(
+        None,
+        ge=0,
+        description="Manual gain: the V4L2 driver's own units for device:N, the analogue gain for picamera2. "
+        "null: leave it.",
+    )
+    auto_exposure: bool = Field(
+        False,
+        description="Leave automatic exposure on. Off by default: it changes the brightness between the two frames "
+        "the tags are recovered from.",
+    )
+    auto_white_balance: bool = Field(False, description="Leave automatic white balance on (off by default).")
+    fourcc: str | None = Field(
+        None,
+        min_length=4,
+        max_length=4,
+        description="V4L2 pixel format to ask for, e.g. 'MJPG' (many USB cameras reach 120 FPS only compressed) or "
+        "'YUYV'. null: the driver's default.",
+    )
 
 
 class ReceiverConfig(StrictModel):
@@ -90,7 +279,9 @@ class ReceiverConfig(StrictModel):
     source: str = Field(
         "sim",
         description="Where frames come from: 'sim' (the simulated arena, rendered live), 'video:PATH' "
-        "(a recording; PATH relative to this file's folder) or 'device:N' (V4L2 camera /dev/videoN).",
+        "(a video file or image folder; PATH relative to this file's folder), 'images:DIR' (a folder of images, in "
+        "name order), 'device:N' (V4L2 camera /dev/videoN through OpenCV) or 'picamera2[:N]' (a Raspberry Pi "
+        "camera through picamera2). 'ipt-receiver --list-cameras' says which cameras are there.",
     )
     fps: float | None = Field(
         None,
@@ -122,7 +313,20 @@ class ReceiverConfig(StrictModel):
     queue_size: int = Field(
         2, ge=1, le=64, description="Frames held between capture and processing; a live source drops the oldest."
     )
+    camera_controls: CameraControls = Field(
+        default_factory=CameraControls, description="Exposure, gain and automatic controls of a real camera."
+    )
+    mavlink: MavlinkConfig = Field(
+        default_factory=MavlinkConfig, description="MAVLink output to the flight controller (off unless link is set)."
+    )
     pipeline: PipelineConfig = Field(default_factory=PipelineConfig, description="The per-frame processing.")
+
+    @field_validator("arena", "camera", "auth_key_file")
+    @classmethod
+    def _check_path(cls, value: Path | None) -> Path | None:
+        if value is not None and "\0" in str(value):
+            raise ValueError("a file name cannot contain a NUL character")
+        return value
 
     @field_validator("source")
     @classmethod
@@ -158,8 +362,8 @@ def resolve_relative_paths(cfg: ReceiverConfig, base: Path) -> ReceiverConfig:
     if cfg.auth_key_file is not None:
         updates["auth_key_file"] = _resolve(base, cfg.auth_key_file)
     spec = cfg.source_spec
-    if spec.kind == "video" and spec.path is not None:
-        updates["source"] = f"video:{_resolve(base, spec.path)}"
+    if spec.kind in ("video", "images") and spec.path is not None:
+        updates["source"] = f"{spec.kind}:{_resolve(base, spec.path)}"
     return cfg.model_copy(update=updates)
 
 
@@ -189,6 +393,8 @@ def read_auth_key(path: Path) -> bytes:
         raise ConfigError(f"{path}: no such key file") from None
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read the key file ({exc.strerror or exc})") from None
+    except ValueError:  # a NUL character in the name
+        raise ConfigError(f"{path}: not a usable key file name (it contains a NUL character)") from None
     if key.endswith(b"\r\n"):
         key = key[:-2]
     elif key.endswith(b"\n"):

@@ -1,6 +1,8 @@
 """Frame sources of the receiver daemon and the hand-over of their frames to the event loop.
 
-A source (:class:`VideoCapture`, :class:`SimCapture`, :class:`DeviceCapture`) is plain blocking code:
+A source (:class:`VideoCapture` for a video file or an image folder, :class:`SimCapture`,
+:class:`DeviceCapture` for a V4L2 camera through OpenCV, :class:`PiCamera2Capture` for a Raspberry Pi
+camera) is plain blocking code:
 ``open()``, then ``read()`` until it returns ``None`` (end of a recording), then ``close()``. A
 :class:`CaptureThread` runs it on its own thread, so no blocking read ever happens on the event loop,
 and hands each :class:`CapturedFrame` to a bounded :class:`FrameQueue` that the asyncio side reads.
@@ -20,13 +22,15 @@ from __future__ import annotations
 import asyncio
 import collections
 import concurrent.futures
+import contextlib
+import re
 import sys
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Generic, Protocol, TextIO, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, Protocol, TextIO, TypeVar
 
 import cv2
 import numpy as np
@@ -35,6 +39,7 @@ from pydantic import ValidationError
 
 from ipt.config.camera_info import CameraInfo
 from ipt.config.models import ArenaConfig, ConfigError
+from ipt.config.receiver import CameraControls
 from ipt.errors import IptError
 from ipt.sim.config import SimCameraConfig, SimConfig
 from ipt.videoio import FrameSource, VideoError, open_frames
@@ -221,9 +226,12 @@ class VideoCapture:
         size: tuple[int, int] | None = None,
         clock: Clock = time.monotonic,
         sleep: Sleep = time.sleep,
+        images_only: bool = False,
     ) -> None:
         self.path = Path(path)
-        self.name = f"video:{self.path}"
+        self.images_only = images_only
+        """Only a folder of images will do (the ``images:DIR`` source)."""
+        self.name = f"{'images' if images_only else 'video'}:{self.path}"
         self.live = realtime
         self.size = size
         """(width, height) the frames must have, or None to accept any."""
@@ -240,6 +248,8 @@ class VideoCapture:
 
     def open(self) -> None:
         """Open the recording (again), skipping the frames already delivered."""
+        if self.images_only and not self.path.is_dir():
+            raise CaptureError(f"{self.path}: not a folder (images:DIR reads the images in a folder)")
         source = open_frames(self.path)
         try:
             if self.size is not None and (source.width, source.height) != self.size:
@@ -367,36 +377,55 @@ class SimCapture:
         """Nothing to release: the arena is kept for a reopen."""
 
 
+V4L2_EXPOSURE_MANUAL = 1
+"""V4L2's ``exposure_auto`` menu value for manual exposure (OpenCV passes it through)."""
+V4L2_EXPOSURE_APERTURE_PRIORITY = 3
+"""V4L2's ``exposure_auto`` value for automatic exposure on UVC cameras."""
+V4L2_EXPOSURE_UNIT_US = 100.0
+"""V4L2's ``exposure_time_absolute`` counts in units of 100 µs."""
+
+
 class DeviceCapture:
     """A V4L2 camera (``/dev/videoN``) through OpenCV; BGR converted to RGB.
 
     The capture time is the monotonic clock at the moment ``grab`` returned, in microseconds. A camera
     is always live (newest wins); if it cannot be opened it is retried, like a read failure.
+
+    On open, the pixel format, size and rate are asked for, then automatic exposure and white balance are
+    turned off (unless ``controls`` leave them on) and the manual exposure and gain set. What the driver
+    did not take is listed in :attr:`notes` (the capture thread prints them): drivers differ in what they
+    allow.
     """
 
     live = True
     retry_open = True
 
     def __init__(
-        self, index: int, width: int, height: int, fps: float | None, *, clock: Clock = time.monotonic
+        self,
+        index: int,
+        width: int,
+        height: int,
+        fps: float | None,
+        *,
+        controls: CameraControls | None = None,
+        clock: Clock = time.monotonic,
     ) -> None:
         self.index, self.width, self.height, self.fps = index, width, height, fps
+        self.controls = controls if controls is not None else CameraControls()
         self.name = f"device:{index}"
+        self.notes: list[str] = []
+        """What the driver did not do as asked, from the last open (one line each)."""
         self._clock = clock
         self._cap: cv2.VideoCapture | None = None
         self._count = 0
 
     def open(self) -> None:
-        """Open the device and ask for the camera's size and rate."""
+        """Open the device and ask for the camera's format, size, rate, exposure and gain."""
         cap = cv2.VideoCapture(self.index, cv2.CAP_V4L2)
         if not cap.isOpened():
             cap.release()
             raise CaptureError(f"/dev/video{self.index}: cannot open the camera")
-        cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.width)
-        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height)
-        if self.fps is not None:
-            cap.set(cv2.CAP_PROP_FPS, self.fps)
-        cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # the newest frame, not a stale one from the driver's queue
+        self.notes = apply_v4l2_settings(cap, self.width, self.height, self.fps, self.controls, self.name)
         self._cap = cap
 
     def read(self) -> CapturedFrame | None:
@@ -427,10 +456,224 @@ class DeviceCapture:
             self._cap = None
 
 
+def _fourcc_text(value: float) -> str:
+    code = int(value)
+    text = "".join(chr((code >> (8 * i)) & 0xFF) for i in range(4))
+    return text if text.isprintable() and text.strip() else f"0x{code:08x}"
+
+
+def apply_v4l2_settings(
+    cap: cv2.VideoCapture,
+    width: int,
+    height: int,
+    fps: float | None,
+    controls: CameraControls,
+    name: str,
+) -> list[str]:
+    """Ask an open OpenCV V4L2 capture for the settings; one line for each the driver did not take."""
+    notes = []
+
+    def ask(prop: int, value: float, what: str, shown: str, tolerance: float = 1e-3) -> None:
+        accepted = bool(cap.set(prop, value))
+        got = float(cap.get(prop))
+        if not accepted or abs(got - value) > tolerance * max(1.0, abs(value)):
+            notes.append(f"{name}: the driver did not take {what} {shown} (it reports {got:g})")
+
+    if controls.fourcc is not None:
+        wanted = sum(ord(c) << (8 * i) for i, c in enumerate(controls.fourcc))  # cv2.VideoWriter_fourcc
+        cap.set(cv2.CAP_PROP_FOURCC, wanted)
+        got_fourcc = _fourcc_text(cap.get(cv2.CAP_PROP_FOURCC))
+        if got_fourcc != controls.fourcc:
+            notes.append(f"{name}: the driver did not take pixel format {controls.fourcc} (it uses {got_fourcc})")
+    ask(cv2.CAP_PROP_FRAME_WIDTH, width, "width", str(width))
+    ask(cv2.CAP_PROP_FRAME_HEIGHT, height, "height", str(height))
+    if fps is not None:
+        ask(cv2.CAP_PROP_FPS, fps, "frame rate", f"{fps:g} FPS", tolerance=0.02)
+    cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # the newest frame, not a stale one from the driver's queue
+    auto = V4L2_EXPOSURE_APERTURE_PRIORITY if controls.auto_exposure else V4L2_EXPOSURE_MANUAL
+    ask(cv2.CAP_PROP_AUTO_EXPOSURE, auto, "automatic exposure", "on" if controls.auto_exposure else "off")
+    ask(
+        cv2.CAP_PROP_AUTO_WB,
+        1.0 if controls.auto_white_balance else 0.0,
+        "automatic white balance",
+        "on" if controls.auto_white_balance else "off",
+    )
+    if controls.exposure_us is not None:
+        units = round(controls.exposure_us / V4L2_EXPOSURE_UNIT_US)
+        ask(cv2.CAP_PROP_EXPOSURE, units, "exposure", f"{controls.exposure_us:g} us ({units} x 100 us)", 0.05)
+    if controls.gain is not None:
+        ask(cv2.CAP_PROP_GAIN, controls.gain, "gain", f"{controls.gain:g}", 0.05)
+    return notes
+
+
+PICAMERA2_MISSING = (
+    "picamera2 is not installed: on Raspberry Pi OS run 'sudo apt install python3-picamera2' and make the "
+    "virtual environment with --system-site-packages"
+)
+
+
+class PiCamera2Capture:
+    """A Raspberry Pi camera through picamera2 (imported only when this source is opened).
+
+    Frames are asked for as RGB888 (which libcamera stores B, G, R) at the camera file's size; automatic
+    exposure and white balance are turned off unless ``controls`` leave them on. The capture time is the
+    frame's ``SensorTimestamp`` (the start of its exposure, on the monotonic clock) when the driver gives
+    one on that clock, else the moment the frame was handed over.
+    """
+
+    live = True
+    retry_open = True
+
+    def __init__(
+        self,
+        index: int,
+        width: int,
+        height: int,
+        fps: float | None,
+        *,
+        controls: CameraControls | None = None,
+        clock: Clock = time.monotonic,
+    ) -> None:
+        self.index, self.width, self.height, self.fps = index, width, height, fps
+        self.controls = controls if controls is not None else CameraControls()
+        self.name = f"picamera2:{index}"
+        self.notes: list[str] = []
+        self._clock = clock
+        self._cam: Any = None
+        self._count = 0
+
+    def camera_controls(self) -> dict[str, Any]:
+        """The libcamera controls this source asks for."""
+        c = self.controls
+        out: dict[str, Any] = {"AeEnable": c.auto_exposure, "AwbEnable": c.auto_white_balance}
+        if self.fps is not None:
+            frame_us = round(1e6 / self.fps)
+            out["FrameDurationLimits"] = (frame_us, frame_us)
+        if c.exposure_us is not None:
+            out["ExposureTime"] = round(c.exposure_us)
+        if c.gain is not None:
+            out["AnalogueGain"] = float(c.gain)
+        return out
+
+    def open(self) -> None:
+        """Import picamera2, configure the camera and start it."""
+        try:
+            from picamera2 import Picamera2
+        except ImportError:
+            raise CaptureError(PICAMERA2_MISSING) from None
+        try:
+            cam = Picamera2(self.index)
+        except Exception as exc:  # no such camera, or it is in use: picamera2 raises various types
+            raise CaptureError(f"{self.name}: cannot open the camera ({type(exc).__name__}: {exc})") from None
+        try:
+            config = cam.create_video_configuration(
+                main={"size": (self.width, self.height), "format": "RGB888"},
+                controls=self.camera_controls(),
+                buffer_count=4,
+            )
+            cam.configure(config)
+            cam.start()
+        except Exception as exc:
+            with contextlib.suppress(Exception):
+                cam.close()
+            raise CaptureError(f"{self.name}: cannot configure the camera ({type(exc).__name__}: {exc})") from None
+        self._cam = cam
+
+    def read(self) -> CapturedFrame | None:
+        """The next frame, RGB; raises :class:`CaptureError` if the camera fails."""
+        cam = self._cam
+        if cam is None:
+            raise CaptureError(f"{self.name}: read before open")
+        request = cam.capture_request()
+        try:
+            bgr = np.asarray(request.make_array("main"), dtype=np.uint8)
+            metadata = request.get_metadata()
+        finally:
+            request.release()
+        handed_s = self._clock()
+        if bgr.ndim != 3 or bgr.shape[:2] != (self.height, self.width):
+            raise CaptureError(
+                f"{self.name}: frames are {bgr.shape[1]}x{bgr.shape[0]}, "
+                f"the camera file says {self.width}x{self.height}"
+            )
+        rgb = np.ascontiguousarray(bgr[:, :, 2::-1], dtype=np.uint8)
+        sensor_ns = metadata.get("SensorTimestamp") if isinstance(metadata, dict) else None
+        captured_s = handed_s
+        if isinstance(sensor_ns, int) and abs(sensor_ns * 1e-9 - handed_s) < 1.0:
+            captured_s = sensor_ns * 1e-9
+        k = self._count
+        self._count += 1
+        return CapturedFrame(k, round(captured_s * 1e6), rgb, captured_s)
+
+    def close(self) -> None:
+        """Stop and release the camera."""
+        cam, self._cam = self._cam, None
+        if cam is not None:
+            with contextlib.suppress(Exception):
+                cam.stop()
+            cam.close()
+
+
+def list_cameras(
+    dev_dir: Path = Path("/dev"), sysfs_dir: Path = Path("/sys/class/video4linux"), *, probe: bool = True
+) -> list[str]:
+    """Lines saying which cameras are there: each V4L2 node (``/dev/videoN``, its name, and what OpenCV
+    opens it at) and the picamera2 cameras. Never raises; what cannot be looked at is said."""
+    lines = []
+    nodes = sorted(
+        (p for p in dev_dir.glob("video*") if re.fullmatch(r"video[0-9]+", p.name)), key=lambda p: int(p.name[5:])
+    )
+    for node in nodes:
+        n = int(node.name[5:])
+        try:
+            label = (sysfs_dir / node.name / "name").read_text(encoding="utf-8", errors="replace").strip()
+        except OSError:
+            label = "?"
+        what = _probe_v4l2(n) if probe else "not opened"
+        lines.append(f"device:{n}  {node}  {label or '?'}: {what}")
+    if not nodes:
+        lines.append(f"V4L2: no cameras ({dev_dir}/video* absent)")
+    else:
+        usable = sum("frames" in line for line in lines)
+        lines.append(f"V4L2: {len(nodes)} node(s), {usable} giving frames (a USB camera also has metadata nodes)")
+    lines.append(_picamera2_cameras())
+    return lines
+
+
+def _probe_v4l2(index: int) -> str:
+    cap = cv2.VideoCapture(index, cv2.CAP_V4L2)
+    try:
+        if not cap.isOpened():
+            return "cannot open (in use, no permission, or not a capture node)"
+        ok = cap.grab()
+        w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        fps = float(cap.get(cv2.CAP_PROP_FPS))
+        fourcc = _fourcc_text(cap.get(cv2.CAP_PROP_FOURCC))
+        state = "frames" if ok else "opens but gives no frames"
+        return f"{state} at {w}x{h}, {fps:g} FPS, {fourcc} (its current mode)"
+    finally:
+        cap.release()
+
+
+def _picamera2_cameras() -> str:
+    try:
+        from picamera2 import Picamera2
+    except ImportError:
+        return "picamera2: not installed (needed only for Raspberry Pi cameras)"
+    try:
+        infos = Picamera2.global_camera_info()
+    except Exception as exc:
+        return f"picamera2: cannot list the cameras ({type(exc).__name__}: {exc})"
+    if not infos:
+        return "picamera2: no cameras"
+    names = ", ".join(f"picamera2:{i} {info.get('Model', '?')}" for i, info in enumerate(infos))
+    return f"picamera2: {names}"
+
+
 # --- the capture thread ----------------------------------------------------------------------------
 
 BACKOFF_FIRST_S = 0.1
-BACKOFF_MAX_S = 5.0
+BACKOFF_MAX_S = 1.0
 
 
 class CaptureThread:
@@ -505,6 +748,8 @@ class CaptureThread:
                         delay = min(2 * delay, BACKOFF_MAX_S)
                         continue
                     opened = True
+                    for note in getattr(self.source, "notes", ()):
+                        self._say(note)
                     self._resolve_ready()
                 try:
                     frame = self.source.read()

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from ipt import __version__
-from ipt.cliutil import Parser, run_main
+from ipt.cliutil import Parser, positive_float, run_main
 from ipt.config.models import PROFILES, PipelineConfig, load_arena_config, shipped_config_path
 
 
@@ -57,7 +57,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
         "vehicle_id": args.vehicle_id,
         "realtime": True if args.realtime else None,
     }
-    updates = {k: v for k, v in flags.items() if v is not None}
+    updates: dict[str, object] = {k: v for k, v in flags.items() if v is not None}
+    if args.mavlink is not None:
+        updates["mavlink"] = {**cfg.mavlink.model_dump(), "link": None if args.mavlink == "off" else args.mavlink}
     if updates:
         cfg = with_overrides(cfg, **updates)
     stats = run(cfg, max_frames=args.max_frames)
@@ -70,6 +72,19 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+class _ListCameras(argparse.Action):
+    """``--list-cameras``: print what was found and exit (like ``--version``, no command needed)."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, help: str | None = None) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help=help)
+
+    def __call__(self, parser: argparse.ArgumentParser, *_: object) -> None:
+        from ipt.receiver.capture import list_cameras
+
+        print("\n".join(list_cameras()))
+        parser.exit(0)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``ipt-receiver`` argument parser."""
     p = Parser(
@@ -78,6 +93,11 @@ def build_parser() -> argparse.ArgumentParser:
         "AprilTag 3 and estimate the camera's pose in the arena.",
     )
     p.add_argument("--version", action="version", version=f"ipt-receiver {__version__}")
+    p.add_argument(
+        "--list-cameras",
+        action=_ListCameras,
+        help="list the cameras this computer has (V4L2 devices, picamera2 cameras) and exit",
+    )
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
     sub.required = True
     r = sub.add_parser(
@@ -90,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--config", metavar="ARENA.yaml", help="arena YAML (default: the shipped paper arena)")
     r.add_argument("--camera", required=True, metavar="CAMERA.yaml", help="ROS camera_info YAML of the camera")
     r.add_argument("--video", required=True, metavar="VIDEO|DIR", help="recording: video file or image folder")
-    r.add_argument("--fps", type=float, help="camera frame rate (default: from the video file)")
+    r.add_argument("--fps", type=positive_float, help="camera frame rate (default: from the video file)")
     r.add_argument("--output", required=True, metavar="POSES.tum", help="where to write the poses")
     r.add_argument(
         "--profile",
@@ -103,15 +123,21 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser(
         "run",
         help="the receiver daemon: localise every camera frame and send UDP pose packets",
-        description="Read frames from the simulator, a recording or a V4L2 camera, localise each and send one "
-        "UDP pose packet per pose to every target. Statistics go to stderr every stats_interval_s seconds and "
-        "at exit. Stops on SIGTERM/SIGINT (exit code 0), at the end of a recording, or after --max-frames.",
+        description="Read frames from the simulator, a recording or a camera (V4L2 or picamera2), localise each "
+        "and send one UDP pose packet per pose to every target, and with --mavlink (or mavlink.link) ODOMETRY to "
+        "the flight controller (docs/flight-controllers.md). Statistics go to stderr every stats_interval_s "
+        "seconds and at exit. Stops on SIGTERM/SIGINT (exit code 0), at the end of a recording, or after "
+        "--max-frames.",
     )
     d.add_argument("--config", metavar="RECEIVER.yaml", help="receiver YAML (default: the shipped receiver.yaml)")
     d.add_argument("--arena", metavar="ARENA.yaml", help="arena YAML (overrides the config)")
     d.add_argument("--camera", metavar="CAMERA.yaml", help="ROS camera_info YAML (overrides the config)")
-    d.add_argument("--source", metavar="SOURCE", help="sim, video:PATH or device:N (overrides the config)")
-    d.add_argument("--fps", type=float, metavar="F", help="camera frame rate in Hz (overrides the config)")
+    d.add_argument(
+        "--source",
+        metavar="SOURCE",
+        help="sim, video:PATH, images:DIR, device:N or picamera2[:N] (overrides the config)",
+    )
+    d.add_argument("--fps", type=positive_float, metavar="F", help="camera frame rate in Hz (overrides the config)")
     d.add_argument(
         "--send",
         action="append",
@@ -119,6 +145,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="UDP destination of the pose packets; repeat for several (replaces the config's list)",
     )
     d.add_argument("--vehicle-id", type=int, metavar="N", help="vehicle id in the packets, 0..65535")
+    d.add_argument(
+        "--mavlink",
+        metavar="LINK",
+        help="MAVLink to the flight controller: udpout:HOST:PORT or serial:DEVICE:BAUD (e.g. "
+        "serial:/dev/ttyAMA0:921600); 'off' for none (overrides the config's mavlink.link)",
+    )
     d.add_argument("--realtime", action="store_true", help="pace sim/video to the frame rate (a live source)")
     d.add_argument("--max-frames", type=_positive_int, metavar="N", help="stop after N captured frames")
     d.set_defaults(func=_cmd_run)

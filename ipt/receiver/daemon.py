@@ -38,7 +38,7 @@ from collections import Counter
 from collections.abc import Callable, Coroutine
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import numpy as np
 import numpy.typing as npt
@@ -53,6 +53,7 @@ from ipt.receiver.capture import (
     CaptureThread,
     DeviceCapture,
     FrameQueue,
+    PiCamera2Capture,
     SimCapture,
     VideoCapture,
     sim_camera_from,
@@ -61,6 +62,9 @@ from ipt.receiver.outputs import PacketMaker, UdpPoseSender
 from ipt.receiver.pipeline import FrameResult, Pipeline
 from ipt.sim.config import SimCameraConfig, SimConfig
 from ipt.tagmap import grid_tag_map
+
+if TYPE_CHECKING:
+    from ipt.receiver.mavlink import MavlinkOutput
 
 MAX_IN_FLIGHT = 2
 """Frames submitted to the pipeline worker at once (one processing, one waiting)."""
@@ -200,11 +204,14 @@ def _write(out: TextIO, line: str) -> None:
 def make_source(cfg: ReceiverConfig, arena: ArenaConfig, camera: CameraInfo, stop: threading.Event) -> CaptureSource:
     """The frame source ``cfg.source`` describes; its pacing sleeps end early when ``stop`` is set."""
     spec = cfg.source_spec
-    if spec.kind == "video" and spec.path is not None:
+    if spec.kind in ("video", "images") and spec.path is not None:
         size = (camera.width_px, camera.height_px)
-        return VideoCapture(spec.path, cfg.fps, cfg.realtime, size=size, sleep=stop.wait)
+        images = spec.kind == "images"
+        return VideoCapture(spec.path, cfg.fps, cfg.realtime, size=size, sleep=stop.wait, images_only=images)
     if spec.kind == "device" and spec.device is not None:
-        return DeviceCapture(spec.device, camera.width_px, camera.height_px, cfg.fps)
+        return DeviceCapture(spec.device, camera.width_px, camera.height_px, cfg.fps, controls=cfg.camera_controls)
+    if spec.kind == "picamera2" and spec.device is not None:
+        return PiCamera2Capture(spec.device, camera.width_px, camera.height_px, cfg.fps, controls=cfg.camera_controls)
     fps = cfg.fps if cfg.fps is not None else SimCameraConfig().fps
     sim = SimConfig(camera=sim_camera_from(camera, fps))
     return SimCapture(arena, sim, fps, cfg.realtime, sleep=stop.wait)
@@ -257,6 +264,7 @@ async def run_daemon(
     worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ipt-pipeline")
     sender = UdpPoseSender(cfg.send_targets)
     maker = PacketMaker(cfg.vehicle_id, key)
+    mavlink = _mavlink_output(cfg, out)
     meter = _Meter()
     errors_reported = 0
 
@@ -300,6 +308,8 @@ async def run_daemon(
                 slots.release()
             if result is not None:
                 sent = deliver_one(frame, result)
+                if mavlink is not None:
+                    mavlink.on_result(frame, result)
             if on_result is not None:
                 on_result(frame, result, sent)
 
@@ -337,6 +347,8 @@ async def run_daemon(
     start = time.monotonic()
     try:
         await sender.open()
+        if mavlink is not None:
+            await mavlink.open()  # the link itself is (re)opened in the background
         capture.start()
         ready = asyncio.wrap_future(capture.ready)
         await asyncio.wait({ready, stop_wait}, return_when=asyncio.FIRST_COMPLETED)
@@ -358,6 +370,8 @@ async def run_daemon(
     finally:
         deadline = time.monotonic() + SHUTDOWN_BUDGET_S
         await _shutdown(capture, frames, deliver_task, tasks, sender, deadline)
+        if mavlink is not None:
+            await mavlink.close()
         worker.shutdown(wait=False, cancel_futures=True)
         # The read in progress (a render, a decode, a camera grab) ends by itself; wait for it within the
         # budget. If it does not end, the thread is a daemon thread and `capture_running` tells the caller.
@@ -384,7 +398,18 @@ async def run_daemon(
     _write(out, stats.line())
     if sender.last_error is not None:
         _write(out, f"{PROG}: last send error: {sender.last_error}")
+    if mavlink is not None:
+        mavlink.say_summary()
     return stats
+
+
+def _mavlink_output(cfg: ReceiverConfig, out: TextIO) -> MavlinkOutput | None:
+    """The MAVLink output ``cfg.mavlink`` asks for (pymavlink is imported only then)."""
+    if cfg.mavlink.link is None:
+        return None
+    from ipt.receiver.mavlink import MavlinkOutput
+
+    return MavlinkOutput(cfg.mavlink, report=out, prog=PROG)
 
 
 async def _wait_event(event: asyncio.Event) -> None:
