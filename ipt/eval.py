@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from ipt.cliutil import Parser
 from ipt.errors import IptError
 from ipt.fileio import atomic_path, write_text_atomic
 from ipt.geometry import (
@@ -443,7 +444,7 @@ exit status: 0 on success, 2 on bad input (one line on stderr)."""
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = Parser(
         prog="ipt eval",
         description="Accuracy of estimated drone poses against ground truth, as in Table I of the paper.",
         epilog=_EPILOG,

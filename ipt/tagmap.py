@@ -36,6 +36,10 @@ TAG36H11_CELLS = 10
 _BORDER_CELLS = 8
 
 
+MAX_PROJECTOR_PX = 16384
+"""Largest projector width or height a layout may state (the limit of the arena configuration too)."""
+
+
 class TagMapError(IptError):
     """A tag layout is invalid or cannot be read."""
 
@@ -223,13 +227,23 @@ def grid_tag_map(arena: ArenaConfig) -> TagMap:
 
 
 def export_map(tag_map: TagMap, image_path: str | Path, layout_path: str | Path) -> None:
-    """Write the map image (8-bit grey PNG at projector resolution) and the layout JSON, atomically."""
+    """Write the map image (8-bit grey PNG at projector resolution) and the layout JSON, atomically.
+
+    Raises :class:`TagMapError` naming the path when one cannot be written (no such folder, a folder
+    in the way, no permission).
+    """
     img = tag_map.render_image()
-    with atomic_path(image_path) as tmp:
-        if not cv2.imwrite(str(tmp.with_suffix(".png")), img):
-            raise TagMapError(f"{image_path}: cannot write the PNG")
-        tmp.with_suffix(".png").replace(tmp)
-    write_text_atomic(layout_path, json.dumps(tag_map.layout_dict(), indent=1) + "\n")
+    try:
+        with atomic_path(image_path) as tmp:
+            if not cv2.imwrite(str(tmp.with_suffix(".png")), img):
+                raise TagMapError(f"{image_path}: cannot write the PNG")
+            tmp.with_suffix(".png").replace(tmp)
+    except OSError as exc:
+        raise TagMapError(f"{image_path}: cannot write ({exc.strerror or exc})") from None
+    try:
+        write_text_atomic(layout_path, json.dumps(tag_map.layout_dict(), indent=1) + "\n")
+    except OSError as exc:
+        raise TagMapError(f"{layout_path}: cannot write ({exc.strerror or exc})") from None
 
 
 def _float_list(path: Path, where: str, value: Any, n: int) -> tuple[float, ...]:
@@ -252,6 +266,10 @@ def load_layout(path: str | Path) -> TagMap:
         data = json.loads(text)
     except json.JSONDecodeError as exc:
         raise TagMapError(f"{p}: not valid JSON (line {exc.lineno}: {exc.msg})") from None
+    except RecursionError:
+        raise TagMapError(f"{p}: not a layout: nested too deeply") from None
+    except ValueError:  # an integer of more digits than Python converts (sys.get_int_max_str_digits)
+        raise TagMapError(f"{p}: not a layout: a number has too many digits") from None
     if not isinstance(data, dict) or not isinstance(data.get("projector"), dict):
         raise TagMapError(f"{p}: expected an object with 'projector' and 'tags'")
     proj = data["projector"]
@@ -261,10 +279,10 @@ def load_layout(path: str | Path) -> TagMap:
         or isinstance(h, bool)
         or not isinstance(w, int)
         or not isinstance(h, int)
-        or w <= 0
-        or h <= 0
+        or not 0 < w <= MAX_PROJECTOR_PX
+        or not 0 < h <= MAX_PROJECTOR_PX
     ):
-        raise TagMapError(f"{p}: projector: width_px and height_px must be positive integers")
+        raise TagMapError(f"{p}: projector: width_px and height_px must be integers in 1..{MAX_PROJECTOR_PX}")
     raw_tags = data.get("tags")
     if not isinstance(raw_tags, list) or not raw_tags:
         raise TagMapError(f"{p}: tags: expected a non-empty list")

@@ -75,6 +75,12 @@ class CameraInfo:
         }
 
 
+def _show(value: object, limit: int = 60) -> str:
+    """``repr(value)``, cut to ``limit`` characters: a message quotes a bad value, not a megabyte of it."""
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
 def _matrix(path: Path, data: dict[str, Any], key: str, shapes: set[tuple[int, int]]) -> list[float]:
     block = data.get(key)
     if not isinstance(block, dict):
@@ -99,16 +105,17 @@ def load_camera_info(path: str | Path) -> CameraInfo:
     """Read a ROS camera_info YAML file. Raises :class:`CameraInfoError` naming the file and the problem."""
     p = Path(path)
     data = read_yaml_mapping(p, CameraInfoError)
-    unknown = sorted(repr(k) for k in set(data) - _ROS_KEYS)
+    unknown = sorted(_show(k) for k in set(data) - _ROS_KEYS)
     if unknown:
-        raise CameraInfoError(f"{p}: unknown key(s) {', '.join(unknown)} (not a camera_info file?)")
+        more = f" and {len(unknown) - 8} more" if len(unknown) > 8 else ""
+        raise CameraInfoError(f"{p}: unknown key(s) {', '.join(unknown[:8])}{more} (not a camera_info file?)")
     for key in ("image_width", "image_height"):
         v = data.get(key)
         if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 65536:
-            raise CameraInfoError(f"{p}: {key}: expected a positive integer, got {v!r}")
+            raise CameraInfoError(f"{p}: {key}: expected a positive integer, got {_show(v)}")
     model = data.get("distortion_model", "plumb_bob")
     if model not in ("plumb_bob", "rational_polynomial"):
-        raise CameraInfoError(f"{p}: distortion_model: '{model}' is not supported (use plumb_bob)")
+        raise CameraInfoError(f"{p}: distortion_model: {_show(model)} is not supported (use plumb_bob)")
     k = _matrix(p, data, "camera_matrix", {(3, 3)})
     if "distortion_coefficients" in data:
         dist = _matrix(p, data, "distortion_coefficients", {(1, n) for n in (4, 5, 8)} | {(n, 1) for n in (4, 5, 8)})

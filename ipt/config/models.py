@@ -284,9 +284,20 @@ def finite_float(value: object) -> float | None:
 M = TypeVar("M", bound=BaseModel)
 
 
+_MAX_PROBLEMS = 12
+"""Problems named in one configuration error; the rest are counted ("... and N more")."""
+_MAX_PART_CHARS = 200
+"""Longest description of one problem (a key or a value can be megabytes long in a broken file)."""
+
+
+def _shorten(text: str, limit: int = _MAX_PART_CHARS) -> str:
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
 def _describe_validation_error(exc: ValidationError) -> str:
     parts = []
-    for err in exc.errors():
+    errors = exc.errors()
+    for err in errors[:_MAX_PROBLEMS]:
         where = ".".join(str(p) for p in err["loc"]) or "(top level)"
         if not where.isprintable():
             where = repr(where)
@@ -295,7 +306,9 @@ def _describe_validation_error(exc: ValidationError) -> str:
             msg = "unknown key"
         elif err["type"] == "missing":
             msg = "missing key"
-        parts.append(f"{where}: {msg}")
+        parts.append(_shorten(f"{where}: {msg}"))
+    if len(errors) > _MAX_PROBLEMS:
+        parts.append(f"... and {len(errors) - _MAX_PROBLEMS} more")
     return "; ".join(parts)
 
 
@@ -308,6 +321,14 @@ def read_yaml_mapping(path: Path, error: type[IptError] = ConfigError) -> dict[s
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""
         raise error(f"{path}: not valid YAML{where}") from None
+    except RecursionError:
+        raise error(f"{path}: not usable YAML: nested too deeply") from None
+    except Exception as exc:
+        # PyYAML's own constructors raise plain exceptions for some scalars they claim to resolve:
+        # ValueError for a date like 2001-13-45 or an integer of more than 4300 digits, KeyError for
+        # `!!bool maybe`, AttributeError for `!!timestamp x`, IndexError for an empty `!!int`.
+        what = _shorten(str(exc) or type(exc).__name__)
+        raise error(f"{path}: not usable YAML: a value cannot be read ({what})") from None
     if data is None:
         raise error(f"{path}: the file is empty")
     if not isinstance(data, dict):

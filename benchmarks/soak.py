@@ -1,0 +1,242 @@
+"""Soak: the sender and the receiver daemon running together for a long time keep their memory and their
+file descriptors flat.
+
+Runs two real processes, as deployed but on one machine:
+
+- ``ipt-sender`` (null sink, paced at the projector rate, ``--width``×``--height``, default 960×1080),
+  listening on 127.0.0.1 for authenticated packets of vehicle 1, drawing it on the overlay;
+- ``ipt-receiver run`` on the simulated arena (``--source sim --realtime``: the simulator renders what
+  a camera flying over the projected floor sees, forever), sending authenticated pose packets to it.
+
+Every ``--interval`` seconds it samples each process's resident memory (``VmRSS`` in
+``/proc/PID/status``), open file descriptors (entries of ``/proc/PID/fd``) and threads. The first
+``--warmup`` seconds are left out of the growth figures (imports, caches, histograms and pools filling
+up); after that, growth is reported both as last minus first sample and as the least-squares slope over
+all samples, scaled to 30 minutes (RSS wanders by a megabyte or two from sample to sample, so the
+slope is what the verdict uses). Targets: RSS growth below 5 MB over 30 minutes, no growth in file
+descriptors. At the end both get SIGTERM and their final statistics
+lines are kept (poses sent and accepted prove the loop was alive throughout).
+
+Prints one JSON object; ``--samples FILE`` also writes every sample as JSON lines.
+
+    ./dev run python benchmarks/soak.py --minutes 30
+    ./dev run python benchmarks/soak.py --minutes 3 --warmup 30 --interval 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from ipt.config.models import ArenaConfig, load_arena_config, shipped_config_path
+
+KEY = b"ipt-soak-benchmark-key-0123456789"
+TARGET_RSS_GROWTH_MB_PER_30MIN = 5.0
+
+
+def arena_for(width: int, height: int) -> dict[str, Any]:
+    """The shipped arena at another projector size, tags scaled by the same factor (as benchmarks/sender.py)."""
+    data: dict[str, Any] = load_arena_config(shipped_config_path("arena.yaml")).model_dump(mode="json")
+    scale = min(width / data["projector"]["width_px"], height / data["projector"]["height_px"])
+    data["projector"].update(width_px=width, height_px=height)
+    data["tag_map"]["tag_size_px"] = max(16, int(data["tag_map"]["tag_size_px"] * scale) // 8 * 8)
+    ArenaConfig.model_validate(data)
+    return data
+
+
+def sample(pid: int) -> dict[str, int] | None:
+    """RSS (kB), open fds and threads of ``pid``; None once it has gone."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+        fds = len(os.listdir(f"/proc/{pid}/fd"))
+    except (FileNotFoundError, ProcessLookupError):
+        return None
+    rss = re.search(r"^VmRSS:\s+(\d+) kB", status, re.M)
+    threads = re.search(r"^Threads:\s+(\d+)", status, re.M)
+    return {"rss_kb": int(rss[1]) if rss else 0, "fds": fds, "threads": int(threads[1]) if threads else 0}
+
+
+def slope_per_s(ts: list[float], ys: list[float]) -> float:
+    """Least-squares slope of ``ys`` over ``ts``."""
+    n = len(ts)
+    if n < 2:
+        return 0.0
+    mt, my = sum(ts) / n, sum(ys) / n
+    den = sum((t - mt) ** 2 for t in ts)
+    return sum((t - mt) * (y - my) for t, y in zip(ts, ys, strict=True)) / den if den > 0 else 0.0
+
+
+def summarise(samples: list[tuple[float, dict[str, int]]], warmup_s: float) -> dict[str, Any]:
+    steady = [(t, s) for t, s in samples if t >= warmup_s] or samples
+    ts = [t for t, _ in steady]
+    rss = [s["rss_kb"] / 1024 for _, s in steady]
+    fds = [s["fds"] for _, s in steady]
+    threads = [s["threads"] for _, s in steady]
+    slope = slope_per_s(ts, rss)
+    return {
+        "samples": len(samples),
+        "rss_mb": {
+            "first": round(samples[0][1]["rss_kb"] / 1024, 1),
+            "start": round(rss[0], 1),
+            "end": round(rss[-1], 1),
+            "max": round(max(rss), 1),
+            "growth": round(rss[-1] - rss[0], 2),
+            # Median of the last five samples less that of the first five: one frame buffer more or less
+            # in flight (3 MB at 960x1080) does not move it.
+            "growth_median5": round(statistics.median(rss[-5:]) - statistics.median(rss[:5]), 2),
+            "slope_mb_per_30min": round(slope * 1800, 2),
+        },
+        "fds": {"start": fds[0], "end": fds[-1], "min": min(fds), "max": max(fds), "growth": fds[-1] - fds[0]},
+        "threads": {"start": threads[0], "end": threads[-1], "max": max(threads)},
+    }
+
+
+def _stop(proc: subprocess.Popen[bytes]) -> int:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            return proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    return proc.wait()
+
+
+def _wait_for(log: Path, pattern: str, proc: subprocess.Popen[bytes], timeout_s: float) -> re.Match[str]:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if m := re.search(pattern, log.read_text(encoding="utf-8", errors="replace")):
+            return m
+        if proc.poll() is not None:
+            break
+        time.sleep(0.1)
+    raise RuntimeError(f"{pattern!r} not seen in {log}:\n{log.read_text(errors='replace')[-3000:]}")
+
+
+def _last(log: Path, marker: str) -> str | None:
+    lines = [ln for ln in log.read_text(encoding="utf-8", errors="replace").splitlines() if marker in ln]
+    return lines[-1] if lines else None
+
+
+def soak(args: argparse.Namespace, work: Path) -> dict[str, Any]:
+    arena_path = work / "arena.yaml"
+    arena_path.write_text(yaml.safe_dump(arena_for(args.width, args.height)), encoding="utf-8")
+    key_file = work / "key"
+    key_file.write_bytes(KEY)
+    sender_log, receiver_log = work / "sender.log", work / "receiver.log"
+    sender_cmd = [sys.executable, "-m", "ipt.sender.cli", "--config", str(arena_path), "--sink", "null",
+                  "--listen", "127.0.0.1:0", "--auth-key-file", str(key_file), "--vehicles", "1",
+                  "--stats-every", "30"]  # fmt: skip
+    with sender_log.open("wb") as err:
+        sender = subprocess.Popen(sender_cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err)
+    receiver: subprocess.Popen[bytes] | None = None
+    samples: dict[str, list[tuple[float, dict[str, int]]]] = {"sender": [], "receiver": []}
+    died: dict[str, float] = {}
+    out_file = open(args.samples, "w", encoding="utf-8") if args.samples else None  # noqa: SIM115
+    try:
+        port = int(_wait_for(sender_log, r"listening for pose packets on udp 127\.0\.0\.1:(\d+)", sender, 120)[1])
+        receiver_cfg = {
+            "arena": str(arena_path),
+            "camera": str(shipped_config_path("camera.yaml")),
+            "source": "sim",
+            "realtime": True,
+            "vehicle_id": 1,
+            "send": [f"127.0.0.1:{port}"],
+            "auth_key_file": str(key_file),
+            "stats_interval_s": 30,
+        }
+        cfg_path = work / "receiver.yaml"
+        cfg_path.write_text(yaml.safe_dump(receiver_cfg), encoding="utf-8")
+        receiver_cmd = [sys.executable, "-m", "ipt.receiver.cli", "run", "--config", str(cfg_path)]
+        with receiver_log.open("wb") as err:
+            receiver = subprocess.Popen(receiver_cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err)
+        _wait_for(receiver_log, r"ipt-receiver: running: ", receiver, 120)
+        procs = {"sender": sender, "receiver": receiver}
+        t0 = time.monotonic()
+        end = t0 + args.minutes * 60
+        next_at = t0
+        while True:
+            now = time.monotonic()
+            for name, proc in procs.items():
+                s = sample(proc.pid) if proc.poll() is None else None
+                if s is None:
+                    died.setdefault(name, round(now - t0, 1))
+                    continue
+                samples[name].append((now - t0, s))
+                if out_file is not None:
+                    out_file.write(json.dumps({"t": round(now - t0, 1), "process": name, **s}) + "\n")
+            if died or now >= end:
+                break
+            next_at += args.interval
+            time.sleep(max(0.0, min(next_at, end) - time.monotonic()))
+        wall = time.monotonic() - t0
+    finally:
+        rc_receiver = _stop(receiver) if receiver is not None else None
+        rc_sender = _stop(sender)
+        if out_file is not None:
+            out_file.close()
+    result: dict[str, Any] = {
+        "minutes": round(wall / 60, 2),
+        "interval_s": args.interval,
+        "warmup_s": args.warmup,
+        "resolution": f"{args.width}x{args.height}",
+    }
+    for name, rc, log, marker in (
+        ("sender", rc_sender, sender_log, "done:"),
+        ("receiver", rc_receiver, receiver_log, "final:"),
+    ):
+        result[name] = summarise(samples[name], args.warmup) if samples[name] else {"samples": 0}
+        result[name]["exit_code"] = rc
+        result[name]["final_line"] = _last(log, marker)
+        if name in died:
+            result[name]["died_at_s"] = died[name]
+            result[name]["log_tail"] = log.read_text(errors="replace")[-2000:]
+    verdicts = {}
+    for name in ("sender", "receiver"):
+        r = result[name]
+        if r.get("samples"):
+            verdicts[name] = {
+                # The trend, not last minus first: RSS wanders by a megabyte or two between samples.
+                "rss_growth_below_5mb_per_30min": r["rss_mb"]["slope_mb_per_30min"] < TARGET_RSS_GROWTH_MB_PER_30MIN,
+                "no_fd_growth": r["fds"]["growth"] <= 0,
+                "ran_throughout": name not in died and r["exit_code"] == 0,
+            }
+    result["verdicts"] = verdicts
+    result["ok"] = bool(verdicts) and all(all(v.values()) for v in verdicts.values())
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0])
+    p.add_argument("--minutes", type=float, default=30.0, help="how long to run after both have started")
+    p.add_argument("--interval", type=float, default=5.0, help="seconds between samples (default 5)")
+    p.add_argument("--warmup", type=float, default=60.0, help="seconds left out of the growth (default 60)")
+    p.add_argument("--width", type=int, default=960)
+    p.add_argument("--height", type=int, default=1080)
+    p.add_argument("--samples", metavar="FILE", help="also write every sample to FILE (JSON lines)")
+    args = p.parse_args(argv)
+    if not args.minutes > 0 or not args.interval > 0 or args.warmup < 0:
+        p.error("--minutes and --interval must be positive, --warmup not negative")
+    load_before = [round(v, 2) for v in os.getloadavg()]
+    with tempfile.TemporaryDirectory(prefix="ipt-soak-") as tmp:
+        result = soak(args, Path(tmp))
+    out = {"benchmark": "soak", "cpu_count": os.cpu_count(), "loadavg_before": load_before, **result}
+    out["loadavg_after"] = [round(v, 2) for v in os.getloadavg()]
+    json.dump(out, sys.stdout, indent=1)
+    print()
+    return 0 if result["ok"] else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
