@@ -190,6 +190,35 @@ def _hanning(w: int, h: int) -> F32:
 _LK_STEPS, _LK_MARGIN = 3, 16
 
 
+class _LucasKanade:
+    """Translation-only Lucas-Kanade against a fixed target image, in the inverse-compositional form:
+    the target's gradients and the 2x2 normal matrix are computed once, each step only moves the other
+    image and takes two dot products."""
+
+    def __init__(self, target: F32) -> None:
+        h, w = target.shape
+        self.inner = (slice(_LK_MARGIN, h - _LK_MARGIN), slice(_LK_MARGIN, w - _LK_MARGIN))
+        self.target = np.ascontiguousarray(target[self.inner])
+        self.gx = np.ascontiguousarray(cv2.Sobel(target, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)[self.inner])
+        self.gy = np.ascontiguousarray(cv2.Sobel(target, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)[self.inner])
+        gxx, gxy, gyy = (float(np.vdot(u, v)) for u, v in ((self.gx, self.gx), (self.gx, self.gy), (self.gy, self.gy)))
+        self.hess = np.array([[gxx, gxy], [gxy, gyy]], np.float64)
+
+    def refine(self, moving: F32, dx: float, dy: float) -> tuple[float, float] | None:
+        """(dx, dy) that carries ``moving`` onto the target, refined from the given start; None if a step
+        is degenerate or too large (no gradient, or the start was too far off)."""
+        if abs(np.linalg.det(self.hess)) < 1e-9:
+            return None
+        for _ in range(_LK_STEPS):
+            residual = np.ascontiguousarray(_translate(moving, dx, dy)[self.inner]) - self.target
+            grad = np.array([float(np.vdot(self.gx, residual)), float(np.vdot(self.gy, residual))])
+            step = np.linalg.solve(self.hess, grad)
+            if not np.all(np.isfinite(step)) or np.abs(step).max() > 2.0:
+                return None
+            dx, dy = dx + float(step[0]), dy + float(step[1])
+        return dx, dy
+
+
 def gradient_shift(
     prev_l: U8,
     now_l: U8,
@@ -204,29 +233,22 @@ def gradient_shift(
     :func:`alignment_features` if already computed.
 
     Phase correlation at half resolution gives the shift to about 0.3 px, whatever its size; three
-    Lucas-Kanade steps refine it (to about 0.07 px on the simulated arena). Gradient magnitudes are used
-    because the tags change sign between the phases and would otherwise pull the match away.
+    Lucas-Kanade steps refine it (to about 0.07 px on the simulated arena). (Starting Lucas-Kanade at zero
+    after a prediction, without phase correlation, lost 14 % of the poses of the 720p flight.) Gradient
+    magnitudes are used because the tags change sign between the phases and would otherwise pull
+    the match away.
     """
     a, b = features if features is not None else (alignment_features(prev_l), alignment_features(now_l))
     if predicted is not None:
         a = _warp(a, _HALF @ predicted @ _DOUBLE)
     h, w = a.shape
+    if h <= 3 * _LK_MARGIN or w <= 3 * _LK_MARGIN:
+        (dx, dy), _ = cv2.phaseCorrelate(a, b, _hanning(w, h))
+        return 2.0 * dx, 2.0 * dy
     (dx, dy), _ = cv2.phaseCorrelate(a, b, _hanning(w, h))
-    if h > 3 * _LK_MARGIN and w > 3 * _LK_MARGIN:
-        inner = (slice(_LK_MARGIN, h - _LK_MARGIN), slice(_LK_MARGIN, w - _LK_MARGIN))
-        for _ in range(_LK_STEPS):
-            moved = _translate(a, dx, dy)
-            gx = cv2.Sobel(moved, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)[inner]
-            gy = cv2.Sobel(moved, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)[inner]
-            r = (moved - b)[inner]
-            hess = np.array([[np.sum(gx * gx), np.sum(gx * gy)], [np.sum(gx * gy), np.sum(gy * gy)]], np.float64)
-            grad = np.array([np.sum(gx * r), np.sum(gy * r)], np.float64)
-            if abs(np.linalg.det(hess)) < 1e-9:
-                break
-            step = np.linalg.solve(hess, grad)
-            if not np.all(np.isfinite(step)) or np.abs(step).max() > 2.0:
-                break
-            dx, dy = dx + float(step[0]), dy + float(step[1])
+    refined = _LucasKanade(b).refine(a, dx, dy)
+    if refined is not None:
+        dx, dy = refined
     return 2.0 * dx, 2.0 * dy
 
 
