@@ -170,7 +170,11 @@ class DetectorConfig(StrictModel):
     """AprilTag 3 (pupil-apriltags) settings."""
 
     quad_decimate: float = Field(
-        2.0, ge=1.0, le=8.0, description="Decimation before quad detection (edges are refined at full size)."
+        3.0,
+        ge=1.0,
+        le=8.0,
+        description="Decimation before quad detection (edges are refined at full size). 3 finds as many "
+        "tags as 2 on the binary tag image at 640x360 and 1280x720, as accurately, in two thirds of the time.",
     )
     quad_sigma: float = Field(0.0, ge=0.0, le=5.0, description="Gaussian blur sigma before quad detection.")
     refine_edges: bool = Field(True, description="Snap quad edges to strong gradients.")

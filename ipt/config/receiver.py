@@ -311,7 +311,11 @@ class ReceiverConfig(StrictModel):
         5.0, gt=0, le=3600, description="Seconds between the statistics lines printed on stderr."
     )
     queue_size: int = Field(
-        2, ge=1, le=64, description="Frames held between capture and processing; a live source drops the oldest."
+        1,
+        ge=1,
+        le=64,
+        description="Frames held between capture and processing; a live source drops the oldest (1: the "
+        "pipeline always gets the newest frame, the lowest latency).",
     )
     camera_controls: CameraControls = Field(
         default_factory=CameraControls, description="Exposure, gain and automatic controls of a real camera."

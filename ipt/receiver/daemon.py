@@ -9,9 +9,10 @@ Three stages, each on its own thread, joined by bounded queues::
 - The **capture thread** (:class:`~ipt.receiver.capture.CaptureThread`) does every blocking read and
   hands frames over; a live source never waits, a recording waits for room.
 - The **event loop** takes frames in capture order and submits them to a single-worker executor that
-  runs :meth:`Pipeline.process`, keeping at most :data:`MAX_IN_FLIGHT` frames there: while frame
-  ``k`` is processed, frame ``k + 1`` is already waiting, so the worker never idles for a round trip
-  through the loop, and capture (decode or render) overlaps with processing on another core.
+  runs :meth:`Pipeline.process`. From a recording it keeps :data:`MAX_IN_FLIGHT` frames there: while
+  frame ``k`` is processed, frame ``k + 1`` is already waiting, so the worker never idles for a round
+  trip through the loop, and capture (decode or render) overlaps with processing on another core. From
+  a live source it submits one frame at a time, the newest, for the lowest capture→send latency.
 - **In order**: the pipeline is stateful (each frame is demodulated against the one before), so it
   must see frames in capture order. It does: one coroutine submits them in the order the FIFO queue
   yields them, and one worker thread takes them from the executor's FIFO queue one after the other.
@@ -67,7 +68,8 @@ if TYPE_CHECKING:
     from ipt.receiver.mavlink import MavlinkOutput
 
 MAX_IN_FLIGHT = 2
-"""Frames submitted to the pipeline worker at once (one processing, one waiting)."""
+"""Frames submitted to the pipeline worker at once from a recording (one processing, one waiting); a live
+source submits one at a time, the newest."""
 SHUTDOWN_BUDGET_S = 0.5
 """How long shutdown may take in all, from the stop to the return (the process must be gone within 1 s)."""
 DRAIN_TIMEOUT_S = 0.4
@@ -268,7 +270,10 @@ async def run_daemon(
     meter = _Meter()
     errors_reported = 0
 
-    slots = asyncio.Semaphore(MAX_IN_FLIGHT)
+    # A live source: one frame at a time, so that the worker always takes the newest one (a second frame
+    # waiting in the executor would be stale by a whole processing time when its turn comes). A recording
+    # keeps the worker busy instead: the next frame waits while this one is processed.
+    slots = asyncio.Semaphore(1 if source.live else MAX_IN_FLIGHT)
     results: asyncio.Queue[tuple[CapturedFrame, asyncio.Future[FrameResult]] | None] = asyncio.Queue()
 
     async def submit() -> None:
