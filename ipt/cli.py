@@ -10,7 +10,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ipt import __version__
-from ipt.cliutil import Parser, run_main
+from ipt.calib.cli import add_calibrate_parser
+from ipt.cliutil import Parser, positive_float, run_main
 from ipt.config.models import ArenaConfig, load_arena_config, load_yaml_model, shipped_config_path
 from ipt.errors import IptError
 
@@ -96,6 +97,53 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(arena_path, args.seconds, out, args.seed)
 
 
+def _cmd_invisibility(args: argparse.Namespace) -> int:
+    import json
+
+    from ipt.invisibility import frame_indices, measure_scene
+    from ipt.sender.modulator import PROFILES, ModulationError, delta_l_warning
+
+    arena = _arena(args.config)
+    if args.pairs < 1:
+        raise ModulationError(f"--pairs must be at least 1, got {args.pairs}")
+    profiles = [p.strip() for p in args.profiles.split(",") if p.strip()]
+    unknown = [p for p in profiles if p not in PROFILES]
+    if not profiles or unknown:
+        raise ModulationError(f"--profiles must name some of {', '.join(PROFILES)}, got {args.profiles!r}")
+    if any(not 0 <= a <= 8 for a in args.clip_allowance):
+        raise ModulationError(f"--clip-allowance values must be in [0, 8] 8-bit L units, got {args.clip_allowance}")
+    if args.delta_l is not None and not 0 < args.delta_l <= 50:
+        raise ModulationError(f"--delta-l must be in (0, 50] 8-bit L units, got {args.delta_l:g}")
+    delta_l = arena.modulation.delta_l if args.delta_l is None else args.delta_l
+    if (warning := delta_l_warning(delta_l)) is not None:
+        print(f"ipt invisibility: warning: {warning}", file=sys.stderr)
+    w, h = arena.projector.width_px, arena.projector.height_px
+    rate_hz, length = arena.modulation.input_rate_hz, None
+    content = "generated"
+    if args.video is not None:
+        from ipt.videoio import open_frames
+
+        with open_frames(args.video) as source:
+            size, fps, length = (source.width, source.height), source.fps, getattr(source, "frame_count", None)
+            if length is None:  # not in the container: count the frames
+                length = sum(1 for _ in source)
+        if size != (w, h):
+            print(f"ipt invisibility: input video is {size[0]}x{size[1]}; resized to {w}x{h}", file=sys.stderr)
+        rate_hz = fps if fps is not None and fps > 0 else rate_hz
+        content = str(args.video)
+    scene = _scene(content, arena, args.seed)
+    try:
+        indices = frame_indices(args.pairs, length, max(1, round(rate_hz)))
+        result = measure_scene(arena, scene, indices, rate_hz, profiles, delta_l, args.clip_allowance)
+    finally:
+        close = getattr(scene, "close", None)
+        if close is not None:
+            close()
+    result = {"command": "ipt invisibility", "content": content, "input_frames": indices, **result}
+    print(json.dumps(result, indent=1))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``ipt`` argument parser."""
     p = Parser(
@@ -142,7 +190,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.add_argument("--config", metavar="ARENA.yaml", help=cfg_help)
     s.add_argument("--out", required=True, metavar="DIR", help="output folder (created if needed)")
-    s.add_argument("--seconds", type=float, default=15.0, help="flight length (default 15, as in the paper)")
+    s.add_argument("--seconds", type=positive_float, default=15.0, help="flight length (default 15, as in the paper)")
     s.add_argument("--sim-config", metavar="SIM.yaml", help="camera, timing, noise and flight settings")
     s.add_argument("--seed", type=int, help="random seed (noise and generated content)")
     s.add_argument("--content", default="generated", metavar="generated|FILE", help="video content: built-in or a file")
@@ -167,7 +215,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--config", metavar="ARENA.yaml", help=cfg_help)
     d.add_argument(
         "--seconds",
-        type=float,
+        type=positive_float,
         default=15.0,
         help="simulated flight length (default 15, the paper's test unit; about 10 s of wall time per simulated "
         "second here)",
@@ -175,6 +223,34 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--seed", type=int, default=0, help="random seed (content and camera noise; default 0)")
     d.add_argument("--out", metavar="DIR", help="results folder (default results/demo-<time>)")
     d.set_defaults(func=_cmd_demo)
+
+    v = sub.add_parser(
+        "invisibility",
+        help="how visible the hidden tags are, and how much signal a camera gets, for each modulation profile",
+        description="For input frames of the content, make the two output frames of opposite phase with each "
+        "modulation profile and print JSON: the CIEDE2000 difference between the input and the linear-light "
+        "mean of the two phases (what the eye fuses at 60 Hz) over tag pixels and over the other pixels (mean, "
+        "p99, max), the share of non-tag pixels left bit-identical, and the camera-side signal: the mean L* "
+        "difference of the phases times the tag mask, in 8-bit L units, also as a fraction of the paper "
+        "profile's.",
+    )
+    v.add_argument("--config", metavar="ARENA.yaml", help=cfg_help)
+    v.add_argument("--video", metavar="CONTENT", help="a video file or image folder (default: the generated map app)")
+    v.add_argument("--pairs", type=int, default=10, help="input frames to measure, spread over the video (default 10)")
+    v.add_argument("--profiles", default="ipt,paper", help="comma-separated profiles (default ipt,paper)")
+    v.add_argument("--delta-l", type=float, metavar="DL", help="ΔL in 8-bit L units (default: the arena's)")
+    v.add_argument(
+        "--clip-allowance",
+        type=float,
+        nargs="+",
+        default=[],
+        metavar="A",
+        help="also measure the ipt profile with these clip allowances (8-bit L units; reported as ipt@A)",
+    )
+    v.add_argument("--seed", type=int, default=0, help="seed of the generated content (default 0)")
+    v.set_defaults(func=_cmd_invisibility)
+
+    add_calibrate_parser(sub)
     return p
 
 

@@ -52,7 +52,7 @@ def test_shipped_arena_has_the_papers_values() -> None:
     assert (arena.tag_map.rows, arena.tag_map.cols) == (9, 9)
     assert arena.tag_map.family == "tag36h11"
     assert arena.tag_map.first_id == 0
-    assert arena.modulation.profile == "paper"
+    assert arena.modulation.profile == "ipt"  # the colour-exact profile; "paper" stays available
     assert arena.modulation.delta_l == pytest.approx(4.0)
     assert arena.modulation.input_rate_hz == pytest.approx(30.0)
 

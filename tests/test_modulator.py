@@ -1,4 +1,5 @@
-"""Algorithm 1 (PaperModulator): phase signs, the lightness step on the tags, clipping, rates, resize, regions."""
+"""Modulation: the paper's Algorithm 1 (PaperModulator) and the ipt profile (IptModulator): phase signs, the
+lightness step on the tags, clipping and balance, colour, rates and re-timing, resize, regions, detection."""
 
 from __future__ import annotations
 
@@ -8,7 +9,26 @@ import numpy.typing as npt
 import pytest
 
 from ipt.config.models import ArenaConfig
-from ipt.sender.modulator import ModulationError, PaperModulator, frames_per_input, phase_sign
+from ipt.sender.colour import (
+    CODE_TO_LINEAR,
+    L8_PER_LSTAR,
+    LUMINANCE_WEIGHTS,
+    code_to_lab,
+    code_to_linear,
+    lightness,
+    linear_to_lab,
+)
+from ipt.sender.modulator import (
+    FrameTiming,
+    IptModulator,
+    ModulationError,
+    PaperModulator,
+    amplitude_grid,
+    delta_l_warning,
+    frames_per_input,
+    make_modulator,
+    phase_sign,
+)
 from ipt.tagmap import grid_tag_map
 
 U8 = npt.NDArray[np.uint8]
@@ -235,3 +255,321 @@ def test_paper_arena_modulates() -> None:
     assert abs(diff[m == 1].mean() - 8) < 0.5
     assert abs(diff[m == -1].mean() + 8) < 0.5
     assert np.all(diff[m == 0] == 0)
+
+
+# --- the ipt profile ---------------------------------------------------------------------------------------
+
+
+def _lstar8(rgb: npt.NDArray[np.uint8]) -> npt.NDArray[np.float64]:
+    """Exact L* of 8-bit sRGB, in 8-bit L units."""
+    return lightness(code_to_linear(rgb) @ LUMINANCE_WEIGHTS) * L8_PER_LSTAR
+
+
+def _half_step(codes: npt.NDArray[np.uint8]) -> npt.NDArray[np.float64]:
+    """Half the larger linear-light step next to each code: what 8-bit quantisation of that code allows."""
+    k = codes.astype(np.int64)
+    up = CODE_TO_LINEAR[np.minimum(k + 1, 255)] - CODE_TO_LINEAR[k]
+    down = CODE_TO_LINEAR[k] - CODE_TO_LINEAR[np.maximum(k - 1, 0)]
+    out: npt.NDArray[np.float64] = np.maximum(up, down) / 2
+    return out
+
+
+def _all_kinds_of_colours(n: int = 60_000, seed: int = 0) -> U8:
+    """Uniform random colours plus greys, primaries, and colours at or next to the ends of the range."""
+    rng = np.random.default_rng(seed)
+    random = rng.integers(0, 256, (n, 3), dtype=np.uint8)
+    grey = np.repeat(np.arange(256, dtype=np.uint8)[:, None], 3, axis=1)
+    ends = rng.choice(np.array([0, 1, 2, 253, 254, 255], np.uint8), (2000, 3))
+    mixed = ends.copy()
+    mixed[:, 1] = rng.integers(0, 256, 2000)
+    return np.concatenate([random, grey, ends, mixed])
+
+
+@pytest.fixture(scope="module")
+def ipt(mask: npt.NDArray[np.int8]) -> IptModulator:
+    return IptModulator(mask, DELTA_L)
+
+
+def test_ipt_is_the_default_profile() -> None:
+    assert ArenaConfig().modulation.profile == "ipt"
+    m = np.zeros((4, 4), np.int8)
+    assert isinstance(make_modulator("ipt", m, 4.0), IptModulator)
+    assert isinstance(make_modulator("paper", m, 4.0), PaperModulator)
+    with pytest.raises(ModulationError, match="unknown modulation profile 'fancy'"):
+        make_modulator("fancy", m, 4.0)
+
+
+def test_ipt_leaves_non_tag_pixels_bit_identical(ipt: IptModulator, mask: npt.NDArray[np.int8]) -> None:
+    frame = _random_frame(mask.shape, 0, 255, seed=21)
+    plus, minus = ipt.phases(frame)
+    off = mask == 0
+    assert np.array_equal(plus[off], frame[off])
+    assert np.array_equal(minus[off], frame[off])
+    # ...and the tags do change.
+    assert np.mean(np.any(plus[~off] != minus[~off], axis=1)) > 0.95
+
+
+def test_ipt_phases_average_to_the_input_in_linear_light(ipt: IptModulator) -> None:
+    codes = _all_kinds_of_colours()
+    up, down = ipt.pair_codes(codes)
+    fused = (code_to_linear(up) + code_to_linear(down)) / 2
+    error = np.abs(fused - code_to_linear(codes))
+    # Per channel within half a code step of the input: the input code's own quantisation.
+    assert np.all(error <= _half_step(codes) + 1e-12)
+    # As a colour difference of what the eye fuses, far below what can be seen.
+    de = np.linalg.norm(linear_to_lab(fused) - code_to_lab(codes), axis=1)
+    assert float(np.percentile(de, 99)) < 0.5
+    # The + phase is the brighter one, channel by channel.
+    assert np.all(up >= codes)
+    assert np.all(down <= codes)
+
+
+def test_ipt_step_is_two_delta_l_in_lightness(ipt: IptModulator) -> None:
+    rng = np.random.default_rng(3)
+    codes = rng.integers(30, 226, (20_000, 3), dtype=np.uint8)  # room for the step in every channel
+    up, down = ipt.pair_codes(codes)
+    diff = _lstar8(up) - _lstar8(down)
+    assert abs(float(diff.mean()) - 2 * DELTA_L) < 0.2
+    assert float(np.percentile(np.abs(diff - 2 * DELTA_L), 99)) < 1.0
+    # Greys step evenly over the whole middle range.
+    grey = np.repeat(np.arange(40, 230, dtype=np.uint8)[:, None], 3, axis=1)
+    g_up, g_down = ipt.pair_codes(grey)
+    assert np.all(np.abs(_lstar8(g_up) - _lstar8(g_down) - 2 * DELTA_L) < 1.0)
+
+
+def test_ipt_holds_the_chromaticity_where_nothing_clips(ipt: IptModulator) -> None:
+    rng = np.random.default_rng(4)
+    codes = rng.integers(60, 200, (5000, 3), dtype=np.uint8)
+    up, down = ipt.pair_codes(codes)
+    lab_in, lab_up, lab_down = code_to_lab(codes), code_to_lab(up), code_to_lab(down)
+
+    # a*, b* move with lightness only by what 8-bit codes and the lightness change itself imply: compare the
+    # chromaticity (x, y) of linear RGB instead, which scaling RGB leaves unchanged.
+    def xy(c: npt.NDArray[np.uint8]) -> npt.NDArray[np.float64]:
+        lin = code_to_linear(c)
+        return lin / lin.sum(axis=1, keepdims=True)
+
+    assert float(np.abs(xy(up) - xy(codes)).max()) < 0.01
+    assert float(np.abs(xy(down) - xy(codes)).max()) < 0.01
+    assert float(np.abs(lab_up[:, 0] - lab_in[:, 0]).min()) > 0.5  # while lightness does change
+    assert float(np.abs(lab_down[:, 0] - lab_in[:, 0]).min()) > 0.5
+
+
+def test_ipt_clipping_rebalances_or_shrinks_the_pair(ipt: IptModulator) -> None:
+    colours = np.array(
+        [(255, 255, 255), (0, 0, 0), (255, 0, 0), (254, 254, 254), (1, 1, 1), (255, 216, 96), (38, 130, 255)],
+        np.uint8,
+    )
+    up, down = ipt.pair_codes(colours)
+    # Pure white, black and a pure primary cannot flicker around themselves: both phases are the input.
+    for k in range(3):
+        assert np.array_equal(up[k], colours[k])
+        assert np.array_equal(down[k], colours[k])
+    # Next to white and black the pair shrinks but stays balanced (checked above for all colours).
+    assert 0 < _lstar8(up[3:4])[0] - _lstar8(down[3:4])[0] < 2 * DELTA_L
+    assert 0 < _lstar8(up[4:5])[0] - _lstar8(down[4:5])[0] < 2 * DELTA_L
+    # A channel at 255 stays there; the others make up the step.
+    assert up[5, 0] == down[5, 0] == 255
+    assert abs(_lstar8(up[5:6])[0] - _lstar8(down[5:6])[0] - 2 * DELTA_L) < 1.0
+    assert up[6, 2] == down[6, 2] == 255
+    assert abs(_lstar8(up[6:7])[0] - _lstar8(down[6:7])[0] - 2 * DELTA_L) < 1.0
+
+
+def test_ipt_frames_follow_the_mask_and_phase(ipt: IptModulator, mask: npt.NDArray[np.int8]) -> None:
+    frame = _random_frame(mask.shape, seed=5)
+    plus, minus = ipt.phases(frame)
+    white, black = mask == 1, mask == -1
+    up, down = ipt.pair_codes(frame.reshape(-1, 3))
+    up, down = up.reshape(frame.shape), down.reshape(frame.shape)
+    assert np.array_equal(plus[white], up[white])
+    assert np.array_equal(minus[white], down[white])
+    assert np.array_equal(plus[black], down[black])
+    assert np.array_equal(minus[black], up[black])
+    out = ipt.modulate(frame, 1, 3)
+    assert [np.array_equal(f, minus if i % 2 == 0 else plus) for i, f in enumerate(out)] == [True] * 3
+    assert np.array_equal(ipt.phase_frame(frame, 1), plus)
+    assert np.array_equal(ipt.phase_frame(frame, -1), minus)
+
+
+def test_ipt_region_equals_crop(ipt: IptModulator, mask: npt.NDArray[np.int8]) -> None:
+    frame = _random_frame(mask.shape, 0, 255, seed=11)
+    plus, minus = ipt.phases(frame)
+    for region in [(0, 0, 640, 480), (37, 51, 300, 222), (400, 300, 640, 480), (10, 10, 11, 12)]:
+        x0, y0, x1, y1 = region
+        crop = frame[y0:y1, x0:x1]
+        assert np.array_equal(ipt.phase_region(crop, 1, region), plus[y0:y1, x0:x1])
+        assert np.array_equal(ipt.phase_region(crop, -1, region), minus[y0:y1, x0:x1])
+    with pytest.raises(ModulationError, match="does not match"):
+        ipt.phase_region(frame[:10, :10], 1, (0, 0, 10, 11))
+    with pytest.raises(ModulationError, match="not inside"):
+        ipt.phase_region(frame[:10, :10], 1, (635, 0, 645, 10))
+
+
+def test_ipt_buffers_threads_and_resize(mask: npt.NDArray[np.int8]) -> None:
+    frame = _random_frame(mask.shape, 0, 255, seed=12)
+    one = IptModulator(mask, DELTA_L)
+    two = IptModulator(mask, DELTA_L, threads=2)
+    try:
+        expected = one.phases(frame)
+        buffers = (np.zeros_like(frame), np.zeros_like(frame))
+        got = two.phases(frame, buffers)
+        assert got[0] is buffers[0]
+        assert got[1] is buffers[1]
+        assert np.array_equal(got[0], expected[0])
+        assert np.array_equal(got[1], expected[1])
+    finally:
+        two.close()
+    with pytest.raises(ModulationError, match="output buffers"):
+        one.phases(frame, (np.zeros((10, 10, 3), np.uint8), np.zeros((10, 10, 3), np.uint8)))
+    small = _random_frame((120, 160), seed=9)
+    resized = cv2.resize(small, (640, 480), interpolation=cv2.INTER_AREA)
+    assert np.array_equal(one.phases(small)[0], one.phases(resized)[0])
+    copy = frame.copy()
+    one.phases(frame)
+    assert np.array_equal(frame, copy)
+
+
+@pytest.mark.parametrize("frame", [np.zeros((480, 640), np.uint8), np.zeros((480, 640, 3), np.float32)])
+def test_ipt_bad_frames(ipt: IptModulator, frame: npt.NDArray[np.generic]) -> None:
+    with pytest.raises(ModulationError, match="uint8 RGB"):
+        ipt.phases(frame)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("delta_l", [0.0, -1.0, 128.0, float("nan")])
+def test_ipt_bad_delta_l(mask: npt.NDArray[np.int8], delta_l: float) -> None:
+    with pytest.raises(ModulationError, match="ΔL"):
+        IptModulator(mask, delta_l)
+
+
+def test_delta_l_warnings() -> None:
+    assert delta_l_warning(4.0) is None
+    assert delta_l_warning(1.0) is None
+    assert delta_l_warning(20.0) is None
+    low = delta_l_warning(0.5)
+    assert low is not None
+    assert "8-bit output" in low
+    high = delta_l_warning(30.0)
+    assert high is not None
+    assert "seen" in high
+
+
+def test_amplitude_grid_solves_the_lightness_step() -> None:
+    grid = amplitude_grid(4.0, steps=1024)
+    y = np.linspace(0.0, 1.0, 1025)
+    inner = (y > 0.02) & (y < 0.98)
+    step = lightness(y + grid) - lightness(y - grid)
+    assert np.allclose(step[inner], 2 * 4.0 / L8_PER_LSTAR, atol=1e-9)
+    assert grid[0] == 0.0
+    assert np.all(grid <= y + 1e-15)
+
+
+def test_frame_timing_whole_and_other_ratios() -> None:
+    t = FrameTiming(30, 60)
+    assert t.whole
+    assert t.note() is None
+    assert [t.input_of(j) for j in range(6)] == [0, 0, 1, 1, 2, 2]
+    t = FrameTiming(24, 60)
+    assert not t.whole
+    shown = [t.input_of(j) for j in range(10)]
+    assert shown == [0, 0, 0, 1, 1, 2, 2, 2, 3, 3]  # 3, 2, 3, 2 output frames per input frame
+    note = t.note()
+    assert note is not None
+    assert "2 or 3" in note
+    assert "alternates" in note
+    t = FrameTiming(120, 60)
+    assert [t.input_of(j) for j in range(4)] == [0, 2, 4, 6]
+    note = t.note()
+    assert note is not None
+    assert "dropped" in note
+    assert [FrameTiming(29.97, 59.94).input_of(j) for j in range(4)] == [0, 0, 1, 1]
+    assert [FrameTiming(25, 60).input_of(j) for j in range(12)] == [0, 0, 0, 1, 1, 2, 2, 2, 3, 3, 4, 4]
+    with pytest.raises(ModulationError, match="input frame rate"):
+        FrameTiming(0, 60)
+    with pytest.raises(ModulationError, match="output frame rate"):
+        FrameTiming(30, float("inf"))
+
+
+def _detect_tags(plus: U8, minus: U8, tag_count: int) -> int:
+    """Tags pupil-apriltags finds in the lightness difference of two phases (projector space, halved)."""
+    from ipt.config.models import DetectorConfig
+    from ipt.receiver.detector import TagDetector
+
+    diff = _lstar8(plus) - _lstar8(minus)
+    small = cv2.resize(diff, (diff.shape[1] // 2, diff.shape[0] // 2), interpolation=cv2.INTER_AREA)
+    binary = np.where(small > 0, 255, 0).astype(np.uint8)
+    detector = TagDetector(DetectorConfig())
+    found = {d.tag_id for d in detector.detect(binary)}
+    assert len(found) <= tag_count
+    return len(found)
+
+
+def test_ipt_tags_are_detected_like_the_papers() -> None:
+    # The full paper arena on busy colourful content: every tag is found in the difference of the two
+    # phases with either profile.
+    arena = ArenaConfig()
+    m = grid_tag_map(arena).render_mask()
+    rng = np.random.default_rng(8)
+    coarse = rng.integers(25, 231, (arena.projector.height_px // 24, arena.projector.width_px // 24, 3), np.uint8)
+    content = np.asarray(
+        cv2.resize(coarse, (arena.projector.width_px, arena.projector.height_px), interpolation=cv2.INTER_CUBIC),
+        dtype=np.uint8,
+    )
+    n = arena.tag_map.rows * arena.tag_map.cols
+    for profile in ("ipt", "paper"):
+        plus, minus = make_modulator(profile, m, arena.modulation.delta_l).phases(content)
+        assert _detect_tags(plus, minus, n) == n, profile
+
+
+def test_the_simulator_projects_what_the_sender_makes() -> None:
+    from ipt.sender.content import GeneratedScene
+    from ipt.sim.arena import SimulatedArena
+    from ipt.sim.config import SimConfig
+
+    arena = ArenaConfig()
+    scene = GeneratedScene(arena.projector.width_px, arena.projector.height_px)
+    world = SimulatedArena(arena, SimConfig(), scene)
+    assert world.modulator.profile == "ipt"
+    mod = IptModulator(
+        grid_tag_map(arena).render_mask(),
+        arena.modulation.delta_l,
+        clip_allowance_l8=arena.modulation.clip_allowance_l8,
+    )
+    plus, minus = mod.phases(scene.frame(1, 30))
+    region = (700, 900, 1100, 1250)
+    x0, y0, x1, y1 = region
+    assert np.array_equal(world.projector_crop(2, region), plus[y0:y1, x0:x1])
+    assert np.array_equal(world.projector_crop(3, region), minus[y0:y1, x0:x1])
+    paper = ArenaConfig.model_validate({"modulation": {"profile": "paper"}})
+    assert SimulatedArena(paper, SimConfig(), scene).modulator.profile == "paper"
+
+
+def test_clip_allowance_buys_signal_near_white_and_black(mask: npt.NDArray[np.int8]) -> None:
+    from ipt.invisibility import ciede2000
+
+    exact = IptModulator(mask, DELTA_L)
+    allowed = IptModulator(mask, DELTA_L, clip_allowance_l8=2.0)
+    assert ArenaConfig().modulation.clip_allowance_l8 == 2.0
+    ends = np.array([(255, 255, 255), (0, 0, 0), (254, 254, 253), (2, 2, 2)], np.uint8)
+    up, down = allowed.pair_codes(ends)
+    step = _lstar8(up) - _lstar8(down)
+    assert np.all(step > 3.5)  # about the paper's 4 on white and black (0 with the exact default)
+    fused = (code_to_linear(up) + code_to_linear(down)) / 2
+    de = ciede2000(linear_to_lab(fused), code_to_lab(ends))
+    assert np.all(de < 0.6)
+    assert float(de[0]) > 0.2  # the price: white is no longer exactly white on average
+    # Colours with room for the full step are not touched by the allowance.
+    rng = np.random.default_rng(6)
+    middle = rng.integers(30, 226, (5000, 3), dtype=np.uint8)
+    for a, b in zip(exact.pair_codes(middle), allowed.pair_codes(middle), strict=True):
+        assert np.array_equal(a, b)
+    for bad in (-1.0, 9.0, float("nan")):
+        with pytest.raises(ModulationError, match="clip allowance"):
+            IptModulator(mask, DELTA_L, clip_allowance_l8=bad)
+    arena = ArenaConfig.model_validate({"modulation": {"clip_allowance_l8": 2}})
+    from ipt.sender.content import StillImageScene
+    from ipt.sim.arena import SimulatedArena
+    from ipt.sim.config import SimConfig
+
+    world = SimulatedArena(arena, SimConfig(), StillImageScene(np.zeros((8, 8, 3), np.uint8), 1920, 2160))
+    assert isinstance(world.modulator, IptModulator)
+    assert world.modulator.clip_allowance_l8 == 2.0

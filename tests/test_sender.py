@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -20,8 +21,10 @@ import pytest
 from ipt.config.models import ArenaConfig, load_arena_config
 from ipt.geometry import R_BODY_CAM_DOWNWARD, quat_wxyz_from_matrix, rot_z
 from ipt.protocol import PosePacket, QualityFlags, encode_pose
-from ipt.sender.content import ContentError
+from ipt.sender.colour import CODE_TO_LINEAR, LUMINANCE_WEIGHTS, code_to_linear, lightness
+from ipt.sender.content import ContentError, GeneratedScene
 from ipt.sender.display import DisplayError, FileSink, NullSink, WindowSink, make_sink
+from ipt.sender.modulator import IptModulator
 from ipt.sender.scene import PALETTE, ArScene, heading_rad
 from ipt.sender.server import SenderError, parse_listen, run_sender
 from ipt.tagmap import grid_tag_map
@@ -112,24 +115,63 @@ def test_file_sink_writes_the_modulated_frames(tmp_path: Path, arena_yaml: Path)
     assert off.any()
     for i, colour in enumerate(colours):
         first, second = frames[2 * i], frames[2 * i + 1]
-        l_in = _lightness(np.full((1, 1, 3), colour, np.uint8))[0, 0]
-        l_first, l_second = _lightness(first), _lightness(second)
-        # Both come from input frame i: their mean lightness is the input's on the tags...
-        mean = (l_first + l_second) / 2
-        assert np.abs(mean[~off] - l_in).max() <= 2.0
-        assert abs(float(mean[~off].mean()) - l_in) < 0.5
+        c_in = code_to_linear(np.array(colour, np.uint8))
+        # Both come from input frame i: their linear-light mean (what the eye sees) is the input's on the
+        # tags, to within 8-bit quantisation...
+        fused = (code_to_linear(first) + code_to_linear(second)) / 2
+        step = float(np.max(np.diff(CODE_TO_LINEAR)[max(0, min(colour) - 8) : max(colour) + 8]))
+        assert np.abs(fused[~off] - c_in).max() <= step / 2
         # ...every other input frame is much further away...
         for other in colours:
             if other != colour:
-                assert abs(float(mean.mean()) - _lightness(np.full((1, 1, 3), other, np.uint8))[0, 0]) > 10
-        # ...and frame 2i carries +ΔL on white tag pixels, frame 2i+1 -ΔL (and the opposite on black).
-        diff = l_first - l_second
-        assert np.abs(diff[white] - 2 * DELTA_L).max() <= 3.0
-        assert abs(float(diff[white].mean()) - 2 * DELTA_L) < 0.5
-        assert np.abs(diff[black] + 2 * DELTA_L).max() <= 3.0
-        assert abs(float(diff[black].mean()) + 2 * DELTA_L) < 0.5
-        assert np.array_equal(first[off], second[off])  # untouched outside the tags
-        assert float(np.abs(l_first[off] - l_in).max()) <= 1.0
+                other_in = code_to_linear(np.array(other, np.uint8))
+                assert np.abs(fused[~off] - other_in).max(axis=-1).min() > 10 * step
+        # ...and frame 2i carries +ΔL on white tag pixels, frame 2i+1 -ΔL (and the opposite on black): the L*
+        # difference is 2ΔL in 8-bit L units.
+        diff = (_lstar(first) - _lstar(second)) * 2.55
+        assert np.abs(diff[white] - 2 * DELTA_L).max() <= 1.5
+        assert np.abs(diff[black] + 2 * DELTA_L).max() <= 1.5
+        # Untouched outside the tags, bit for bit.
+        assert np.all(first[off] == colour)
+        assert np.all(second[off] == colour)
+
+
+def _lstar(rgb: U8) -> npt.NDArray[np.float64]:
+    return lightness(code_to_linear(rgb) @ LUMINANCE_WEIGHTS)
+
+
+def test_a_24_fps_video_is_retimed_and_phases_keep_alternating(tmp_path: Path, arena_yaml: Path) -> None:
+    colours = [(60, 70, 80), (110, 120, 130), (160, 150, 140), (200, 190, 180)]
+    video = tmp_path / "film.mkv"
+    with FfvWriter(video, W, H, 24) as writer:  # 24 fps into a 60 Hz projector: 2.5 output frames each
+        for c in colours:
+            writer.write(np.full((H, W, 3), c, np.uint8))
+    out = tmp_path / "out.mkv"
+    run = subprocess.run(
+        _cli(
+            "--config", str(arena_yaml), "--video", str(video), "--sink", "file", "--output", str(out), "--frames", "10"
+        ),
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert run.returncode == 0, run.stderr
+    assert "24 fps, not the arena's input_rate_hz 30" in run.stderr
+    assert "2 or 3 output frames" in run.stderr
+    assert "opposite phase" in run.stderr
+    with open_frames(out) as source:
+        frames = list(source)
+    assert len(frames) == 10
+    mask = grid_tag_map(load_arena_config(arena_yaml)).render_mask()
+    off, white = mask == 0, mask > 0
+    # Output frame j shows input frame floor(j * 24 / 60): 3, 2, 3, 2 frames of each.
+    shown = [colours.index(tuple(int(v) for v in f[off][0])) for f in frames]
+    assert shown == [0, 0, 0, 1, 1, 2, 2, 2, 3, 3]
+    # The phase follows the output frame alone: + on white tag pixels for even j, - for odd j.
+    for j, f in enumerate(frames):
+        c_in = code_to_linear(np.array(colours[shown[j]], np.uint8))
+        brighter = float((code_to_linear(f[white]) - c_in).mean()) > 0
+        assert brighter == (j % 2 == 0), j
 
 
 def test_file_sink_without_output_is_a_usage_error(arena_yaml: Path) -> None:
@@ -455,6 +497,47 @@ async def test_fast_content_keeps_the_pace(arena: ArenaConfig) -> None:
     assert stats.missed <= 3, lines  # slack for a busy machine
     assert 29 / 60 - 0.02 <= took < 2.0  # paced: 30 frames take half a second
     assert "missed=" in lines[-1]
+
+
+class _RecordingSink(NullSink):
+    """Paced, done with each frame when show returns (so the sender reuses its arrays): keeps copies."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.frames: list[U8] = []
+
+    def show(self, frame_rgb: U8, index: int) -> None:
+        super().show(frame_rgb, index)
+        self.frames.append(frame_rgb.copy())
+
+
+class _CountingModulator(IptModulator):
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.row_calls: list[tuple[int, int]] = []
+
+    def phases_rows(self, frame_rgb: U8, out: tuple[U8, U8], row0: int, row1: int) -> None:
+        self.row_calls.append((row0, row1))
+        super().phases_rows(frame_rgb, out, row0, row1)
+
+
+@pytest.mark.asyncio
+async def test_paced_frames_are_the_modulated_content_in_reused_buffers(arena: ArenaConfig) -> None:
+    # Paced and borrowing: phases begun one output frame early, written into a ring of reused arrays.
+    scene = GeneratedScene(W, H)
+    mask = grid_tag_map(arena).render_mask()
+    mod = _CountingModulator(mask, DELTA_L)
+    sink = _RecordingSink()
+    stats = await run_sender(
+        arena, sink, scene, frames=14, listen=None, log=lambda _: None, install_signal_handlers=False, modulator=mod
+    )
+    assert stats.frames == 14
+    reference = IptModulator(mask, DELTA_L)
+    for j, frame in enumerate(sink.frames):
+        plus, minus = reference.phases(scene.frame(j // 2, 30.0))
+        assert np.array_equal(frame, plus if j % 2 == 0 else minus), j
+    assert (0, round(H * 0.4)) in mod.row_calls  # some input frames were begun early...
+    assert (round(H * 0.4), H) in mod.row_calls  # ...and finished at their first output frame
 
 
 @pytest.mark.asyncio

@@ -37,7 +37,6 @@ COMMON_SETTINGS = {
         "User": "ipt",
         "Group": "ipt",
         "Restart": "on-failure",
-        "RestartSec": "300ms",
         "TimeoutStopSec": "5",
         "KillSignal": "SIGTERM",
         "NoNewPrivileges": "yes",
@@ -238,6 +237,8 @@ def test_unit_has_the_restart_policy_user_and_hardening(name: str) -> None:
     for section, expected in COMMON_SETTINGS.items():
         for key, value in expected.items():
             assert last(unit, section, key) == value, f"{name}: [{section}] {key}= should be {value!r}"
+    restart_sec = {"ipt-receiver.service": "300ms", "ipt-sender.service": "1"}[name]
+    assert last(unit, "Service", "RestartSec") == restart_sec, f"{name}: back quickly after a crash"
     assert last(unit, "Service", "DynamicUser") in (None, "no"), f"{name}: the account must be the fixed user ipt"
     assert "network-online.target" in words(unit, "Unit", "After"), name
     assert "network-online.target" in words(unit, "Unit", "Wants"), name

@@ -69,8 +69,23 @@ class TagMapConfig(StrictModel):
 class ModulationConfig(StrictModel):
     """How the tags are hidden in the video (the paper's Algorithm 1)."""
 
-    profile: Literal["paper"] = Field("paper", description="Modulation profile; 'paper' is Algorithm 1.")
+    profile: Literal["ipt", "paper"] = Field(
+        "ipt",
+        description="Modulation profile. 'ipt': exact float colour maths, pixels outside the tags untouched, the "
+        "two phases balanced in linear light so that their average is the original colour (Talbot-Plateau); "
+        "'paper': Algorithm 1 as published (8-bit CIELAB round trip, clipped phases unbalanced).",
+    )
     delta_l: float = Field(4.0, gt=0, le=50, description="Lightness change ΔL in 8-bit CIELAB L units (0..255 scale).")
+    clip_allowance_l8: float = Field(
+        2.0,
+        ge=0,
+        le=8,
+        description="Profile 'ipt' only: where the content is too close to white or black for a balanced pair "
+        "(pure white and black carry no signal otherwise), the average of the two phases may move towards "
+        "mid-grey by up to this much lightness (8-bit L units) so that the camera still sees the tags there. "
+        "0: the average is exact everywhere; 2 (the default) gives about the paper's signal on white and black "
+        "at a fused CIEDE2000 of about 0.5 there (the paper's own imbalance).",
+    )
     input_rate_hz: float = Field(30.0, gt=0, le=1000, description="Frame rate f_i of the input video in Hz.")
 
 

@@ -360,6 +360,7 @@ class SimCapture:
         pr = self.arena.projector
         scene = GeneratedScene(pr.width_px, pr.height_px, seed=self.sim_cfg.seed)
         self._world = SimulatedArena(self.arena, self.sim_cfg, scene)
+        self.notes = tuple(self._world.notes)  # the capture thread reports them once
 
     def read(self) -> CapturedFrame | None:
         """The next frame (the simulator never ends)."""

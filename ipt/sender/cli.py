@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import gc
+import math
 import sys
 from collections.abc import Callable, Coroutine, Sequence
 from pathlib import Path
@@ -20,6 +22,17 @@ T = TypeVar("T")
 
 class SenderCliError(IptError):
     """A file named on the command line cannot be used."""
+
+
+def _vehicle_id(text: str) -> int:
+    """An argparse ``type``: a vehicle id as the packets carry it (0..65535)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid int value: '{text}'") from None
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"vehicle ids are 0..65535 (a uint16 in the packets), got {value}")
+    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -45,14 +58,30 @@ def build_parser() -> argparse.ArgumentParser:
         "possible; null: discard (benchmarks). Default: window",
     )
     p.add_argument("--output", metavar="OUT.mkv", help="the video file of --sink file")
+    p.add_argument(
+        "--modulation",
+        choices=("ipt", "paper"),
+        help="modulation profile (default: the arena's modulation.profile): ipt is colour-exact and balanced, "
+        "paper is the published Algorithm 1",
+    )
     p.add_argument("--frames", type=int, metavar="N", help="stop after N output frames (default: run until stopped)")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        metavar="N",
+        help="threads sharing each modulation pass of the ipt profile (default 1; 2 shortens each frame's work "
+        "on an otherwise idle 2-core machine)",
+    )
     p.add_argument(
         "--listen",
         metavar="HOST:PORT",
         help="UDP address for pose packets (default 127.0.0.1:9870; with --sink file only when given)",
     )
     p.add_argument("--auth-key-file", metavar="F", help="accept only packets authenticated with this key")
-    p.add_argument("--vehicles", type=int, nargs="+", metavar="ID", help="accept packets from these vehicle ids only")
+    p.add_argument(
+        "--vehicles", type=_vehicle_id, nargs="+", metavar="ID", help="accept packets from these vehicle ids only"
+    )
     p.add_argument("--display", type=int, default=0, metavar="N", help="display index of --sink window (default 0)")
     p.add_argument("--windowed", action="store_true", help="--sink window in a window rather than full screen")
     p.add_argument("--stats-every", type=float, default=5.0, metavar="S", help="statistics interval (default 5 s)")
@@ -80,23 +109,33 @@ def _image_size(path: Path) -> tuple[int, int]:
     return int(img.shape[1]), int(img.shape[0])
 
 
-def _scene(args: argparse.Namespace, arena: ArenaConfig) -> Any:
+def _scene(args: argparse.Namespace, arena: ArenaConfig) -> tuple[Any, float]:
+    """The content and its frame rate; notes on stderr where it is resized or re-timed."""
     from ipt.sender.content import GeneratedScene, StillImageScene, VideoScene
     from ipt.videoio import open_frames
 
     w, h = arena.projector.width_px, arena.projector.height_px
+    rate_hz = arena.modulation.input_rate_hz
     if args.video is not None:
         with open_frames(args.video) as source:
-            size = (source.width, source.height)
+            size, fps = (source.width, source.height), source.fps
         if size != (w, h):
-            print(f"ipt-sender: input video is {size[0]}x{size[1]}; frames are resized to {w}x{h}", file=sys.stderr)
-        return VideoScene(args.video, w, h)
+            _note(f"input video is {size[0]}x{size[1]}; frames are resized to {w}x{h}")
+        if fps is not None and math.isfinite(fps) and fps > 0:
+            if abs(fps - rate_hz) > 1e-3:
+                _note(f"input video is {fps:g} fps, not the arena's input_rate_hz {rate_hz:g}: played at its own rate")
+            rate_hz = fps
+        return VideoScene(args.video, w, h), rate_hz
     if args.image is not None:
         size = _image_size(Path(args.image))
         if size != (w, h):
-            print(f"ipt-sender: input image is {size[0]}x{size[1]}; it is resized to {w}x{h}", file=sys.stderr)
-        return StillImageScene.from_file(args.image, w, h)
-    return GeneratedScene(w, h)
+            _note(f"input image is {size[0]}x{size[1]}; it is resized to {w}x{h}")
+        return StillImageScene.from_file(args.image, w, h), rate_hz
+    return GeneratedScene(w, h), rate_hz
+
+
+def _note(text: str) -> None:
+    print(f"ipt-sender: {text}", file=sys.stderr)
 
 
 def _run(make: Callable[[], Coroutine[Any, Any, T]]) -> T:
@@ -120,23 +159,36 @@ def _main(argv: Sequence[str] | None) -> int:
         parser.error(f"--frames must be at least 1, got {args.frames}")
     if not args.stats_every > 0:
         parser.error(f"--stats-every must be positive, got {args.stats_every}")
+    if not 1 <= args.threads <= 64:
+        parser.error(f"--threads must be 1..64, got {args.threads}")
 
     from ipt.protocol import PacketFilter
     from ipt.sender.display import make_sink
-    from ipt.sender.modulator import frames_per_input
+    from ipt.sender.modulator import FrameTiming, delta_l_warning, make_modulator
     from ipt.sender.scene import ArScene
     from ipt.sender.server import DEFAULT_LISTEN, parse_listen, run_sender
+    from ipt.tagmap import grid_tag_map
 
     arena = load_arena_config(args.config if args.config is not None else DEFAULT_ARENA)
+    if args.modulation is not None:
+        modulation = arena.modulation.model_copy(update={"profile": args.modulation})
+        arena = arena.model_copy(update={"modulation": modulation})
     pr, mod = arena.projector, arena.modulation
-    n = frames_per_input(mod.input_rate_hz, pr.rate_hz)
+    if (warning := delta_l_warning(mod.delta_l)) is not None:
+        _note(f"warning: {warning}")
     if args.listen is not None:
         listen: tuple[str, int] | None = parse_listen(args.listen)
     else:
         listen = None if args.sink == "file" else DEFAULT_LISTEN
     key = _read_key(args.auth_key_file) if args.auth_key_file is not None else None
     packet_filter = PacketFilter(key=key, vehicle_ids=args.vehicles, resync_after_s=10.0)
-    scene = _scene(args, arena)
+    modulator = make_modulator(
+        mod.profile, grid_tag_map(arena).render_mask(), mod.delta_l, args.threads, mod.clip_allowance_l8
+    )
+    scene, input_rate_hz = _scene(args, arena)
+    timing = FrameTiming(input_rate_hz, pr.rate_hz)
+    if (note := timing.note()) is not None:
+        _note(note)
     sink = make_sink(
         args.sink,
         output=args.output,
@@ -146,9 +198,14 @@ def _main(argv: Sequence[str] | None) -> int:
         display_index=args.display,
         fullscreen=not args.windowed,
     )
+    ratio = float(timing.ratio)
+    per_input = f"N={int(timing.ratio)}" if timing.whole else f"{ratio:.3g} output frames per input frame"
     print(
-        f"ipt-sender: {pr.width_px}x{pr.height_px} at {pr.rate_hz:g} Hz, input {mod.input_rate_hz:g} Hz "
-        f"(N={n}), ΔL {mod.delta_l:g}, sink {args.sink} ({'paced' if sink.paced else 'as fast as possible'})"
+        f"ipt-sender: {pr.width_px}x{pr.height_px} at {pr.rate_hz:g} Hz, input {input_rate_hz:g} Hz "
+        f"({per_input}), modulation {mod.profile}"
+        + (f" (clip allowance {mod.clip_allowance_l8:g})" if mod.profile == "ipt" else "")
+        + f", ΔL {mod.delta_l:g}, sink {args.sink} "
+        f"({'paced' if sink.paced else 'as fast as possible'})"
         + ("" if key is None else ", authenticated packets only"),
         file=sys.stderr,
     )
@@ -163,12 +220,15 @@ def _main(argv: Sequence[str] | None) -> int:
                 packet_filter=packet_filter,
                 ar_scene=ArScene(arena),
                 stats_every_s=args.stats_every,
+                input_rate_hz=input_rate_hz,
+                modulator=modulator,
             )
         )
     finally:
-        close = getattr(scene, "close", None)
-        if close is not None:
-            close()
+        for thing in (scene, modulator):
+            close = getattr(thing, "close", None)
+            if close is not None:
+                close()
     if args.sink == "file":
         print(f"ipt-sender: wrote {stats.frames} frames -> {args.output}")
     return 0
@@ -176,7 +236,11 @@ def _main(argv: Sequence[str] | None) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``ipt-sender``."""
-    return run_main("ipt-sender", _main, argv)
+    rc = run_main("ipt-sender", _main, argv)
+    # Everything is closed and reported. The interpreter's last garbage collection would walk numba's many
+    # compiler objects (about a second on a busy machine, after SIGTERM); leave them to the process exit.
+    gc.freeze()
+    return rc
 
 
 if __name__ == "__main__":

@@ -3,6 +3,9 @@
 Every sink has ``show(frame_rgb, index)`` (one H×W×3 uint8 RGB output frame; ``index`` is the output
 frame number j) and ``close()``, and says whether the sender should pace it at the output rate
 (``paced``) and whether ``show`` may block long enough to be run off the event loop (``threaded``).
+A sink may also say ``borrows = True``: it is done with a frame when ``show`` returns (it copied,
+encoded or discarded it), so the sender may write later frames into the same array. Without it, every
+input frame gets new arrays (a sink that keeps frames, such as the closed-loop demo's, needs that).
 
 - :class:`NullSink` discards the frames (benchmarks, dry runs); paced.
 - :class:`FileSink` writes exactly the frames given to a lossless FFV1 file (:class:`ipt.videoio.FfvWriter`);
@@ -70,6 +73,7 @@ class NullSink:
     name = "null"
     paced = True
     threaded = False
+    borrows = True
     close_timeout_s = 0.1
 
     def __init__(self) -> None:
@@ -101,6 +105,7 @@ class FileSink:
     name = "file"
     paced = False
     threaded = True
+    borrows = True
     close_timeout_s = 30.0
 
     def __init__(self, path: str | Path, fps: float, width: int | None = None, height: int | None = None) -> None:
@@ -147,6 +152,7 @@ class WindowSink:
     name = "window"
     paced = True
     threaded = True
+    borrows = True
     close_timeout_s = 0.5
 
     def __init__(self, display_index: int = 0, fullscreen: bool = True, title: str = "ipt-sender") -> None:

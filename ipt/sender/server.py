@@ -1,18 +1,20 @@
 """The sender daemon: a frame clock at the projector rate, a render thread, a sink, and a pose listener.
 
 Frames. Output frame ``j`` is due at ``start + j / f_o`` (``time.monotonic``), with ``f_o`` the
-projector rate. It shows input frame ``i = j // N`` (``N = f_o / f_i``) of the scene: when
-``j % N == 0`` the render thread asks the scene for input frame ``i``, draws the AR overlay on it,
-and converts it to CIELAB (:meth:`PaperModulator.prepare`); every output frame is then
-:meth:`PaperModulator.phase_frame` with ``phase_sign(j)``. The render thread works up to
-``lookahead`` frames ahead of the clock, one frame at a time and in order (OpenCV spreads each colour
-conversion over the cores itself). The clock never skips or repeats a frame: ``j`` counts every frame,
-so the phases keep alternating whatever happens. A frame whose rendering finished after its due time is
-still shown, at once, and counted as a missed deadline; a frame that was ready but is reached more than
-half a period late (the sink or the loop itself was behind) is shown at once and counted as late. In
-both cases the clock then restarts from that frame (``start`` moves on): the next frame is due one
-period later, instead of a burst of frames to catch up that no display could show anyway. So each
-counted frame is one stutter of the projection.
+projector rate. It shows input frame ``i = floor(j · f_i / f_o)`` of the scene (``j // N`` when
+``f_o = N·f_i``; other ratios repeat or drop input frames, :class:`~ipt.sender.modulator.FrameTiming`).
+A content thread makes input frame ``i + 1`` (scene frame, resized to the projector) while the render
+thread works on frame ``i``. At the first output frame of input frame ``i`` the render thread draws the
+AR overlay on it and makes both phases in one pass (:meth:`Modulator.phases`, the arena's profile);
+every output frame is then the phase of ``phase_sign(j)``. The render thread works up to ``lookahead``
+frames ahead of the clock, one frame at a time and in order. The clock never skips or repeats a frame:
+``j`` counts every frame, so the phases keep alternating whatever happens. A frame whose rendering
+finished after its due time is still shown, at once, and counted as a missed deadline; a frame that was
+ready but is reached more than half a period late (the sink or the loop itself was behind) is shown at
+once and counted as late. In both cases the clock then restarts from that frame (``start`` moves on):
+the next frame is due one period later, instead of a burst of frames to catch up that no display could
+show anyway. So each counted frame is one stutter of the projection: on a real projector the previous
+frame stays up one refresh longer, a repeated phase (``repeated_phases`` in the statistics).
 
 Pacing. A sink that is ``paced`` (the window, the null sink) gets frame j at its due time. A file is
 not paced: frames are rendered and written as fast as possible, and there are no deadlines to miss.
@@ -24,8 +26,8 @@ counted as ``error``.
 
 Stopping. SIGTERM and SIGINT only set a flag (a second SIGINT also skips the waits). The loop then
 stops taking frames, and shutdown runs in order with bounded waits: close the socket, let the render
-thread finish its frame, close the sink (a file is completed with the frames shown), print the final
-statistics line, which always contains ``missed=<count>``.
+thread finish its frame and the content thread the input frame it is making, close the sink (a file is
+completed with the frames shown), print the final statistics line, which always contains ``missed=<count>``.
 """
 
 from __future__ import annotations
@@ -45,7 +47,6 @@ from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any, Final
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -54,7 +55,7 @@ from ipt.errors import IptError
 from ipt.protocol import ACCEPTED, PacketFilter
 from ipt.sender.content import GeneratedScene, Scene
 from ipt.sender.display import Sink
-from ipt.sender.modulator import PaperModulator, frames_per_input, phase_sign
+from ipt.sender.modulator import FrameTiming, Modulator, make_modulator, phase_sign, resize_to
 from ipt.sender.scene import ArScene
 from ipt.tagmap import grid_tag_map
 
@@ -94,10 +95,12 @@ class _Histogram:
         self.counts = np.zeros(self.BINS + 1, dtype=np.int64)
         self.n = 0
         self.max_ms = 0.0
+        self.total_ms = 0.0
 
     def add(self, ms: float) -> None:
         self.counts[min(self.BINS, max(0, int(ms / self.BIN_MS)))] += 1
         self.n += 1
+        self.total_ms += ms
         self.max_ms = max(self.max_ms, ms)
 
     def percentile(self, p: float) -> float:
@@ -108,10 +111,16 @@ class _Histogram:
         index = int(np.searchsorted(np.cumsum(self.counts), rank))
         return self.max_ms if index >= self.BINS else min(self.max_ms, (index + 0.5) * self.BIN_MS)
 
+    @property
+    def mean_ms(self) -> float:
+        """Mean of the durations added (NaN when empty)."""
+        return self.total_ms / self.n if self.n else math.nan
+
     def clear(self) -> None:
         self.counts[:] = 0
         self.n = 0
         self.max_ms = 0.0
+        self.total_ms = 0.0
 
 
 @dataclass
@@ -132,9 +141,17 @@ class SenderStats:
     elapsed_s: float = 0.0
     """From showing the first frame to showing the last."""
     work_ms: _Histogram = field(default_factory=_Histogram)
-    """Render time per output frame (scene, overlay, CIELAB conversion when due, phase frame)."""
+    """Render-thread time per output frame: at the first output frame of an input frame, waiting for its
+    content (made ahead in the content thread), the overlay and both phases; the others reuse them."""
     overlay_ms: _Histogram = field(default_factory=_Histogram)
     """Time of the AR overlay per input frame."""
+    work_cpu_ms: _Histogram = field(default_factory=_Histogram)
+    """CPU time of the render thread per output frame: the part of ``work_ms`` that is not waiting for a core
+    (on a busy machine ``work_ms`` grows, this does not)."""
+    content_ms: _Histogram = field(default_factory=_Histogram)
+    """Content-thread time per input frame (scene frame, resize to projector size), made ahead in parallel."""
+    content_cpu_ms: _Histogram = field(default_factory=_Histogram)
+    """CPU time of the content thread per input frame."""
     overlay_errors: int = 0
     packets: Counter[str] = field(default_factory=Counter)
     """Datagram outcomes: ``accepted`` and each rejection reason (and ``error``)."""
@@ -185,11 +202,21 @@ class SenderStats:
             "frames_per_s": round(self.frames_per_s, 3),
             "work_p50_ms": round(self.work_ms.percentile(50), 3),
             "work_p99_ms": round(self.work_ms.percentile(99), 3),
+            "work_mean_ms": round(self.work_ms.mean_ms, 3),
             "work_max_ms": round(self.work_ms.max_ms, 3),
             "overlay_p50_ms": round(self.overlay_ms.percentile(50), 3),
             "overlay_p99_ms": round(self.overlay_ms.percentile(99), 3),
+            "work_cpu_p50_ms": round(self.work_cpu_ms.percentile(50), 3),
+            "work_cpu_p99_ms": round(self.work_cpu_ms.percentile(99), 3),
+            "work_cpu_mean_ms": round(self.work_cpu_ms.mean_ms, 3),
+            "content_p50_ms": round(self.content_ms.percentile(50), 3),
+            "content_p99_ms": round(self.content_ms.percentile(99), 3),
+            "content_cpu_p50_ms": round(self.content_cpu_ms.percentile(50), 3),
+            "content_cpu_p99_ms": round(self.content_cpu_ms.percentile(99), 3),
+            "content_cpu_mean_ms": round(self.content_cpu_ms.mean_ms, 3),
             "missed_deadlines": self.missed,
             "late_frames": self.late,
+            "repeated_phases": self.missed + self.late,
             "packets": dict(sorted(self.packets.items())),
         }
 
@@ -229,55 +256,174 @@ class _Rendered:
     index: int
     frame: U8
     work_s: float
+    work_cpu_s: float  # CPU time of the render thread for this frame (less affected by a busy machine)
     overlay_s: float | None
+    content_s: float | None  # time the content thread took for this frame's input frame (first frame of it)
+    content_cpu_s: float | None
     ready_s: float  # time.monotonic() when the frame was finished
 
 
+@dataclass
+class _Content:
+    index: int
+    rgb: U8
+    seconds: float
+    cpu_s: float
+
+
+@dataclass
+class _Early:
+    """An input frame whose phases were begun at the output frame before its first one."""
+
+    index: int
+    rgb: U8
+    out: tuple[U8, U8]
+    row: int  # rows [0, row) of both phases are done
+
+
+EARLY_ROWS: Final = 0.4
+"""Share of the rows of an input frame's phases made one output frame early (with the overlay), so that
+the two output frames of an input frame carry about the same work."""
+
+
 class _Renderer:
-    """Makes output frame j; runs in the render thread, one frame at a time, in order."""
+    """Makes output frame j; runs in the render thread, one frame at a time, in order.
+
+    The content of the next input frame is made ahead in the content thread (``content_worker``); the
+    overlay is drawn here, just before modulation, so that it shows the newest poses. Both phases of an
+    input frame are made in one pass over its pixels; its output frames all reuse them. With ``early``
+    (a paced sink and a modulator that works by rows), the output frame before an input frame's first one
+    already draws its overlay and makes the first ``early`` share of the rows of both phases, if its
+    content is ready, and the first frame makes the rest: the work is spread over the output frames
+    instead of falling on every N-th. With ``buffers`` the phases are written into a ring of that many
+    preallocated pairs (for sinks that are done with a frame when ``show`` returns); otherwise every input
+    frame gets new arrays.
+    """
 
     def __init__(
         self,
         scene: Scene,
-        modulator: PaperModulator,
+        modulator: Modulator,
         ar: ArScene | None,
-        n: int,
-        input_rate_hz: float,
+        timing: FrameTiming,
         clock: Callable[[], float] = time.monotonic,
+        content_worker: _Worker | None = None,
+        buffers: int | None = None,
+        frames: int | None = None,
+        early: float | None = None,
     ) -> None:
         self.scene = scene
+        self.frames = frames
         self.modulator = modulator
         self.ar = ar
         self.clock = clock
-        self.n = n
-        self.input_rate_hz = input_rate_hz
+        self.timing = timing
+        self.input_rate_hz = timing.input_rate_hz
+        self.content_worker = content_worker
+        self._rows: Any = modulator if hasattr(modulator, "phases_rows") else None  # IptModulator.phases_rows
+        self.early = early if self._rows is not None else None
         self.overlay_errors = 0
         self.first_overlay_error: str | None = None
-        self._lab: U8 | None = None
+        self._phases: tuple[U8, U8] | None = None
         self._input = -1
+        self._next: tuple[int, Future[_Content]] | None = None
+        self._early: _Early | None = None
+        self._ring: list[tuple[U8, U8]] = []
+        self._ring_size = buffers
+        self._ring_next = 0
+
+    def _make_content(self, i: int) -> _Content:
+        t0, cpu0 = time.perf_counter(), time.thread_time()
+        rgb = self.scene.frame(i, self.input_rate_hz)
+        h, w = self.modulator.height_px, self.modulator.width_px
+        if rgb.shape[:2] != (h, w):
+            rgb = resize_to(rgb, w, h)
+        rgb = np.ascontiguousarray(rgb)
+        return _Content(i, rgb, time.perf_counter() - t0, time.thread_time() - cpu0)
+
+    def _next_input(self, i: int, j: int) -> int:
+        """The input frame after ``i``, shown from output frame ``j`` on."""
+        return max(i + 1, self.timing.input_of(j + 1))
+
+    def _content(self, i: int, next_i: int) -> _Content:
+        """Input frame ``i`` (made ahead if it was asked for), and ask for ``next_i`` ahead."""
+        ahead = self._next
+        self._next = None
+        if ahead is not None and ahead[0] == i:
+            content = ahead[1].result()
+        else:
+            if ahead is not None:
+                ahead[1].cancel()
+            content = self._make_content(i)
+        ratio = self.timing.ratio
+        first_output = -(-next_i * ratio.numerator // ratio.denominator)  # ceil: first j showing next_i
+        if self.content_worker is not None and (self.frames is None or first_output < self.frames):
+            self._next = (next_i, self.content_worker.submit(self._make_content, next_i))
+        return content
+
+    def cancel_ahead(self) -> Future[_Content] | None:
+        """Cancel the input frame asked for ahead; returns its future if it is already running."""
+        ahead, self._next = self._next, None
+        if ahead is None or ahead[1].cancel():
+            return None
+        return ahead[1]
+
+    def _buffers(self) -> tuple[U8, U8] | None:
+        if self._ring_size is None:
+            return None
+        if len(self._ring) < self._ring_size:
+            shape = (self.modulator.height_px, self.modulator.width_px, 3)
+            self._ring.append((np.empty(shape, np.uint8), np.empty(shape, np.uint8)))
+        pair = self._ring[self._ring_next % self._ring_size]
+        self._ring_next += 1
+        return pair
+
+    def _overlay(self, rgb: U8) -> float | None:
+        """Draw the AR overlay into ``rgb``; its duration (None without an overlay)."""
+        if self.ar is None:
+            return None
+        t1 = time.perf_counter()
+        try:
+            self.ar.draw(rgb, self.clock())
+        except Exception as exc:  # the overlay must never stop the projection
+            self.overlay_errors += 1
+            if self.first_overlay_error is None:
+                self.first_overlay_error = f"{type(exc).__name__}: {exc}"
+        return time.perf_counter() - t1
 
     def render(self, j: int) -> _Rendered:
-        t0 = time.perf_counter()
-        overlay_s = None
-        i = j // self.n
-        if self._lab is None or i != self._input:
-            rgb = self.scene.frame(i, self.input_rate_hz)
-            h, w = self.modulator.height_px, self.modulator.width_px
-            if rgb.shape[:2] != (h, w):
-                rgb = np.asarray(cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA), dtype=np.uint8)
-            if self.ar is not None:
-                t1 = time.perf_counter()
-                try:
-                    self.ar.draw(rgb, self.clock())
-                except Exception as exc:  # the overlay must never stop the projection
-                    self.overlay_errors += 1
-                    if self.first_overlay_error is None:
-                        self.first_overlay_error = f"{type(exc).__name__}: {exc}"
-                overlay_s = time.perf_counter() - t1
-            self._lab = self.modulator.prepare(rgb)
+        t0, cpu0 = time.perf_counter(), time.thread_time()
+        overlay_s = content_s = content_cpu_s = None
+        i = self.timing.input_of(j)
+        if self._phases is None or i != self._input:
+            early, self._early = self._early, None
+            if early is not None and early.index == i:
+                self._rows.phases_rows(early.rgb, early.out, early.row, self.modulator.height_px)
+                self._phases = early.out
+            else:
+                content = self._content(i, self._next_input(i, j))
+                content_s, content_cpu_s = content.seconds, content.cpu_s
+                overlay_s = self._overlay(content.rgb)
+                self._phases = self.modulator.phases(content.rgb, self._buffers())
             self._input = i
-        frame = self.modulator.phase_frame(self._lab, phase_sign(j))
-        return _Rendered(j, frame, time.perf_counter() - t0, overlay_s, time.monotonic())
+        assert self._phases is not None
+        frame = self._phases[0] if phase_sign(j) > 0 else self._phases[1]
+        if self.early is not None and (self.frames is None or j + 1 < self.frames):
+            ni = self.timing.input_of(j + 1)
+            ahead = self._next
+            if ni != i and ahead is not None and ahead[0] == ni and ahead[1].done():
+                content = self._content(ni, self._next_input(ni, j + 1))
+                content_s, content_cpu_s = content.seconds, content.cpu_s
+                overlay_s = self._overlay(content.rgb)
+                out = self._buffers()
+                if out is None:
+                    shape = (self.modulator.height_px, self.modulator.width_px, 3)
+                    out = (np.empty(shape, np.uint8), np.empty(shape, np.uint8))
+                row = round(self.modulator.height_px * self.early)
+                self._rows.phases_rows(content.rgb, out, 0, row)
+                self._early = _Early(ni, content.rgb, out, row)
+        work_s, work_cpu_s = time.perf_counter() - t0, time.thread_time() - cpu0
+        return _Rendered(j, frame, work_s, work_cpu_s, overlay_s, content_s, content_cpu_s, time.monotonic())
 
 
 class _PoseListener(asyncio.DatagramProtocol):
@@ -338,6 +484,8 @@ class Sender:
         shutdown_timeout_s: float,
         overlay_clock: Callable[[], float] | None = None,
         on_listening: Callable[[tuple[str, int]], None] | None = None,
+        input_rate_hz: float | None = None,
+        modulator: Modulator | None = None,
     ) -> None:
         if frames is not None and frames < 0:
             raise SenderError(f"frames must be >= 0, got {frames}")
@@ -361,9 +509,30 @@ class Sender:
         self.on_listening = on_listening
         self.rate_hz = arena.projector.rate_hz
         mod = arena.modulation
-        n = frames_per_input(mod.input_rate_hz, self.rate_hz)
-        modulator = PaperModulator(grid_tag_map(arena).render_mask(), mod.delta_l)
-        self.renderer = _Renderer(scene, modulator, ar_scene, n, mod.input_rate_hz, self.overlay_clock)
+        self.timing = FrameTiming(input_rate_hz if input_rate_hz is not None else mod.input_rate_hz, self.rate_hz)
+        if modulator is None:
+            mask = grid_tag_map(arena).render_mask()
+            modulator = make_modulator(mod.profile, mask, mod.delta_l, clip_allowance_l8=mod.clip_allowance_l8)
+        elif (modulator.width_px, modulator.height_px) != (arena.projector.width_px, arena.projector.height_px):
+            raise SenderError(
+                f"the modulator is for {modulator.width_px}x{modulator.height_px}, the projector is "
+                f"{arena.projector.width_px}x{arena.projector.height_px}"
+            )
+        self.modulator = modulator
+        # Sinks that are done with a frame when show() returns let the phases be written into a ring of
+        # reused arrays: the pair shown, those of the frames up to `lookahead` ahead, and one begun early.
+        buffers = lookahead + 3 if getattr(sink, "borrows", False) else None
+        self.renderer = _Renderer(
+            scene,
+            modulator,
+            ar_scene,
+            self.timing,
+            self.overlay_clock,
+            None,
+            buffers,
+            frames,
+            EARLY_ROWS if paced else None,  # unpaced sinks have no deadlines: keep the work simple there
+        )
         self.stats = SenderStats(arena.projector.width_px, arena.projector.height_px, self.rate_hz, paced)
         self.bound: tuple[str, int] | None = None
         self.should_exit = False
@@ -371,6 +540,7 @@ class Sender:
         self._listener: _PoseListener | None = None
         self._transport: asyncio.DatagramTransport | None = None
         self._render: _Worker | None = None
+        self._content: _Worker | None = None
         self._display: _Worker | None = None
         self._pending: deque[tuple[int, Future[Any]]] = deque()
         self._next_submit = 0
@@ -426,6 +596,7 @@ class Sender:
 
     async def _startup(self, loop: asyncio.AbstractEventLoop) -> None:
         self._render = _Worker("ipt-render")
+        self._content = self.renderer.content_worker = _Worker("ipt-content")
         if self.sink.threaded:
             self._display = _Worker("ipt-display")
         if self.listen is not None:
@@ -531,10 +702,15 @@ class Sender:
             stats.elapsed_s = shown_at - first
             work_ms = rendered.work_s * 1e3
             stats.work_ms.add(work_ms)
+            stats.work_cpu_ms.add(rendered.work_cpu_s * 1e3)
             self._interval_work.add(work_ms)
             interval_frames += 1
             if rendered.overlay_s is not None:
                 stats.overlay_ms.add(rendered.overlay_s * 1e3)
+            if rendered.content_s is not None:
+                stats.content_ms.add(rendered.content_s * 1e3)
+            if rendered.content_cpu_s is not None:
+                stats.content_cpu_ms.add(rendered.content_cpu_s * 1e3)
             if self.sink.quit_requested:
                 self.log("ipt-sender: the window was closed; stopping")
                 self.should_exit = True
@@ -562,7 +738,7 @@ class Sender:
             self.log(f"ipt-sender: overlay failed (frames are shown without it): {self.renderer.first_overlay_error}")
 
     async def _shutdown(self, ok: bool) -> None:
-        """Ordered, each wait bounded: socket, render thread, sink, final statistics."""
+        """Ordered, each wait bounded: socket, render thread, content thread, sink, final statistics."""
         t_end = time.monotonic() + (0.1 if self.force_exit else self.shutdown_timeout_s)
         running = [fut for _, fut in self._pending if not fut.cancel()]  # cancel the frames not started
         self._pending.clear()
@@ -572,6 +748,13 @@ class Sender:
             self._render.stop()
             if running:
                 await asyncio.wait([_wrap(f) for f in running], timeout=max(0.0, t_end - time.monotonic()))
+        if self._content is not None:
+            # The input frame made ahead: not needed any more; if it is being made, let it finish (the
+            # caller may close the scene next).
+            ahead = self.renderer.cancel_ahead()
+            self._content.stop()
+            if ahead is not None:
+                await asyncio.wait([_wrap(ahead)], timeout=max(0.0, t_end - time.monotonic()))
         close = self.sink.close if ok else self.sink.abort
         close_timeout = 0.1 if self.force_exit else self.sink.close_timeout_s
         if self._display is None:
@@ -608,6 +791,8 @@ async def run_sender(
     shutdown_timeout_s: float = 0.5,
     overlay_clock: Callable[[], float] | None = None,
     on_listening: Callable[[tuple[str, int]], None] | None = None,
+    input_rate_hz: float | None = None,
+    modulator: Modulator | None = None,
 ) -> SenderStats:
     """Run the sender until ``frames`` output frames are shown, a signal, ``stop`` or the sink says stop.
 
@@ -633,6 +818,9 @@ async def run_sender(
             (default ``time.monotonic``; the closed-loop demo passes the simulation's clock).
         on_listening: called with the bound ``(host, port)`` once the pose listener is up (useful with
             port 0).
+        input_rate_hz: the content's frame rate (default: the arena's ``modulation.input_rate_hz``); any
+            ratio to the projector rate works (:class:`~ipt.sender.modulator.FrameTiming`).
+        modulator: the modulator (default: the arena's ``modulation.profile`` for its tag map and ΔL).
     """
     if not stats_every_s > 0:
         raise SenderError(f"stats_every_s must be > 0, got {stats_every_s}")
@@ -655,6 +843,8 @@ async def run_sender(
             shutdown_timeout_s=shutdown_timeout_s,
             overlay_clock=overlay_clock,
             on_listening=on_listening,
+            input_rate_hz=input_rate_hz,
+            modulator=modulator,
         )
     except BaseException:
         sink.abort()  # nothing was shown: leave nothing behind (a file sink may have started its file)

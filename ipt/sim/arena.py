@@ -18,7 +18,7 @@ import numpy.typing as npt
 
 from ipt.config.models import ArenaConfig
 from ipt.sender.content import Scene
-from ipt.sender.modulator import PaperModulator, frames_per_input, phase_sign
+from ipt.sender.modulator import JIT_UNAVAILABLE, FrameTiming, make_modulator, phase_sign
 from ipt.sim.config import SimConfig
 from ipt.sim.flight import FlightState, RectangleFlight
 from ipt.sim.render import CameraRenderer, Exposure
@@ -57,9 +57,20 @@ class SimulatedArena:
     def __init__(self, arena: ArenaConfig, sim: SimConfig, scene: Scene, tag_map: TagMap | None = None) -> None:
         self.arena, self.sim, self.scene = arena, sim, scene
         self.tag_map = tag_map if tag_map is not None else grid_tag_map(arena)
-        self.modulator = PaperModulator(self.tag_map.render_mask(), arena.modulation.delta_l)
+        mod = arena.modulation
+        self.notes: list[str] = []
+        """What the simulator changed from the configuration, and why (shown by the tools that run it)."""
+        profile = mod.profile
+        if profile == "ipt" and JIT_UNAVAILABLE is not None:
+            # The simulator only plays the projector: it may use the paper's profile where the ipt one
+            # cannot run (a hardened service forbids the JIT's executable memory). Say so.
+            self.notes.append(f"{JIT_UNAVAILABLE}: the simulated projector uses the paper modulation profile")
+            profile = "paper"
+        self.modulator = make_modulator(
+            profile, self.tag_map.render_mask(), mod.delta_l, clip_allowance_l8=mod.clip_allowance_l8
+        )
         self.flight = flight_of(sim)
-        self.per_input = frames_per_input(arena.modulation.input_rate_hz, arena.projector.rate_hz)
+        self.timing = FrameTiming(mod.input_rate_hz, arena.projector.rate_hz)
         self.projector_period_s = 1.0 / (arena.projector.rate_hz * (1.0 + sim.projector_clock_ppm * 1e-6))
         self.renderer = CameraRenderer(
             sim.camera, arena_to_pixel_matrix(arena), (arena.projector.width_px, arena.projector.height_px)
@@ -84,11 +95,11 @@ class SimulatedArena:
         return self._inputs[index]
 
     def projector_crop(self, index: int, region: tuple[int, int, int, int]) -> U8:
-        """Region (x0, y0, x1, y1) of projector output frame ``index``, modulated as the sender would."""
+        """Region (x0, y0, x1, y1) of projector output frame ``index``, modulated as the sender would (the
+        arena's ``modulation.profile``)."""
         x0, y0, x1, y1 = region
-        rgb = self._input_frame(index // self.per_input)[y0:y1, x0:x1]
-        lab = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2Lab)
-        return self.modulator.phase_frame(lab, phase_sign(index), region)
+        rgb = self._input_frame(self.timing.input_of(index))[y0:y1, x0:x1]
+        return self.modulator.phase_region(np.ascontiguousarray(rgb), phase_sign(index), region)
 
     def render(self, k: int) -> SimFrame:
         """Camera frame ``k``."""
