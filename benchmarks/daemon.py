@@ -90,9 +90,13 @@ class _Listener:
         return self.datagrams
 
 
+WORST: list[tuple[float, float]] = []
+"""(error mm, capture time s) of the worst packet of each run, for the report."""
+
+
 def _errors_mm(datagrams: list[bytes], truth_path: Path) -> tuple[list[float], int]:
     truth = read_tum(truth_path)
-    errors, bad = [], 0
+    errors, bad, worst = [], 0, (0.0, 0.0)
     for data in datagrams:
         try:
             packet = decode_pose(data)
@@ -102,6 +106,8 @@ def _errors_mm(datagrams: list[bytes], truth_path: Path) -> tuple[list[float], i
         t_s = packet.capture_time_us * 1e-6
         i = int(np.argmin(np.abs(truth.times_s - t_s)))
         errors.append(1e3 * float(np.linalg.norm(np.array(packet.position_m) - truth.positions_m[i])))
+        worst = max(worst, (errors[-1], t_s))
+    WORST.append(worst)
     return errors, bad
 
 
@@ -145,6 +151,7 @@ def run_mode(folder: Path, mode: str, fps: float) -> dict[str, Any]:
             "p99": float(np.percentile(e, 99)),
             "max": float(e.max()),
             "over_30mm": int((e > 30.0).sum()),
+            "worst_at_s": WORST[-1][1],
         }
     return out
 
@@ -224,6 +231,7 @@ def run_camera(folder: Path, fps: float) -> dict[str, Any]:
             "p99": float(np.percentile(e, 99)),
             "max": float(e.max()),
             "over_30mm": int((e > 30.0).sum()),
+            "worst_at_s": WORST[-1][1],
         }
     return out
 

@@ -54,9 +54,12 @@ def test_ipt_profile_beats_the_paper_profile_on_the_same_frames(short_flight: Pa
         posed = [r for r in results if r.pose is not None]
         yields[name] = len(posed) / len(frames)
         errors[name] = max(np.linalg.norm(r.pose.position_m - truth.positions_m[r.index]) for r in posed)
+    # On half a second the paper's pipeline does well too (its lag-1 pairs still see a third of the signal
+    # where exposures straddle a flip); ipt finds as many poses and none as far off.
     assert yields["ipt"] >= 0.85
-    assert yields["ipt"] > yields["paper"]
-    assert errors["ipt"] < 0.05
+    assert yields["ipt"] >= yields["paper"]
+    assert errors["ipt"] < 0.03
+    assert errors["ipt"] < errors["paper"]
 
 
 def test_tracked_polarity_runs_the_detector_about_once_a_frame(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]
@@ -180,3 +183,19 @@ def test_profiles_are_named() -> None:
     assert PipelineConfig.profile("ipt") == PipelineConfig()
     with pytest.raises(ConfigError, match="unknown pipeline profile"):
         PipelineConfig.profile("fast")
+
+
+def test_an_uncertain_first_pose_waits_for_the_track(short_flight: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import ipt.receiver.pipeline as pipeline_module
+
+    # Nothing to check the first poses against: a two-tag view with 3 cm of uncertainty is held back
+    # (it still feeds the motion fit), a well-determined one goes out.
+    stds = iter([0.03, 0.004])
+
+    def fake_solve(*_: object) -> PoseEstimate:
+        cov = np.eye(3) * next(stds) ** 2 / 3
+        return PoseEstimate(np.array([0.0, 0.0, 0.8]), np.eye(3), (1, 2), 0.5, position_cov_m2=cov)
+
+    monkeypatch.setattr(pipeline_module, "solve_pose", fake_solve)
+    p = _pipeline(short_flight, PipelineConfig())
+    assert [p._pose(k, _t_us(k), ()).reason for k in range(2)] == ["unconfirmed", "pose"]

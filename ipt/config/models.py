@@ -238,7 +238,9 @@ class PoseConfig(StrictModel):
         description="Consistency gate: a pose farther than this from where the recent poses (a constant-"
         "velocity fit over the last 0.15 s) put the camera at its capture time is rejected as doubtful. "
         "It catches the tilt/translation ambiguity of a view with few tags, where a 2° tilt error moves "
-        "the position several centimetres. None turns the gate off.",
+        "the position several centimetres. Until there are enough recent poses to predict from (the start, "
+        "after a gap), a pose goes out only if its own position uncertainty is within this bound. None turns "
+        "the gate off.",
     )
     outlier_tag_px: float | None = Field(
         None,

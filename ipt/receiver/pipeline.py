@@ -213,8 +213,12 @@ class Pipeline:
         cfg = self.cfg.pose
         if cfg.max_prediction_error_m is not None:
             predicted = self._track.pose_at(t_us)
-            off_m = None if predicted is None else float(np.linalg.norm(pose.position_m - predicted[0]))
-            if off_m is not None and off_m > cfg.max_prediction_error_m:
+            if predicted is None:
+                # Nothing to check it against yet (the start, or after a gap): only a pose whose own
+                # uncertainty is within the same bound goes out; the rest only feed the track.
+                if float(np.linalg.norm(pose.position_std_m)) > cfg.max_prediction_error_m:
+                    return "unconfirmed"
+            elif float(np.linalg.norm(pose.position_m - predicted[0])) > cfg.max_prediction_error_m:
                 return "inconsistent"
         if cfg.max_speed_mps is not None and self._last_pose is not None:
             last_us, last = self._last_pose
@@ -234,7 +238,7 @@ class Pipeline:
         # on what it let through could lock onto a wrong track and reject every good pose after it.
         self._track.add(t_us, pose.position_m, pose.r_arena_cam, float(np.linalg.norm(pose.position_std_m)))
         reset = False
-        if doubt == "inconsistent":
+        if doubt in ("inconsistent", "unconfirmed"):
             return FrameResult(index, t_us, None, len(dets), doubt)
         if doubt == "motion_jump":
             self._gated_in_a_row += 1
