@@ -90,25 +90,33 @@ class _Listener:
         return self.datagrams
 
 
-WORST: list[tuple[float, float]] = []
-"""(error mm, capture time s) of the worst packet of each run, for the report."""
-
-
-def _errors_mm(datagrams: list[bytes], truth_path: Path) -> tuple[list[float], int]:
+def _packet_errors(datagrams: list[bytes], truth_path: Path) -> dict[str, Any]:
+    """Every datagram decoded and compared with the truth at its capture time."""
     truth = read_tum(truth_path)
-    errors, bad, worst = [], 0, (0.0, 0.0)
+    errors: list[float] = []
+    undecodable, worst_mm, worst_at_s = 0, -1.0, 0.0
     for data in datagrams:
         try:
             packet = decode_pose(data)
         except ProtocolError:
-            bad += 1
+            undecodable += 1
             continue
         t_s = packet.capture_time_us * 1e-6
         i = int(np.argmin(np.abs(truth.times_s - t_s)))
         errors.append(1e3 * float(np.linalg.norm(np.array(packet.position_m) - truth.positions_m[i])))
-        worst = max(worst, (errors[-1], t_s))
-    WORST.append(worst)
-    return errors, bad
+        if errors[-1] > worst_mm:
+            worst_mm, worst_at_s = errors[-1], t_s
+    out: dict[str, Any] = {"packets_undecodable": undecodable}
+    if errors:
+        e = np.array(errors)
+        out["packet_error_mm"] = {
+            "median": float(np.median(e)),
+            "p99": float(np.percentile(e, 99)),
+            "max": float(e.max()),
+            "over_30mm": int((e > 30.0).sum()),
+            "worst_at_s": worst_at_s,
+        }
+    return out
 
 
 def run_mode(folder: Path, mode: str, fps: float) -> dict[str, Any]:
@@ -129,14 +137,12 @@ def run_mode(folder: Path, mode: str, fps: float) -> dict[str, Any]:
     match = FINAL.search(proc.stderr)
     if proc.returncode != 0 or match is None:
         raise SystemExit(f"daemon failed (exit {proc.returncode}):\n{proc.stderr[-2000:]}")
-    errors, undecodable = _errors_mm(datagrams, folder / "groundtruth.tum")
     g = match.groupdict()
     out: dict[str, Any] = {
         "frames": int(g["frames"]),
         "frames_captured": int(g["captured"]),
         "poses": int(g["poses"]),
         "packets_received": len(datagrams),
-        "packets_undecodable": undecodable,
         "frames_per_second": float(g["fps"]),
         "latency_p50_ms": None if g["p50"] == "-" else float(g["p50"]),
         "latency_p99_ms": None if g["p99"] == "-" else float(g["p99"]),
@@ -144,15 +150,7 @@ def run_mode(folder: Path, mode: str, fps: float) -> dict[str, Any]:
         "wall_s": wall_s,
         "final_line": match.group(0),
     }
-    if errors:
-        e = np.array(errors)
-        out["packet_error_mm"] = {
-            "median": float(np.median(e)),
-            "p99": float(np.percentile(e, 99)),
-            "max": float(e.max()),
-            "over_30mm": int((e > 30.0).sum()),
-            "worst_at_s": WORST[-1][1],
-        }
+    out.update(_packet_errors(datagrams, folder / "groundtruth.tum"))
     return out
 
 
@@ -210,13 +208,11 @@ def run_camera(folder: Path, fps: float) -> dict[str, Any]:
     stats = asyncio.run(run_daemon(cfg, stats_out=report, handle_signals=False, source=_MemoryCamera(frames, fps)))
     wall_s = time.monotonic() - t0
     datagrams = listener.stop()
-    errors, undecodable = _errors_mm(datagrams, folder / "groundtruth.tum")
     out: dict[str, Any] = {
         "frames": stats.frames_processed,
         "frames_captured": stats.frames_captured,
         "poses": stats.poses,
         "packets_received": len(datagrams),
-        "packets_undecodable": undecodable,
         "frames_per_second": stats.frames_processed / stats.seconds,
         "latency_p50_ms": stats.latency_p50_ms,
         "latency_p99_ms": stats.latency_p99_ms,
@@ -224,15 +220,7 @@ def run_camera(folder: Path, fps: float) -> dict[str, Any]:
         "wall_s": wall_s,
         "final_line": stats.line(),
     }
-    if errors:
-        e = np.array(errors)
-        out["packet_error_mm"] = {
-            "median": float(np.median(e)),
-            "p99": float(np.percentile(e, 99)),
-            "max": float(e.max()),
-            "over_30mm": int((e > 30.0).sum()),
-            "worst_at_s": WORST[-1][1],
-        }
+    out.update(_packet_errors(datagrams, folder / "groundtruth.tum"))
     return out
 
 

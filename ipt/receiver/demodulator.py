@@ -21,6 +21,7 @@ its inverse too (AprilTag 3 looks for dark borders only).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -160,12 +161,17 @@ def _translate(img: F32, dx: float, dy: float) -> F32:
     return np.asarray(cv2.warpAffine(img, m, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
 
 
-def _warp(img: F32, warp: F64, border: int = cv2.BORDER_REPLICATE) -> F32:
-    """``img`` carried by the 3x3 ``warp`` (what is at p ends up at warp·p); bilinear."""
+A = TypeVar("A", np.uint8, np.float32)
+
+
+def _warp(img: npt.NDArray[A], warp: F64, border: int = cv2.BORDER_REPLICATE) -> npt.NDArray[A]:
+    """``img`` carried by the 3x3 ``warp`` (what is at p ends up at warp·p); bilinear, same dtype."""
     h, w = img.shape
     if np.allclose(warp[2], (0.0, 0.0, 1.0)):
-        return np.asarray(cv2.warpAffine(img, warp[:2], (w, h), flags=cv2.INTER_LINEAR, borderMode=border))
-    return np.asarray(cv2.warpPerspective(img, warp, (w, h), flags=cv2.INTER_LINEAR, borderMode=border))
+        out = cv2.warpAffine(img, warp[:2], (w, h), flags=cv2.INTER_LINEAR, borderMode=border)
+    else:
+        out = cv2.warpPerspective(img, warp, (w, h), flags=cv2.INTER_LINEAR, borderMode=border)
+    return np.asarray(out, dtype=img.dtype)
 
 
 _HALF = np.diag([0.5, 0.5, 1.0])
@@ -289,10 +295,7 @@ def clipped_difference(prev_l: U8, now_l: U8, warp: F64, clip_factor: float) -> 
     frame to whole lightness units, at a fraction of the float passes.
     """
     h, w = now_l.shape
-    if np.allclose(warp[2], (0.0, 0.0, 1.0)):
-        moved = cv2.warpAffine(prev_l, warp[:2], (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    else:
-        moved = cv2.warpPerspective(prev_l, warp, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    moved = _warp(prev_l, warp)
     box = covered_box(warp, w, h)
     x0, y0, x1, y1 = box
     magnitude = cv2.absdiff(now_l[y0:y1, x0:x1], moved[y0:y1, x0:x1])
