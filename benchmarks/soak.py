@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from load import wait_for  # benchmarks/ is on sys.path when a script here runs
 
 from ipt.config.models import ArenaConfig, load_arena_config, shipped_config_path
 
@@ -113,17 +114,6 @@ def _stop(proc: subprocess.Popen[bytes]) -> int:
     return proc.wait()
 
 
-def _wait_for(log: Path, pattern: str, proc: subprocess.Popen[bytes], timeout_s: float) -> re.Match[str]:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if m := re.search(pattern, log.read_text(encoding="utf-8", errors="replace")):
-            return m
-        if proc.poll() is not None:
-            break
-        time.sleep(0.1)
-    raise RuntimeError(f"{pattern!r} not seen in {log}:\n{log.read_text(errors='replace')[-3000:]}")
-
-
 def _last(log: Path, marker: str) -> str | None:
     lines = [ln for ln in log.read_text(encoding="utf-8", errors="replace").splitlines() if marker in ln]
     return lines[-1] if lines else None
@@ -145,7 +135,7 @@ def soak(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     died: dict[str, float] = {}
     out_file = open(args.samples, "w", encoding="utf-8") if args.samples else None  # noqa: SIM115
     try:
-        port = int(_wait_for(sender_log, r"listening for pose packets on udp 127\.0\.0\.1:(\d+)", sender, 120)[1])
+        port = int(wait_for(sender_log, r"listening for pose packets on udp 127\.0\.0\.1:(\d+)", sender, 120)[1])
         receiver_cfg = {
             "arena": str(arena_path),
             "camera": str(shipped_config_path("camera.yaml")),
@@ -161,7 +151,7 @@ def soak(args: argparse.Namespace, work: Path) -> dict[str, Any]:
         receiver_cmd = [sys.executable, "-m", "ipt.receiver.cli", "run", "--config", str(cfg_path)]
         with receiver_log.open("wb") as err:
             receiver = subprocess.Popen(receiver_cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err)
-        _wait_for(receiver_log, r"ipt-receiver: running: ", receiver, 120)
+        wait_for(receiver_log, r"ipt-receiver: running: ", receiver, 120)
         procs = {"sender": sender, "receiver": receiver}
         t0 = time.monotonic()
         end = t0 + args.minutes * 60
