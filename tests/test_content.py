@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from ipt.sender.content import ContentError, GeneratedScene, Scene, StillImageScene, VideoScene
-from ipt.videoio import FfvWriter
+from ipt.videoio import FfvWriter, VideoError
 
 W, H = 320, 360
 
@@ -146,6 +146,27 @@ def test_video_scene_loops(tmp_path: Path, cache_bytes: int) -> None:
             assert video.reopens >= 2
         else:
             assert video.reopens == 0
+
+
+@pytest.mark.parametrize("cache_bytes", [512 * 2**20, 0], ids=["cached", "reopened"])
+def test_video_scene_keeps_the_last_frame_it_gave_for_when_the_file_fails(tmp_path: Path, cache_bytes: int) -> None:
+    path = tmp_path / "clip.mkv"
+    _write_numbered_video(path, 3, fps=10)
+    with VideoScene(path, 16, 12, cache_bytes=cache_bytes) as video:
+        assert video.last_frame() is None  # nothing given yet
+        for i in (0, 1, 2, 4, 4, 1):  # streamed, served again, from the cache (or re-opened), looped
+            given = video.frame(i, 10.0)
+            given[:] = 0  # the caller draws on its copy (the sender's overlay)...
+            last = video.last_frame()
+            assert last is not None
+            assert _number(last) == i % 3
+        if cache_bytes == 0:  # not cached: the file goes away, reading fails, the last good frame stays
+            path.unlink()
+            with pytest.raises(VideoError, match=r"clip\.mkv"):
+                video.frame(3, 10.0)  # file frame 0: before the last one read, so the file is re-opened
+            last = video.last_frame()
+            assert last is not None
+            assert _number(last) == 1
 
 
 def test_video_scene_ntsc_rate_maps_one_to_one(tmp_path: Path) -> None:

@@ -588,6 +588,124 @@ async def test_a_failing_scene_stops_the_run_and_leaves_no_file(tmp_path: Path, 
     assert list(tmp_path.glob("*.mkv")) == []  # no partial file left behind either
 
 
+class _FlakyScene:
+    """Input frames ``fail`` raise (a video that cannot be read there); the others are flat colours that
+    say their index (R = 10 + index), so that a test can tell which input frame an output frame shows."""
+
+    def __init__(self, fail: range) -> None:
+        self.fail = fail
+        self.given: U8 | None = None
+
+    def frame(self, index: int, rate_hz: float) -> U8:
+        if index in self.fail:
+            raise OSError(f"decoder error at input frame {index}")
+        self.given = np.full((H, W, 3), (10 + index, 120, 140), np.uint8)
+        return self.given.copy()
+
+    def last_frame(self) -> U8 | None:
+        return None if self.given is None else self.given.copy()
+
+
+def _input_shown(frame: U8, mask: npt.NDArray[np.int8]) -> int:
+    """The input frame a flat-colour output frame shows (read where the mask leaves the content alone)."""
+    return int(frame[mask == 0][:, 0].mean().round()) - 10
+
+
+@pytest.mark.asyncio
+async def test_a_failing_video_source_shows_the_last_good_frame_with_phases_alternating(arena: ArenaConfig) -> None:
+    mask = grid_tag_map(arena).render_mask()
+    sink = _RecordingSink()
+    lines: list[str] = []
+    stats = await run_sender(
+        arena, sink, _FlakyScene(fail=range(4, 9)), frames=30, listen=None, log=lines.append,
+        install_signal_handlers=False,
+    )  # fmt: skip
+    assert stats.frames == 30
+    assert sink.frames_shown == 30
+    shown = [_input_shown(f, mask) for f in sink.frames]
+    # Input frames 4..8 failed: their output frames (8..17) show input frame 3, the last good one...
+    assert shown == [j // 2 if not 8 <= j < 18 else 3 for j in range(30)], shown
+    # ...still modulated, the phases alternating at every output frame as before (tag pixels go up on even
+    # frames and down on odd ones, where the mask is +1).
+    white = mask > 0
+    for j in range(1, 30):
+        if shown[j] == shown[j - 1]:
+            up = sink.frames[j - 1] if j % 2 == 1 else sink.frames[j]
+            down = sink.frames[j] if j % 2 == 1 else sink.frames[j - 1]
+            assert _lightness(up)[white].mean() > _lightness(down)[white].mean() + DELTA_L / 2, j
+    assert stats.content_errors == 5
+    assert sum("video source failed (OSError: decoder error at input frame 4)" in ln for ln in lines) == 1, lines
+    assert sum("video source is back (5 input frames were replaced" in ln for ln in lines) == 1, lines
+    assert "content_errors=5" in lines[-1]
+    assert "missed=" in lines[-1]
+
+
+@pytest.mark.asyncio
+async def test_a_video_source_failing_from_the_start_shows_black_until_it_works(arena: ArenaConfig) -> None:
+    mask = grid_tag_map(arena).render_mask()
+    sink = _RecordingSink()
+    stats = await run_sender(
+        arena, sink, _FlakyScene(fail=range(0, 2)), frames=8, listen=None, log=lambda _: None,
+        install_signal_handlers=False,
+    )  # fmt: skip
+    assert stats.content_errors == 2
+    assert all(not f[mask == 0].any() for f in sink.frames[:4])  # nothing good yet: black around the tags
+    assert [_input_shown(f, mask) for f in sink.frames[4:]] == [2, 2, 3, 3]
+
+
+class _FlakySink(_RecordingSink):
+    """Fails to show output frames ``fail`` (the display was lost), as a window sink does."""
+
+    retries = True
+
+    def __init__(self, fail: range) -> None:
+        super().__init__()
+        self.fail = fail
+        self.indices: list[int] = []
+
+    def show(self, frame_rgb: U8, index: int) -> None:
+        if index in self.fail:
+            raise DisplayError(f"the window was lost at frame {index}")
+        super().show(frame_rgb, index)
+        self.indices.append(index)
+
+
+@pytest.mark.asyncio
+async def test_a_failing_display_is_reported_and_the_loop_goes_on(arena: ArenaConfig) -> None:
+    scene = GeneratedScene(W, H)
+    mask = grid_tag_map(arena).render_mask()
+    sink = _FlakySink(fail=range(5, 12))
+    lines: list[str] = []
+    stats = await run_sender(
+        arena, sink, scene, frames=24, listen=None, log=lines.append, install_signal_handlers=False
+    )
+    assert stats.frames == 24
+    assert stats.display_errors == 7
+    assert sink.indices == [j for j in range(24) if not 5 <= j < 12]  # back at frame 12, nothing skipped after
+    reference = IptModulator(mask, DELTA_L, clip_allowance_l8=arena.modulation.clip_allowance_l8)
+    for j, frame in zip(sink.indices, sink.frames, strict=True):  # each the right phase of the right input
+        plus, minus = reference.phases(scene.frame(j // 2, 30.0))
+        assert np.array_equal(frame, plus if j % 2 == 0 else minus), j
+    assert sum("the null sink failed at output frame 5 (DisplayError" in ln for ln in lines) == 1, lines
+    assert sum("sink is back at output frame 12 after 7 failed frames" in ln for ln in lines) == 1, lines
+    assert "display_errors=7" in lines[-1]
+
+
+@pytest.mark.asyncio
+async def test_a_failing_file_sink_ends_the_run(tmp_path: Path, arena: ArenaConfig) -> None:
+    class _FullDisk(FileSink):
+        def show(self, frame_rgb: U8, index: int) -> None:
+            if index == 3:
+                raise DisplayError("no space left on device")
+            super().show(frame_rgb, index)
+
+    with pytest.raises(DisplayError, match="no space left"):
+        await run_sender(
+            arena, _FullDisk(tmp_path / "f.mkv", 60.0, W, H), _FlatScene(), frames=10, listen=None,
+            log=lambda _: None, install_signal_handlers=False,
+        )  # fmt: skip
+
+
 @pytest.mark.asyncio
 async def test_port_in_use_is_a_clear_error(arena: ArenaConfig) -> None:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:

@@ -572,6 +572,7 @@ class VideoScene:
         self._length: int | None = None  # frames in the file, known after the first pass
         self._next = 0  # index of the file frame the source yields next
         self._last: tuple[int, U8] | None = None
+        self._given: U8 | None = None  # the frame last returned (unmodified; callers get copies)
         self.reopens = 0
 
     def file_index(self, index: int, rate_hz: float) -> int:
@@ -590,11 +591,11 @@ class VideoScene:
         if self._length is not None:
             j %= self._length
             if self._cache is not None and len(self._cache) == self._length:
-                return self._cache[j].copy()
+                return self._give(self._cache[j])
         if self._cache is not None and j < len(self._cache):
-            return self._cache[j].copy()
+            return self._give(self._cache[j])
         if self._last is not None and self._last[0] == j:
-            return self._last[1].copy()
+            return self._give(self._last[1])
         if j < self._next:
             self._reopen()
         while True:
@@ -606,7 +607,7 @@ class VideoScene:
                 assert self._length is not None
                 j %= self._length
                 if self._cache is not None and len(self._cache) == self._length:
-                    return self._cache[j].copy()
+                    return self._give(self._cache[j])
                 self._reopen()
                 continue
             k = self._next
@@ -622,7 +623,16 @@ class VideoScene:
                     self._cache = None
             if k == j:
                 self._last = (j, image)
-                return image.copy()
+                return self._give(image)
+
+    def _give(self, image: U8) -> U8:
+        self._given = image
+        return image.copy()
+
+    def last_frame(self) -> U8 | None:
+        """A copy of the last frame :meth:`frame` returned (as it was returned), or None before the first: what
+        the sender shows while the file cannot be read."""
+        return None if self._given is None else self._given.copy()
 
     def _end_of_file(self) -> None:
         if self._length is None:

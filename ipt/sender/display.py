@@ -3,6 +3,10 @@
 Every sink has ``show(frame_rgb, index)`` (one H×W×3 uint8 RGB output frame; ``index`` is the output
 frame number j) and ``close()``, and says whether the sender should pace it at the output rate
 (``paced``) and whether ``show`` may block long enough to be run off the event loop (``threaded``).
+A sink that says ``retries = True`` may fail to show a frame and work again later (a display that
+comes back): the sender counts the failure and goes on with the next frame. A sink without it (a file,
+which cannot skip a frame) ends the run when it fails.
+
 A sink may also say ``borrows = True``: it is done with a frame when ``show`` returns (it copied,
 encoded or discarded it), so the sender may write later frames into the same array. Without it, every
 input frame gets new arrays (a sink that keeps frames, such as the closed-loop demo's, needs that).
@@ -71,6 +75,7 @@ class NullSink:
     """Discards every frame; counts them."""
 
     name = "null"
+    retries = True
     paced = True
     threaded = False
     borrows = True
@@ -103,6 +108,7 @@ class FileSink:
     """
 
     name = "file"
+    retries = False
     paced = False
     threaded = True
     borrows = True
@@ -150,6 +156,7 @@ class WindowSink:
     """
 
     name = "window"
+    retries = True  # a lost window is opened again at the next frame
     paced = True
     threaded = True
     borrows = True
@@ -212,8 +219,13 @@ class WindowSink:
             if event.type == pg.QUIT or (event.type == pg.KEYDOWN and event.key in (pg.K_ESCAPE, pg.K_q)):
                 self._quit = True
         frame = np.ascontiguousarray(frame_rgb)
-        self._screen.blit(pg.image.frombuffer(frame, (w, h), "RGB"), (0, 0))
-        pg.display.flip()  # with vsync: waits for the next refresh
+        try:
+            self._screen.blit(pg.image.frombuffer(frame, (w, h), "RGB"), (0, 0))
+            pg.display.flip()  # with vsync: waits for the next refresh
+        except pg.error as exc:  # the display went away: open the window again at the next frame
+            self._size = self._screen = None
+            pg.display.quit()
+            raise DisplayError(f"the window on display {self.display_index} was lost: {exc}") from None
 
     def pixel(self, x: int, y: int) -> tuple[int, int, int]:
         """The RGB colour of the window's pixel (x, y), as last shown (for tests)."""

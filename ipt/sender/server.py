@@ -154,6 +154,10 @@ class SenderStats:
     content_cpu_ms: _Histogram = field(default_factory=_Histogram)
     """CPU time of the content thread per input frame."""
     overlay_errors: int = 0
+    content_errors: int = 0
+    """Input frames the scene failed to make; the last good one was shown instead (phases alternating)."""
+    display_errors: int = 0
+    """Output frames the sink failed to show; the loop went on (phases alternating) and tried the next."""
     packets: Counter[str] = field(default_factory=Counter)
     """Datagram outcomes: ``accepted`` and each rejection reason (and ``error``)."""
     vehicles: int = 0
@@ -189,6 +193,10 @@ class SenderStats:
             text += f" ({reasons})"
         if self.overlay_errors:
             text += f" overlay_errors={self.overlay_errors}"
+        if self.content_errors:
+            text += f" content_errors={self.content_errors}"
+        if self.display_errors:
+            text += f" display_errors={self.display_errors}"
         return text
 
     def to_dict(self) -> dict[str, Any]:
@@ -218,6 +226,9 @@ class SenderStats:
             "missed_deadlines": self.missed,
             "late_frames": self.late,
             "repeated_phases": self.missed + self.late,
+            "overlay_errors": self.overlay_errors,
+            "content_errors": self.content_errors,
+            "display_errors": self.display_errors,
             "packets": dict(sorted(self.packets.items())),
         }
 
@@ -330,6 +341,13 @@ class _Renderer:
         self.early = early if self._rows is not None else None
         self.overlay_errors = 0
         self.first_overlay_error: str | None = None
+        # The scene failing (a video that cannot be decoded or read any more): counted, and the last good
+        # input frame is shown instead; `content_failing` says whether the newest attempt failed.
+        self.live = False  # set by the sender for sinks that retry (a display): keep going on a source failure
+        self._fault_lock = threading.Lock()
+        self.content_errors = 0
+        self.content_failing = False
+        self.last_content_error: str | None = None
         self._phases: tuple[U8, U8] | None = None
         self._input = -1
         self._next: tuple[int, Future[_Content]] | None = None
@@ -340,12 +358,38 @@ class _Renderer:
 
     def _make_content(self, i: int) -> _Content:
         t0, cpu0 = time.perf_counter(), time.thread_time()
-        rgb = self.scene.frame(i, self.input_rate_hz)
         h, w = self.modulator.height_px, self.modulator.width_px
+        try:
+            rgb = self._scene_frame(i, w, h)
+            failed = None
+        except Exception as exc:  # the video source failing must never stop a live projection
+            if not self.live:
+                raise  # a file must not fill up with a frozen frame: the run ends, the file is not kept
+            failed = f"{type(exc).__name__}: {exc}"
+            rgb = self._last_good(w, h)
+        with self._fault_lock:
+            self.content_failing = failed is not None
+            if failed is not None:
+                self.content_errors += 1
+                self.last_content_error = failed
+        return _Content(i, rgb, time.perf_counter() - t0, time.thread_time() - cpu0)
+
+    def _scene_frame(self, i: int, w: int, h: int) -> U8:
+        rgb = self.scene.frame(i, self.input_rate_hz)
+        if not (isinstance(rgb, np.ndarray) and rgb.dtype == np.uint8 and rgb.ndim == 3 and rgb.shape[2] == 3):
+            got = f"{getattr(rgb, 'shape', '?')} {getattr(rgb, 'dtype', type(rgb).__name__)}"
+            raise TypeError(f"the scene gave {got}, not an H×W×3 uint8 image")
         if rgb.shape[:2] != (h, w):
             rgb = resize_to(rgb, w, h)
-        rgb = np.ascontiguousarray(rgb)
-        return _Content(i, rgb, time.perf_counter() - t0, time.thread_time() - cpu0)
+        return np.ascontiguousarray(rgb)
+
+    def _last_good(self, w: int, h: int) -> U8:
+        """A fresh copy of the last input frame the scene made (black if it never made one)."""
+        last: Callable[[], U8 | None] | None = getattr(self.scene, "last_frame", None)
+        rgb = last() if last is not None else None
+        if rgb is None:
+            return np.zeros((h, w, 3), np.uint8)
+        return np.ascontiguousarray(rgb if rgb.shape[:2] == (h, w) else resize_to(rgb, w, h))
 
     def _next_input(self, i: int, j: int) -> int:
         """The input frame after ``i``, shown from output frame ``j`` on."""
@@ -550,6 +594,7 @@ class Sender:
             frames,
             EARLY_ROWS if paced else None,  # unpaced sinks have no deadlines: keep the work simple there
         )
+        self.renderer.live = bool(getattr(sink, "retries", False))
         self.stats = SenderStats(arena.projector.width_px, arena.projector.height_px, self.rate_hz, paced)
         self.bound: tuple[str, int] | None = None
         self.should_exit = False
@@ -564,6 +609,9 @@ class Sender:
         self._signals: list[int] = []
         self._interval_work = _Histogram()
         self._overlay_error_logged = False
+        self._display_failed = 0  # consecutive output frames the sink failed to show
+        self._content_failing = False  # the scene was failing at the last check
+        self._content_errors_before = 0  # content errors counted before the current failure began
         self._started = False
 
     # -- signals: they only set flags --
@@ -682,10 +730,45 @@ class Sender:
             await asyncio.sleep(min(delay, 0.05))
 
     async def _show(self, frame: U8, j: int) -> None:
-        if self._display is None:
-            self.sink.show(frame, j)
-        else:
-            await asyncio.wrap_future(self._display.submit(self.sink.show, frame, j))
+        """Hand frame ``j`` to the sink. A sink that can come back (``retries``: a window, the null sink)
+        may fail: that is said once, counted, and the next frame tries again, so that the clock and the
+        phases go on; a file cannot skip a frame, so its failure ends the run."""
+        try:
+            if self._display is None:
+                self.sink.show(frame, j)
+            else:
+                await asyncio.wrap_future(self._display.submit(self.sink.show, frame, j))
+        except Exception as exc:
+            if not getattr(self.sink, "retries", False):
+                raise
+            self.stats.display_errors += 1
+            self._display_failed += 1
+            if self._display_failed == 1:
+                self.log(
+                    f"ipt-sender: the {self.sink.name} sink failed at output frame {j} ({type(exc).__name__}: "
+                    f"{exc}); the loop goes on, phases alternating, and tries again at every frame"
+                )
+            return
+        if self._display_failed:
+            self.log(f"ipt-sender: the {self.sink.name} sink is back at output frame {j} "
+                     f"after {self._display_failed} failed frames")  # fmt: skip
+            self._display_failed = 0
+
+    def _report_content(self) -> None:
+        """Say when the scene starts and stops failing (checked at every frame; the counts are the renderer's)."""
+        r = self.renderer
+        with r._fault_lock:
+            failing, errors, message = r.content_failing, r.content_errors, r.last_content_error
+        if failing and not self._content_failing:
+            self.log(f"ipt-sender: the video source failed ({message}); showing the last good frame, phases "
+                     "still alternating, and trying the source again at every input frame")  # fmt: skip
+        elif not failing and self._content_failing:
+            self.log(f"ipt-sender: the video source is back ({errors - self._content_errors_before} input "
+                     "frames were replaced by the last good one)")  # fmt: skip
+        if not failing:
+            self._content_errors_before = errors
+        self._content_failing = failing
+        self.stats.content_errors = errors
 
     async def _main_loop(self) -> None:
         period = 1.0 / self.rate_hz
@@ -723,6 +806,7 @@ class Sender:
             if j == 0:
                 first = shown_at
             await self._show(rendered.frame, j)
+            self._report_content()
             j += 1
             stats.frames = j
             stats.elapsed_s = shown_at - first
