@@ -400,6 +400,15 @@ def _fill(c0: float, c1: float, c2: float, a: float, w: F64) -> tuple[float, flo
     return v0, v1, v2
 
 
+def _recentre(c0: float, c1: float, c2: float, y: float, y_f: float, bright: bool) -> tuple[float, float, float]:
+    """The linear colour ``c`` (luminance ``y``) moved to luminance ``y_f``: scaled if ``bright`` (keeps the
+    chromaticity), else shifted by the same amount in every channel (grey added)."""
+    if bright:
+        scale = y_f / y
+        return c0 * scale, c1 * scale, c2 * scale
+    return c0 + (y_f - y), c1 + (y_f - y), c2 + (y_f - y)
+
+
 def _ipt_pair(
     r: int, g: int, b: int, lin: F64, mids: F64, agrid: F64, w: F64, target: float, allowance: float
 ) -> np.uint64:
@@ -428,11 +437,7 @@ def _ipt_pair(
         for it in range(26):
             f = hi if it == 0 else (lo + hi) / 2.0
             y_f = y + f * (y_far - y)
-            if bright:
-                scale = y_f / y
-                d0, d1, d2 = c0 * scale, c1 * scale, c2 * scale
-            else:
-                d0, d1, d2 = c0 + (y_f - y), c1 + (y_f - y), c2 + (y_f - y)
+            d0, d1, d2 = _recentre_c(c0, c1, c2, y, y_f, bright)
             u0, u1, u2 = _fill_c(d0, d1, d2, _amplitude_c(y_f, agrid), w)
             reach = w0 * u0 + w1 * u1 + w2 * u2
             enough = _lstar_c(y_f + reach) - _lstar_c(y_f - reach) >= target * (1.0 - 1e-4)
@@ -445,11 +450,7 @@ def _ipt_pair(
                 lo = f
         f = hi
         y_f = y + f * (y_far - y)
-        if bright:
-            scale = y_f / y
-            c0, c1, c2 = c0 * scale, c1 * scale, c2 * scale
-        else:
-            c0, c1, c2 = c0 + (y_f - y), c1 + (y_f - y), c2 + (y_f - y)
+        c0, c1, c2 = _recentre_c(c0, c1, c2, y, y_f, bright)
         v0, v1, v2 = _fill_c(c0, c1, c2, _amplitude_c(y_f, agrid), w)
         k0, k1, k2 = _nearest_c(c0, mids), _nearest_c(c1, mids), _nearest_c(c2, mids)
     # Codes: for each channel the + code is one of the two around c_i + v_i and the - code balances it
@@ -592,6 +593,7 @@ _luminance_of_lstar_c: Any = _jit(_luminance_of_lstar)
 _amplitude_c: Any = _jit(_amplitude)
 _fill_c: Any = _jit(_fill)
 _balanced_c: Any = _jit(_balanced)
+_recentre_c: Any = _jit(_recentre)
 _ipt_pair_c: Any = _jit(_ipt_pair)
 _ipt_rows_c: Any = _jit(_ipt_rows)
 _ipt_colours_c: Any = _jit(_ipt_colours)
