@@ -386,20 +386,13 @@ V4L2_EXPOSURE_UNIT_US = 100.0
 """V4L2's ``exposure_time_absolute`` counts in units of 100 µs."""
 
 
-class DeviceCapture:
-    """A V4L2 camera (``/dev/videoN``) through OpenCV; BGR converted to RGB.
-
-    The capture time is the monotonic clock at the moment ``grab`` returned, in microseconds. A camera
-    is always live (newest wins); if it cannot be opened it is retried, like a read failure.
-
-    On open, the pixel format, size and rate are asked for, then automatic exposure and white balance are
-    turned off (unless ``controls`` leave them on) and the manual exposure and gain set. What the driver
-    did not take is listed in :attr:`notes` (the capture thread prints them): drivers differ in what they
-    allow.
-    """
+class _LiveCamera:
+    """What the live cameras share: camera ``index`` at ``width``×``height`` and ``fps``, the exposure
+    ``controls`` asked for, the clock that stamps frames, and the notes of the last open."""
 
     live = True
     retry_open = True
+    kind = "camera"
 
     def __init__(
         self,
@@ -413,12 +406,27 @@ class DeviceCapture:
     ) -> None:
         self.index, self.width, self.height, self.fps = index, width, height, fps
         self.controls = controls if controls is not None else CameraControls()
-        self.name = f"device:{index}"
+        self.name = f"{self.kind}:{index}"
         self.notes: list[str] = []
         """What the driver did not do as asked, from the last open (one line each)."""
         self._clock = clock
-        self._cap: cv2.VideoCapture | None = None
         self._count = 0
+
+
+class DeviceCapture(_LiveCamera):
+    """A V4L2 camera (``/dev/videoN``) through OpenCV; BGR converted to RGB.
+
+    The capture time is the monotonic clock at the moment ``grab`` returned, in microseconds. A camera
+    is always live (newest wins); if it cannot be opened it is retried, like a read failure.
+
+    On open, the pixel format, size and rate are asked for, then automatic exposure and white balance are
+    turned off (unless ``controls`` leave them on) and the manual exposure and gain set. What the driver
+    did not take is listed in :attr:`notes` (the capture thread prints them): drivers differ in what they
+    allow.
+    """
+
+    kind = "device"
+    _cap: cv2.VideoCapture | None = None  # while open
 
     def open(self) -> None:
         """Open the device and ask for the camera's format, size, rate, exposure and gain."""
@@ -513,7 +521,7 @@ PICAMERA2_MISSING = (
 )
 
 
-class PiCamera2Capture:
+class PiCamera2Capture(_LiveCamera):
     """A Raspberry Pi camera through picamera2 (imported only when this source is opened).
 
     Frames are asked for as RGB888 (which libcamera stores B, G, R) at the camera file's size; automatic
@@ -522,26 +530,8 @@ class PiCamera2Capture:
     one on that clock, else the moment the frame was handed over.
     """
 
-    live = True
-    retry_open = True
-
-    def __init__(
-        self,
-        index: int,
-        width: int,
-        height: int,
-        fps: float | None,
-        *,
-        controls: CameraControls | None = None,
-        clock: Clock = time.monotonic,
-    ) -> None:
-        self.index, self.width, self.height, self.fps = index, width, height, fps
-        self.controls = controls if controls is not None else CameraControls()
-        self.name = f"picamera2:{index}"
-        self.notes: list[str] = []
-        self._clock = clock
-        self._cam: Any = None
-        self._count = 0
+    kind = "picamera2"
+    _cam: Any = None  # the Picamera2 object while open
 
     def camera_controls(self) -> dict[str, Any]:
         """The libcamera controls this source asks for."""
