@@ -374,6 +374,11 @@ class _Renderer:
                 self.last_content_error = failed
         return _Content(i, rgb, time.perf_counter() - t0, time.thread_time() - cpu0)
 
+    def content_state(self) -> tuple[bool, int, str | None]:
+        """Whether the newest input frame asked for failed, how many have failed, and the last error."""
+        with self._fault_lock:
+            return self.content_failing, self.content_errors, self.last_content_error
+
     def _scene_frame(self, i: int, w: int, h: int) -> U8:
         rgb = self.scene.frame(i, self.input_rate_hz)
         if not (isinstance(rgb, np.ndarray) and rgb.dtype == np.uint8 and rgb.ndim == 3 and rgb.shape[2] == 3):
@@ -756,9 +761,7 @@ class Sender:
 
     def _report_content(self) -> None:
         """Say when the scene starts and stops failing (checked at every frame; the counts are the renderer's)."""
-        r = self.renderer
-        with r._fault_lock:
-            failing, errors, message = r.content_failing, r.content_errors, r.last_content_error
+        failing, errors, message = self.renderer.content_state()
         if failing and not self._content_failing:
             self.log(f"ipt-sender: the video source failed ({message}); showing the last good frame, phases "
                      "still alternating, and trying the source again at every input frame")  # fmt: skip
