@@ -251,6 +251,16 @@ def test_gradient_alignment_is_not_fooled_by_flat_content(scene: Scene) -> None:
     assert demodulate(prev_l, now_l, DemodulationConfig()).shift_px == pytest.approx((0.0, 0.0), abs=0.1)
 
 
+def test_a_prediction_that_leaves_no_overlap_gives_an_empty_difference(scene: Scene, detector: TagDetector) -> None:
+    # A wild motion prediction (the previous frame carried right out of view) once raised a TypeError
+    # from the empty overlap; now the difference is flat and there is simply nothing to detect.
+    prev_l, now_l = lightness(scene.minus), lightness(scene.plus)
+    far = np.array([[1.0, 0.0, 5000.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    result = demodulate(prev_l, now_l, DemodulationConfig(), predicted=far)
+    assert result.binary.shape == now_l.shape
+    assert detector.detect(result.binary) == ()
+
+
 @pytest.mark.xfail(
     strict=True,
     reason="limitation of the paper's sample-based alignment: on flat content the ±ΔL tag pattern itself "

@@ -295,9 +295,11 @@ def clipped_difference(prev_l: U8, now_l: U8, warp: F64, clip_factor: float) -> 
     frame to whole lightness units, at a fraction of the float passes.
     """
     h, w = now_l.shape
-    moved = _warp(prev_l, warp)
     box = covered_box(warp, w, h)
     x0, y0, x1, y1 = box
+    if x1 <= x0 or y1 <= y0:  # the earlier frame covers none of this one (a wild motion prediction)
+        return np.full((h, w), 128, np.uint8)
+    moved = _warp(prev_l, warp)
     magnitude = cv2.absdiff(now_l[y0:y1, x0:x1], moved[y0:y1, x0:x1])
     limit = max(clip_factor * _median_u8(np.asarray(magnitude, np.uint8)), 1.0)
     gain = 127.5 / limit
