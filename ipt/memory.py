@@ -1,15 +1,16 @@
 """Process memory: keep freed frame buffers in the process instead of handing them back to the kernel.
 
-Every frame array the sender and the receiver make is megabytes (12 MB at 1920x2160). glibc's malloc
-serves such blocks with ``mmap`` and returns them with ``munmap`` until a free raises its (dynamic)
-threshold, and trims the top of a heap back to the kernel when more than a threshold is free there. Each
-time memory goes back, the next frame's pages are faulted in again at their first write; on a virtual
-machine the first touch of a page costs most (tens of milliseconds for one 1920x2160 pair of phases). It
-also makes the resident size swing by a frame or two from one moment to the next.
+Every frame array the sender makes is megabytes (12 MB at 1920x2160). glibc's malloc serves such blocks
+with ``mmap`` and returns them with ``munmap`` until a free raises its (dynamic) threshold, and trims the
+top of a heap back to the kernel when more than a threshold is free there. Each time memory goes back,
+the next frame's pages are faulted in again at their first write; on a virtual machine the first touch
+of a page costs most (tens of milliseconds for one 1920x2160 pair of phases), which is more than a 60 Hz
+frame can spare.
 
 :func:`keep_freed_memory` fixes both thresholds (``mallopt``), so that blocks up to ``largest_block_bytes``
-come from the heap and freed ones stay there for the next frame: the working set is faulted in once, at
-start-up, and the resident size is flat after it. On a C library other than glibc it does nothing.
+come from the heap and freed ones stay there for the next frame, and :func:`warm` faults in a thread's
+working set before its deadlines start. On a C library other than glibc it does nothing. (The receiver
+does not use it: its frames are small, and a trial in its daemon changed nothing measurable.)
 """
 
 from __future__ import annotations
