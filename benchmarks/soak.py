@@ -45,22 +45,12 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from load import wait_for  # benchmarks/ is on sys.path when a script here runs
+from load import arena_for, wait_for  # benchmarks/ is on sys.path when a script here runs
 
-from ipt.config.models import ArenaConfig, load_arena_config, shipped_config_path
+from ipt.config.models import shipped_config_path
 
 KEY = b"ipt-soak-benchmark-key-0123456789"
 TARGET_RSS_GROWTH_MB_PER_30MIN = 5.0
-
-
-def arena_for(width: int, height: int) -> dict[str, Any]:
-    """The shipped arena at another projector size, tags scaled by the same factor (as benchmarks/sender.py)."""
-    data: dict[str, Any] = load_arena_config(shipped_config_path("arena.yaml")).model_dump(mode="json")
-    scale = min(width / data["projector"]["width_px"], height / data["projector"]["height_px"])
-    data["projector"].update(width_px=width, height_px=height)
-    data["tag_map"]["tag_size_px"] = max(16, int(data["tag_map"]["tag_size_px"] * scale) // 8 * 8)
-    ArenaConfig.model_validate(data)
-    return data
 
 
 def sample(pid: int) -> dict[str, int] | None:
