@@ -7,8 +7,8 @@ from ipt.receiver.detector import TagDetector
 
 
 def test_close_frees_detector_before_family_and_disarms_library_del() -> None:
-    det = TagDetector(DetectorConfig())
-    inner = det._det
+    det = TagDetector(DetectorConfig(isolation="inline"))
+    inner = det.backend.det  # type: ignore[attr-defined]
     assert inner.tag_detector_ptr is not None
     det.close()
     # pupil-apriltags' own __del__ checks this pointer: None means it will not free anything again.

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import asyncio
 import io
+import os
+import signal
 import socket
 import subprocess
 import sys
@@ -148,6 +150,65 @@ async def test_refused_sends_keep_the_daemon_localising(
     assert stats.frames_processed + stats.drops == 40  # a live camera: newest frame wins on a busy machine
     assert stats.poses >= 0.75 * stats.frames_processed, "localising went on while every send failed"
     assert stats.send_errors > 0
+
+
+def _tagworker_children() -> list[int]:
+    """Process ids of this process's children that are detector helpers (ipt.receiver.tagworker)."""
+    me, found = os.getpid(), []
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            stat = Path(f"/proc/{entry}/stat").read_text()
+            cmdline = Path(f"/proc/{entry}/cmdline").read_bytes()
+        except OSError:
+            continue
+        fields = stat.rsplit(")", 1)[1].split()
+        if int(fields[1]) == me and fields[0] != "Z" and b"ipt.receiver.tagworker" in cmdline:
+            found.append(int(entry))
+    return found
+
+
+@pytest.mark.asyncio
+async def test_killed_detector_helper_is_reported_and_poses_resume_within_two_seconds(
+    short_flight: Path, flight_frames: list[npt.NDArray[np.uint8]]
+) -> None:
+    # A crash in AprilTag's C code takes down only the helper process: the daemon keeps its camera and
+    # sockets, fails the frame in hand, and the next frames go to a new helper.
+    camera = _UnpluggedCamera(flight_frames, fail_after=10_000, outage_s=0.0, total=120)
+    poses: list[tuple[int, float]] = []
+    killed: list[tuple[int, int, float]] = []  # (pid, frame index, time)
+
+    def on_result(frame: CapturedFrame, result: FrameResult | None, sent: int) -> None:
+        if result is not None and result.pose is not None:
+            poses.append((frame.index, time.monotonic()))
+        if frame.index >= 40 and not killed:
+            helpers = _tagworker_children()
+            assert len(helpers) == 1, helpers
+            os.kill(helpers[0], signal.SIGKILL)
+            killed.append((helpers[0], frame.index, time.monotonic()))
+
+    report = io.StringIO()
+    stats = await asyncio.wait_for(
+        run_daemon(
+            _config(short_flight, ["127.0.0.1:9"]),
+            stats_out=report,
+            handle_signals=False,
+            source=camera,
+            on_result=on_result,
+        ),
+        30.0,
+    )
+    assert killed
+    _, kill_index, killed_at = killed[0]
+    assert any(i < kill_index for i, _ in poses)
+    after = [t for i, t in poses if i > kill_index]
+    assert after, "poses after the helper was killed"
+    assert after[0] - killed_at < 2.0, f"first pose {after[0] - killed_at:.2f} s after the kill"
+    assert "helper process failed" in report.getvalue()
+    assert stats.reasons.get("detector_failed") == 1
+    assert stats.detector_restarts == 1
+    assert "replaced 0 for memory and 1 after failures" in report.getvalue()
 
 
 # --- SIGKILL, then a restart as systemd does it (Restart=on-failure, RestartSec=300ms) -------------------

@@ -202,6 +202,20 @@ class DetectorConfig(StrictModel):
         description="Tags with a corner closer than this to the image edge are dropped: a tag cut by the edge "
         "can still decode, with the edge taken for its border.",
     )
+    isolation: Literal["process", "inline"] = Field(
+        "process",
+        description="Where AprilTag's C code runs. 'process': in a helper process that is replaced, without "
+        "a gap in detection, once its memory grew by recycle_mb (pupil-apriltags 1.0.4 leaks a few hundred "
+        "bytes per call; see docs/reliability.md), and restarted if it crashes. 'inline': in the calling "
+        "thread, a little faster, for short runs. Linux only; elsewhere 'process' runs inline.",
+    )
+    recycle_mb: float = Field(
+        4.0,
+        gt=0.0,
+        le=4096.0,
+        description="With isolation 'process': the helper is replaced once its own memory (RssAnon) grew "
+        "by this many MB since it warmed up. At 120 frames/s the leak reaches 4 MB in one to five minutes.",
+    )
 
 
 class PoseConfig(StrictModel):

@@ -135,6 +135,10 @@ class DaemonStats:
     latency_p50_ms: float | None
     latency_p99_ms: float | None
     reasons: dict[str, int]
+    detector_recycles: int = 0
+    """Detector helper processes replaced because their memory grew (see :mod:`ipt.receiver.tagworker`)."""
+    detector_restarts: int = 0
+    """Detector helper processes replaced because they crashed, hung or did not start."""
     capture_running: bool = False
     """The capture thread was still inside a read (stuck in a driver, say) when the daemon returned. It
     is a daemon thread; a process about to exit should then leave with ``os._exit`` rather than run
@@ -154,7 +158,8 @@ class DaemonStats:
             f"{self.packets_sent} packets in {self.seconds:.2f} s: {self.frames_processed / s:.1f} frames/s, "
             f"{self.poses / s:.1f} poses/s, yield {100 * self.yield_fraction:.1f} %, "
             f"latency p50 {_ms(self.latency_p50_ms)} p99 {_ms(self.latency_p99_ms)}, drops {self.drops}, "
-            f"send errors {self.send_errors}, capture failures {self.capture_failures} ({why})"
+            f"send errors {self.send_errors}, capture failures {self.capture_failures}, detector helpers "
+            f"replaced {self.detector_recycles} for memory and {self.detector_restarts} after failures ({why})"
         )
 
 
@@ -311,6 +316,9 @@ async def run_daemon(
                     _write(out, f"{PROG}: frame {frame.index}: processing failed: {type(exc).__name__}: {exc}")
             finally:
                 slots.release()
+            if result is not None and result.reason == "detector_failed" and errors_reported < MAX_ERROR_REPORTS:
+                errors_reported += 1
+                _write(out, f"{PROG}: frame {frame.index}: the tag detector's helper process failed; starting another")
             if result is not None:
                 sent = deliver_one(frame, result)
                 if mavlink is not None:
@@ -398,6 +406,8 @@ async def run_daemon(
         latency_p50_ms=meter.latency.quantile_ms(0.5),
         latency_p99_ms=meter.latency.quantile_ms(0.99),
         reasons=dict(meter.reasons),
+        detector_recycles=pipeline.detector_replacements[0],
+        detector_restarts=pipeline.detector_replacements[1],
         capture_running=not capture.join(0),
     )
     _write(out, stats.line())

@@ -3,28 +3,42 @@
 Corners are returned in OpenCV pixel coordinates (the centre of the top-left pixel is (0, 0)); AprilTag
 reports them with the origin at the top-left pixel's corner, so half a pixel is subtracted here, once.
 Corner order is AprilTag's (see :mod:`ipt.tagmap`), which the tag map uses for its own corners.
+
+The C detector runs either here (``isolation: inline``) or in a helper process that
+:mod:`ipt.receiver.tagworker` manages (``isolation: process``, the default): pupil-apriltags 1.0.4's C
+code leaks memory on every call, and only ending the process gives it back. Both give the same
+detections; the filtering below (bit errors, ids, image border) is the same for both.
+
+This module imports neither pydantic nor the configuration models at run time, so that the helper
+process, which needs only :func:`make_pupil_detector`, starts quickly.
 """
 
 from __future__ import annotations
 
+import threading
 import weakref
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
 import pupil_apriltags
 
-from ipt.config.models import DetectorConfig
 from ipt.errors import IptError
+
+if TYPE_CHECKING:
+    from ipt.config.models import DetectorConfig
 
 #: AprilTag's pixel origin is the top-left corner of the top-left pixel; OpenCV's is its centre.
 APRILTAG_TO_OPENCV_PX = -0.5
 
+#: One detection as the C library gives it: id, bits corrected, decision margin, 4x2 corners (AprilTag px).
+RawDetection = tuple[int, int, float, npt.NDArray[np.float64]]
+
 
 class DetectorError(IptError):
-    """The detector was given something it cannot work on."""
+    """The detector was given something it cannot work on, or its helper process failed."""
 
 
 @dataclass(frozen=True)
@@ -61,38 +75,111 @@ def free_pupil_detector(det: Any) -> None:
     det.tag_families = {}
 
 
+def c_settings(cfg: DetectorConfig) -> dict[str, float]:
+    """The settings the C detector is made with (plain values, so they can cross to the helper process)."""
+    return {
+        "nthreads": cfg.threads,
+        "quad_decimate": cfg.quad_decimate,
+        "quad_sigma": cfg.quad_sigma,
+        "refine_edges": int(cfg.refine_edges),
+        "decode_sharpening": cfg.decode_sharpening,
+    }
+
+
+def make_pupil_detector(settings: dict[str, float]) -> Any:
+    """A tag36h11 pupil-apriltags detector with ``settings`` (see :func:`c_settings`). Free it with
+    :func:`free_pupil_detector`."""
+    det = pupil_apriltags.Detector(
+        families="tag36h11",
+        nthreads=int(settings["nthreads"]),
+        quad_decimate=settings["quad_decimate"],
+        quad_sigma=settings["quad_sigma"],
+        refine_edges=int(settings["refine_edges"]),
+        decode_sharpening=settings["decode_sharpening"],
+    )
+    # pupil-apriltags 1.0.4 stores int(decode_sharpening), so 0.25 would reach the C detector as 0.
+    det.tag_detector_ptr.contents.decode_sharpening = settings["decode_sharpening"]
+    return det
+
+
+def pupil_settings(det: Any) -> dict[str, float]:
+    """The settings as the C detector holds them (pupil-apriltags may coerce what it is given)."""
+    c = det.tag_detector_ptr.contents
+    return {
+        "nthreads": int(c.nthreads),
+        "quad_decimate": float(c.quad_decimate),
+        "quad_sigma": float(c.quad_sigma),
+        "refine_edges": int(c.refine_edges),
+        "decode_sharpening": float(c.decode_sharpening),
+    }
+
+
+def pupil_detect(det: Any, gray: npt.NDArray[np.uint8]) -> list[RawDetection]:
+    """Every tag36h11 decode the C detector finds in ``gray``, unfiltered."""
+    return [
+        (int(d.tag_id), int(d.hamming), float(d.decision_margin), np.asarray(d.corners, dtype=np.float64).reshape(4, 2))
+        for d in det.detect(gray)
+    ]
+
+
+class Backend(Protocol):
+    """Where the C detector runs: :class:`InlineBackend` or :class:`ipt.receiver.tagworker.ProcessBackend`."""
+
+    def detect_raw(self, gray: npt.NDArray[np.uint8]) -> list[RawDetection]: ...
+
+    def settings(self) -> dict[str, float]: ...
+
+    def close(self) -> None: ...
+
+
+class InlineBackend:
+    """The C detector in this process, called on the caller's thread."""
+
+    def __init__(self, settings: dict[str, float]) -> None:
+        self.det = make_pupil_detector(settings)
+        self._finalizer = weakref.finalize(self, free_pupil_detector, self.det)
+
+    def detect_raw(self, gray: npt.NDArray[np.uint8]) -> list[RawDetection]:
+        return pupil_detect(self.det, gray)
+
+    def settings(self) -> dict[str, float]:
+        return pupil_settings(self.det)
+
+    def close(self) -> None:
+        self._finalizer()
+
+
 class TagDetector:
     """A configured tag36h11 detector that keeps only ids of the map and trustworthy decodes."""
 
     def __init__(self, cfg: DetectorConfig, known_ids: Iterable[int] | None = None) -> None:
         self.cfg = cfg
         self.known_ids = None if known_ids is None else frozenset(known_ids)
-        self._det = pupil_apriltags.Detector(
-            families="tag36h11",
-            nthreads=cfg.threads,
-            quad_decimate=cfg.quad_decimate,
-            quad_sigma=cfg.quad_sigma,
-            refine_edges=int(cfg.refine_edges),
-            decode_sharpening=cfg.decode_sharpening,
-        )
-        self._finalizer = weakref.finalize(self, free_pupil_detector, self._det)
-        # pupil-apriltags 1.0.4 stores int(decode_sharpening), so 0.25 would reach the C detector as 0.
-        self._det.tag_detector_ptr.contents.decode_sharpening = cfg.decode_sharpening
+        self.backend: Backend
+        if cfg.isolation == "process":
+            from ipt.receiver.tagworker import ProcessBackend, process_isolation_available
+
+            if process_isolation_available():
+                self.backend = ProcessBackend(c_settings(cfg), recycle_mb=cfg.recycle_mb)
+            else:
+                self.backend = InlineBackend(c_settings(cfg))
+        else:
+            self.backend = InlineBackend(c_settings(cfg))
+        self._lock = threading.Lock()
+
+    @property
+    def isolated(self) -> bool:
+        """Whether the C code runs in a helper process."""
+        return not isinstance(self.backend, InlineBackend)
 
     def close(self) -> None:
-        """Free the C detector now (also done when this object is garbage-collected)."""
-        self._finalizer()
+        """Free the C detector (or end its process) now; also done when this object is garbage-collected."""
+        self.backend.close()
 
     def effective_settings(self) -> dict[str, float]:
         """The settings as the C detector holds them (pupil-apriltags may coerce what it is given)."""
-        c = self._det.tag_detector_ptr.contents
-        return {
-            "nthreads": int(c.nthreads),
-            "quad_decimate": float(c.quad_decimate),
-            "quad_sigma": float(c.quad_sigma),
-            "refine_edges": int(c.refine_edges),
-            "decode_sharpening": float(c.decode_sharpening),
-        }
+        with self._lock:
+            return self.backend.settings()
 
     def detect(self, gray: npt.NDArray[np.uint8]) -> tuple[TagDetection, ...]:
         """Decode the tags in an 8-bit single-channel image."""
@@ -101,14 +188,15 @@ class TagDetector:
         out = []
         h, w = gray.shape
         m = self.cfg.border_margin_px
-        for d in self._det.detect(np.ascontiguousarray(gray)):
-            tag_id, hamming = int(d.tag_id), int(d.hamming)
+        with self._lock:
+            raw = self.backend.detect_raw(np.ascontiguousarray(gray))
+        for tag_id, hamming, margin, corners_at in raw:
             if hamming > self.cfg.max_hamming:
                 continue
             if self.known_ids is not None and tag_id not in self.known_ids:
                 continue
-            corners = np.asarray(d.corners, dtype=np.float64).reshape(4, 2) + APRILTAG_TO_OPENCV_PX
+            corners = corners_at + APRILTAG_TO_OPENCV_PX
             if (corners < m - 0.5).any() or (corners[:, 0] > w - 0.5 - m).any() or (corners[:, 1] > h - 0.5 - m).any():
                 continue
-            out.append(TagDetection(tag_id, hamming, float(d.decision_margin), corners))
+            out.append(TagDetection(tag_id, hamming, margin, corners))
         return tuple(out)

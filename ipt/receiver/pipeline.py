@@ -29,7 +29,7 @@ import numpy.typing as npt
 from ipt.config.camera_info import CameraInfo
 from ipt.config.models import PipelineConfig
 from ipt.receiver.demodulator import alignment_features, demodulate, lightness
-from ipt.receiver.detector import TagDetection, TagDetector
+from ipt.receiver.detector import DetectorError, TagDetection, TagDetector
 from ipt.receiver.motion import MotionTrack, floor_warp
 from ipt.receiver.pose import PoseEstimate, solve_pose
 from ipt.tagmap import TagMap
@@ -95,6 +95,16 @@ class Pipeline:
         self.stage_seconds: dict[str, float] = defaultdict(float)
         """Processor time spent per stage (lightness, demodulate, detect, pose), for benchmarks."""
         self.detector_runs = 0
+
+    def close(self) -> None:
+        """End the detector (and its helper process) now rather than when this object is collected."""
+        self.detector.close()
+
+    @property
+    def detector_replacements(self) -> tuple[int, int]:
+        """Helper processes of the detector replaced so far: (for their memory, after a failure)."""
+        backend = self.detector.backend
+        return (getattr(backend, "recycles", 0), getattr(backend, "restarts", 0))
 
     def process(self, index: int, frame_rgb: U8, capture_time_us: int) -> FrameResult:
         """Process camera frame ``index``; never raises for a bad frame (the reason says what happened)."""
@@ -194,7 +204,12 @@ class Pipeline:
             predicted = self._predicted_warp(prev.time_us, capture_time_us)
             demod = demodulate(prev.lightness, now_l, demod_cfg, predicted=predicted, features=features)
             t0 = self._lap("demodulate", t0)
-            dets, sign = self._detect(demod.binary, self._predicted_sign(capture_time_us, prev))
+            try:
+                dets, sign = self._detect(demod.binary, self._predicted_sign(capture_time_us, prev))
+            except DetectorError:  # the detector's helper process died or hung; a new one takes the next frame
+                self._lap("detect", t0)
+                result = FrameResult(index, capture_time_us, None, 0, "detector_failed")
+                break
             t0 = self._lap("detect", t0)
             if not dets:
                 result = FrameResult(index, capture_time_us, None, 0, "no_tags")
