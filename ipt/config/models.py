@@ -207,7 +207,9 @@ class DetectorConfig(StrictModel):
         description="Where AprilTag's C code runs. 'process': in a helper process that is replaced, without "
         "a gap in detection, once its memory grew by recycle_mb (pupil-apriltags 1.0.4 leaks a few hundred "
         "bytes per call; see docs/reliability.md), and restarted if it crashes. 'inline': in the calling "
-        "thread, a little faster, for short runs. Linux only; elsewhere 'process' runs inline.",
+        "thread, with memory growing by the leak, for short runs; on a 2-core test machine it had 1.3 ms "
+        "less capture-to-send latency at the median and 3.8 ms at p99. Linux only; elsewhere 'process' "
+        "runs inline.",
     )
     recycle_mb: float = Field(
         4.0,

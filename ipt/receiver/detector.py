@@ -173,8 +173,10 @@ class TagDetector:
         return not isinstance(self.backend, InlineBackend)
 
     def close(self) -> None:
-        """Free the C detector (or end its process) now; also done when this object is garbage-collected."""
-        self.backend.close()
+        """Free the C detector (or end its process) now; also done when this object is garbage-collected.
+        Waits for a detection in progress on another thread."""
+        with self._lock:
+            self.backend.close()
 
     def effective_settings(self) -> dict[str, float]:
         """The settings as the C detector holds them (pupil-apriltags may coerce what it is given)."""

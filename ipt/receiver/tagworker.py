@@ -243,7 +243,7 @@ class ProcessBackend:
         self.start_timeout_s, self.reply_timeout_s = start_timeout_s, reply_timeout_s
         self.warm_calls, self.check_every = warm_calls, check_every
         self.recycles = 0
-        """Helpers replaced because their memory grew."""
+        """Helpers replaced (by a ready spare) because their memory grew."""
         self.restarts = 0
         """Helpers replaced because they crashed, hung or failed to start."""
         self._helpers = _Helpers()
@@ -348,6 +348,7 @@ class ProcessBackend:
             old, self._current, self._spare = self._current, self._spare, None
             if old is not None:
                 self._end(old, kill=False)
+                self.recycles += 1
         if self._current is None:
             helper = self._spare or self._start()
             self._spare = None
@@ -367,8 +368,7 @@ class ProcessBackend:
         if helper.baseline_kb is None:
             helper.baseline_kb = rss
         elif rss - helper.baseline_kb > self.recycle_kb and self._spare is None:
-            self._spare = self._start()
-            self.recycles += 1
+            self._spare = self._start()  # takes over once it is ready (see _helper)
 
     # -- the interface -------------------------------------------------------------------------------
 
