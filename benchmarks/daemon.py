@@ -14,6 +14,8 @@ listens on:
   by a live source, as a camera driver delivers them (already decoded). Decoding the lossless FFV1
   recording costs more than the pipeline at 640x360 on a small machine and is not part of a live
   camera's path, so this is the capture→send latency of a deployed receiver.
+- ``camera_inline``: the same with ``detector.isolation: inline`` (AprilTag in the daemon's process
+  instead of its helper process), to see what the helper costs.
 
 Every packet is decoded with :func:`ipt.protocol.decode_pose` and its position compared with the truth at
 its capture time. ``--compare-replay`` also runs ``ipt-receiver replay`` on the same recording and
@@ -185,11 +187,11 @@ class _MemoryCamera:
         pass
 
 
-def run_camera(folder: Path, fps: float) -> dict[str, Any]:
+def run_camera(folder: Path, fps: float, isolation: str = "process") -> dict[str, Any]:
     import asyncio
     import io
 
-    from ipt.config.models import shipped_config_path
+    from ipt.config.models import DetectorConfig, PipelineConfig, shipped_config_path
     from ipt.config.receiver import ReceiverConfig
     from ipt.receiver.daemon import run_daemon
     from ipt.videoio import open_frames
@@ -202,6 +204,7 @@ def run_camera(folder: Path, fps: float) -> dict[str, Any]:
         camera=folder / "camera.yaml",
         send=[f"127.0.0.1:{listener.port}"],
         stats_interval_s=3600.0,
+        pipeline=PipelineConfig(detector=DetectorConfig(isolation=isolation)),
     )
     report = io.StringIO()
     t0 = time.monotonic()
@@ -244,7 +247,9 @@ def main() -> int:
     p.add_argument("--video", type=Path, help="folder with frames.mkv, camera.yaml, groundtruth.tum")
     p.add_argument("--seconds", type=float, default=5.0, help="length of the flight to simulate (no --video)")
     p.add_argument("--fps", type=float, default=120.0, help="camera frame rate")
-    p.add_argument("--modes", default="camera,fast", help="comma-separated: camera, realtime, fast")
+    p.add_argument(
+        "--modes", default="camera,fast", help="comma-separated: camera, camera_inline, realtime, fast"
+    )
     p.add_argument("--compare-replay", action="store_true", help="also count the poses ipt-receiver replay finds")
     args = p.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
@@ -252,7 +257,10 @@ def main() -> int:
         result: dict[str, Any] = {"flight": str(folder), "load_avg_before": os.getloadavg()}
         for mode in args.modes.split(","):
             print(f"daemon benchmark: {mode} ...", file=sys.stderr)
-            result[mode] = run_camera(folder, args.fps) if mode == "camera" else run_mode(folder, mode, args.fps)
+            if mode in ("camera", "camera_inline"):
+                result[mode] = run_camera(folder, args.fps, "inline" if mode == "camera_inline" else "process")
+            else:
+                result[mode] = run_mode(folder, mode, args.fps)
         if args.compare_replay:
             poses = replay_poses(folder, args.fps, Path(tmp))
             result["replay_poses"] = poses

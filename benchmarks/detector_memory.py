@@ -77,7 +77,9 @@ def child(images_path: Path, isolation: str, calls: int, recycle_mb: float) -> d
     det = TagDetector(DetectorConfig(isolation=isolation, recycle_mb=recycle_mb))
     me = os.getpid()
     points: list[tuple[int, float, float]] = []  # calls, tree RssAnon MB, this process's RssAnon MB
-    per_call = np.zeros(calls)  # allocated up front: a growing list would show as growth here
+    # Allocated and written up front: a growing list, or the lazily mapped pages of np.zeros, would
+    # show here as growth.
+    per_call = np.full(calls, np.nan)
     t_start = time.perf_counter()
     for k in range(calls):
         t0 = time.perf_counter()
