@@ -16,9 +16,10 @@ cross the helper's stdin and stdout as little-endian binary::
     parent -> helper, per image:   u32 height, u32 width   (the image, row-major, is in shared memory)
     helper -> parent, per image:   u32 count, count x (i32 id, i32 hamming, f64 margin, 8 x f64 corners)
 
-A helper ends when its stdin closes: when the parent closes it, exits, or is killed. It ignores SIGINT
-and SIGTERM, which a terminal or systemd sends to the whole group: the parent decides when it ends, and
-can finish the frame in hand. Linux only (``memfd_create``); elsewhere detection runs inline.
+A helper ends when its stdin closes: when the parent closes it, exits, or is killed. The parent decides
+when it ends, and can finish the frame in hand: the helper has a session of its own, so a terminal's
+Ctrl-C does not reach it, and it ignores SIGINT and SIGTERM, which systemd sends to every process of the
+unit. Linux only (``memfd_create``); elsewhere detection runs inline.
 """
 
 from __future__ import annotations
