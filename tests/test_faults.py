@@ -20,7 +20,7 @@ import pytest
 from ipt.config.models import shipped_config_path
 from ipt.config.receiver import ReceiverConfig
 from ipt.receiver.capture import CapturedFrame, CaptureError
-from ipt.receiver.daemon import run_daemon
+from ipt.receiver.daemon import DaemonStats, ResultHook, run_daemon
 from ipt.receiver.pipeline import FrameResult
 from ipt.videoio import open_frames
 
@@ -81,6 +81,22 @@ def _config(short_flight: Path, send: list[str]) -> ReceiverConfig:
     )
 
 
+async def _run_live(
+    short_flight: Path,
+    send: list[str],
+    camera: _UnpluggedCamera,
+    report: io.StringIO,
+    on_result: ResultHook | None = None,
+) -> DaemonStats:
+    """The daemon in this process on ``camera``, sending to ``send``, its report in ``report`` (at most 30 s)."""
+    return await asyncio.wait_for(
+        run_daemon(
+            _config(short_flight, send), stats_out=report, handle_signals=False, source=camera, on_result=on_result
+        ),
+        30.0,
+    )
+
+
 @pytest.mark.slow
 @pytest.mark.asyncio
 async def test_camera_unplugged_and_back_poses_resume_within_two_seconds(
@@ -99,16 +115,7 @@ async def test_camera_unplugged_and_back_poses_resume_within_two_seconds(
 
     report = io.StringIO()
     try:
-        stats = await asyncio.wait_for(
-            run_daemon(
-                _config(short_flight, [f"127.0.0.1:{port}"]),
-                stats_out=report,
-                handle_signals=False,
-                source=camera,
-                on_result=on_result,
-            ),
-            30.0,
-        )
+        stats = await _run_live(short_flight, [f"127.0.0.1:{port}"], camera, report, on_result)
         received = 0
         while True:
             try:
@@ -138,15 +145,7 @@ async def test_refused_sends_keep_the_daemon_localising(
     # Port 9 (discard) on loopback has no listener: every datagram is refused (ICMP port unreachable).
     camera = _UnpluggedCamera(flight_frames, fail_after=10_000, outage_s=0.0, total=40)
     report = io.StringIO()
-    stats = await asyncio.wait_for(
-        run_daemon(
-            _config(short_flight, ["127.0.0.1:9"]),
-            stats_out=report,
-            handle_signals=False,
-            source=camera,
-        ),
-        30.0,
-    )
+    stats = await _run_live(short_flight, ["127.0.0.1:9"], camera, report)
     assert stats.frames_processed + stats.drops == 40  # a live camera: newest frame wins on a busy machine
     assert stats.poses >= 0.75 * stats.frames_processed, "localising went on while every send failed"
     assert stats.send_errors > 0
@@ -189,16 +188,7 @@ async def test_killed_detector_helper_is_reported_and_poses_resume_within_two_se
             killed.append((helpers[0], frame.index, time.monotonic()))
 
     report = io.StringIO()
-    stats = await asyncio.wait_for(
-        run_daemon(
-            _config(short_flight, ["127.0.0.1:9"]),
-            stats_out=report,
-            handle_signals=False,
-            source=camera,
-            on_result=on_result,
-        ),
-        30.0,
-    )
+    stats = await _run_live(short_flight, ["127.0.0.1:9"], camera, report, on_result)
     assert killed
     _, kill_index, killed_at = killed[0]
     assert any(i < kill_index for i, _ in poses)
