@@ -149,22 +149,22 @@ class InlineBackend:
         self._finalizer()
 
 
+def _isolated(cfg: DetectorConfig) -> Backend:
+    """The C detector in a helper process where the system allows it (Linux), else in this one."""
+    from ipt.receiver.tagworker import ProcessBackend, process_isolation_available
+
+    if not process_isolation_available():
+        return InlineBackend(c_settings(cfg))
+    return ProcessBackend(c_settings(cfg), recycle_mb=cfg.recycle_mb)
+
+
 class TagDetector:
     """A configured tag36h11 detector that keeps only ids of the map and trustworthy decodes."""
 
     def __init__(self, cfg: DetectorConfig, known_ids: Iterable[int] | None = None) -> None:
         self.cfg = cfg
         self.known_ids = None if known_ids is None else frozenset(known_ids)
-        self.backend: Backend
-        if cfg.isolation == "process":
-            from ipt.receiver.tagworker import ProcessBackend, process_isolation_available
-
-            if process_isolation_available():
-                self.backend = ProcessBackend(c_settings(cfg), recycle_mb=cfg.recycle_mb)
-            else:
-                self.backend = InlineBackend(c_settings(cfg))
-        else:
-            self.backend = InlineBackend(c_settings(cfg))
+        self.backend: Backend = InlineBackend(c_settings(cfg)) if cfg.isolation == "inline" else _isolated(cfg)
         self._lock = threading.Lock()
 
     @property
