@@ -65,27 +65,32 @@ def _rate_fraction(fps: float | Fraction) -> Fraction:
     return rate
 
 
-def _check_frame(frame: Any, width: int, height: int, what: str) -> npt.NDArray[np.uint8]:
-    """``frame`` as a C-contiguous RGB array of the given size, or a :class:`VideoError`."""
+def _check_frame(frame: Any, width: int, height: int, what: str, grey: bool = False) -> npt.NDArray[np.uint8]:
+    """``frame`` as a C-contiguous RGB (or, with ``grey``, single-channel) array of the given size, or a
+    :class:`VideoError`."""
     if not isinstance(frame, np.ndarray):
         raise VideoError(f"{what}: a frame must be a numpy array, not {type(frame).__name__}")
     if frame.dtype != np.uint8:
         raise VideoError(f"{what}: frames must have dtype uint8, not {frame.dtype}")
-    if frame.shape != (height, width, 3):
-        raise VideoError(f"{what}: frame has shape {frame.shape}, expected {(height, width, 3)} (height, width, RGB)")
+    expected = (height, width) if grey else (height, width, 3)
+    if frame.shape != expected:
+        layout = "height, width" if grey else "height, width, RGB"
+        raise VideoError(f"{what}: frame has shape {frame.shape}, expected {expected} ({layout})")
     return np.ascontiguousarray(frame)
 
 
 class FfvWriter:
-    """Write RGB frames to a lossless FFV1/Matroska file that appears at ``path`` only when complete.
+    """Write RGB frames (or grey ones, with ``grey``: pixel format ``gray``, as a mono camera gives them) to
+    a lossless FFV1/Matroska file that appears at ``path`` only when complete.
 
     Frames go to a temporary ``….partial.mkv`` file beside ``path``; :meth:`close` (or leaving the
     ``with`` block normally) renames it onto ``path``. If the ``with`` block raises, or :meth:`abort`
     is called, the temporary file is removed and ``path`` is left as it was.
     """
 
-    def __init__(self, path: str | Path, width: int, height: int, fps: float | Fraction) -> None:
+    def __init__(self, path: str | Path, width: int, height: int, fps: float | Fraction, grey: bool = False) -> None:
         self.path = Path(path)
+        self.grey = grey
         for name, value in (("width", width), ("height", height)):
             if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
                 raise VideoError(f"{self.path}: {name} must be a positive integer, not {value!r}")
@@ -106,7 +111,7 @@ class FfvWriter:
             self._stream = self._container.add_stream("ffv1", rate=self.rate)
             self._stream.width = width
             self._stream.height = height
-            self._stream.pix_fmt = FFV1_PIX_FMT
+            self._stream.pix_fmt = "gray" if grey else FFV1_PIX_FMT
             # level 3 with per-slice CRCs: the current FFV1 version, and damage is detected on reading.
             self._stream.options = {"level": "3", "slicecrc": "1", "g": "1"}
             self._stream.metadata[_RATE_TAG] = f"{self.rate.numerator}/{self.rate.denominator}"
@@ -115,11 +120,11 @@ class FfvWriter:
             raise VideoError(f"{self.path}: cannot start an FFV1 video: {e}") from e
 
     def write(self, frame_rgb: npt.NDArray[np.uint8]) -> None:
-        """Append one H×W×3 uint8 RGB frame."""
+        """Append one H×W×3 uint8 RGB frame (H×W for a grey writer)."""
         if self._closed:
             raise VideoError(f"{self.path}: write after the writer was closed")
-        frame = _check_frame(frame_rgb, self.width, self.height, str(self.path))
-        video_frame = av.VideoFrame.from_ndarray(frame, format="rgb24")
+        frame = _check_frame(frame_rgb, self.width, self.height, str(self.path), self.grey)
+        video_frame = av.VideoFrame.from_ndarray(frame, format="gray" if self.grey else "rgb24")
         video_frame.pts = self.frames_written
         video_frame.time_base = 1 / self.rate
         try:
