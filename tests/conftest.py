@@ -14,7 +14,10 @@ from ipt.sim.run import simulate_to_folder
 
 @pytest.fixture(scope="session")
 def short_flight(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """0.5 s (60 frames) of the default simulated flight: frames.mkv, camera.yaml, groundtruth.tum."""
+    """0.5 s (60 frames) of the smooth simulated flight: frames.mkv, camera.yaml, groundtruth.tum.
+
+    No shadow, vibration or moving content: the tests that use it check the receiver's mechanics (files,
+    sockets, timing), not its robustness, which the realistic flights of benchmarks/flights/ measure."""
     out = tmp_path_factory.mktemp("flight")
-    simulate_to_folder(ArenaConfig(), SimConfig(), GeneratedScene(1920, 2160), out, 0.5, progress=None)
+    simulate_to_folder(ArenaConfig(), SimConfig.smooth(), GeneratedScene(1920, 2160), out, 0.5, progress=None)
     return out

@@ -44,11 +44,11 @@ RUN_TIMEOUT_S = 60.0
 
 @pytest.fixture(scope="session")
 def sim_video(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """0.5 s (60 frames at 120 FPS) of simulated flight: frames.mkv, camera.yaml, groundtruth.tum."""
+    """0.5 s (60 frames at 120 FPS) of the smooth simulated flight (these tests check the daemon's mechanics)."""
     out = tmp_path_factory.mktemp("flight")
     arena = load_arena_config(shipped_config_path("arena.yaml"))
     scene = GeneratedScene(arena.projector.width_px, arena.projector.height_px, seed=0)
-    simulate_to_folder(arena, SimConfig(), scene, out, 0.5, progress=None)
+    simulate_to_folder(arena, SimConfig.smooth(), scene, out, 0.5, progress=None)
     return out
 
 

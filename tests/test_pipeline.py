@@ -46,18 +46,26 @@ def test_opposite_phase_pairing_prefers_one_projector_period(short_flight: Path)
     assert p._phase_error(round(3 / 180 * 1e6)) == pytest.approx(0.0, abs=1e-4)  # lag 3 at 180 FPS
 
 
+START_UP_FRAMES = 6
+"""Frames before the ipt profile's motion fit exists (5 poses over 30 ms): its start-up gate holds doubtful
+poses back there."""
+
+
 def test_ipt_profile_beats_the_paper_profile_on_the_same_frames(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]
     truth = read_tum(short_flight / "groundtruth.tum")
     yields, errors = {}, {}
+    settled = {}
     for name in ("ipt", "paper"):
         results = _run(_pipeline(short_flight, PipelineConfig.profile(name)), frames)
         posed = [r for r in results if r.pose is not None]
         yields[name] = len(posed) / len(frames)
+        settled[name] = sum(r.index >= START_UP_FRAMES for r in posed)
         errors[name] = max(np.linalg.norm(r.pose.position_m - truth.positions_m[r.index]) for r in posed)
     # On half a second the paper's pipeline does well too (its lag-1 pairs still see a third of the signal
-    # where exposures straddle a flip); ipt finds as many poses and none as far off.
+    # where exposures straddle a flip). ipt holds back a pose or two at the start, until its motion fit
+    # exists to check them against; from then on it finds as many poses, and none as far off.
     assert yields["ipt"] >= 0.85
-    assert yields["ipt"] >= yields["paper"]
+    assert settled["ipt"] >= settled["paper"]
     assert errors["ipt"] < 0.03
     assert errors["ipt"] < errors["paper"]
 

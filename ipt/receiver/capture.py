@@ -354,12 +354,9 @@ class SimCapture:
         """Build the simulated arena (content, modulator, renderer)."""
         if self._world is not None:
             return
-        from ipt.sender.content import GeneratedScene
-        from ipt.sim.arena import SimulatedArena
+        from ipt.sim.arena import SimulatedArena, scene_for
 
-        pr = self.arena.projector
-        scene = GeneratedScene(pr.width_px, pr.height_px, seed=self.sim_cfg.seed)
-        self._world = SimulatedArena(self.arena, self.sim_cfg, scene)
+        self._world = SimulatedArena(self.arena, self.sim_cfg, scene_for(self.sim_cfg, self.arena))
         self.notes = tuple(self._world.notes)  # the capture thread reports them once
 
     def read(self) -> CapturedFrame | None:

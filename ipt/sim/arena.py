@@ -1,9 +1,11 @@
 """The simulated arena: a projector showing modulated video and a camera flying over it.
 
-Timing: camera frame ``k`` is exposed for ``exposure_ms`` centred on ``k / fps``. The projector flips
-frames every ``1 / (rate_hz · (1 + ppm·1e-6))`` seconds, the first flip at ``projector_offset_ms``; an
-exposure that straddles a flip sees both phases in proportion. The ground truth of frame ``k`` is the
-camera pose at ``k / fps``.
+Timing: camera frame ``k`` is exposed for ``exposure_ms`` centred on ``k / fps`` (its middle row's, with a
+rolling shutter). The projector flips frames every ``1 / (rate_hz · (1 + ppm·1e-6))`` seconds, the first
+flip at ``projector_offset_ms``; an exposure that straddles a flip sees both phases in proportion. The
+ground truth of frame ``k`` is the camera pose at ``k / fps``. Every frame has its own random stream
+(seeded by the flight's seed and the frame number), so frames can be rendered in any order, or in
+several processes, and come out the same.
 """
 
 from __future__ import annotations
@@ -17,14 +19,20 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.config.models import ArenaConfig
-from ipt.sender.content import Scene
+from ipt.sender.content import GeneratedScene, Scene
 from ipt.sender.modulator import JIT_UNAVAILABLE, FrameTiming, make_modulator, phase_sign
-from ipt.sim.config import SimConfig
-from ipt.sim.flight import FlightState, RectangleFlight
-from ipt.sim.render import CameraRenderer, Exposure
+from ipt.sender.photos import PanningPhotoScene
+from ipt.sim.config import SimConfig, apply_arena_changes
+from ipt.sim.flight import Flight, FlightState, HoverPath, Oscillation, Path, RectangleFlight, TakeoffPath
+from ipt.sim.render import CameraRenderer
 from ipt.tagmap import TagMap, arena_to_pixel_matrix, grid_tag_map
 
 U8 = npt.NDArray[np.uint8]
+I64 = npt.NDArray[np.int64]
+F64 = npt.NDArray[np.float64]
+
+#: Dithering patterns kept (projector frame j uses pattern j mod this); each is one byte per pixel.
+DITHER_PATTERNS = 6
 
 
 @dataclass(frozen=True)
@@ -34,27 +42,60 @@ class SimFrame:
     index: int
     time_s: float
     image_rgb: U8
+    """H×W×3 uint8 RGB, or H×W uint8 grey from a mono camera."""
     truth: FlightState
 
 
-def flight_of(sim: SimConfig) -> RectangleFlight:
-    """The configured flight path."""
+def flight_of(sim: SimConfig) -> Flight:
+    """The configured flight: its path, with the pilot's wandering and the airframe's vibration."""
     f = sim.flight
-    return RectangleFlight(
-        size_m=f.size_m,
-        centre_m=f.centre_m,
-        altitude_m=f.altitude_m,
-        altitude_wobble_m=f.altitude_wobble_m,
-        peak_speed_mps=f.peak_speed_mps,
-        heading_rad=float(np.deg2rad(f.heading_deg)),
-        yaw_wobble_rad=float(np.deg2rad(f.yaw_wobble_deg)),
-    )
+    path: Path
+    if f.path == "rectangle":
+        path = RectangleFlight(
+            size_m=f.size_m,
+            centre_m=f.centre_m,
+            altitude_m=f.altitude_m,
+            altitude_wobble_m=f.altitude_wobble_m,
+            peak_speed_mps=f.peak_speed_mps,
+        )
+    elif f.path == "takeoff":
+        t = f.takeoff
+        path = TakeoffPath(f.centre_m, t.low_m, t.high_m, t.hold_low_s, t.climb_s, t.hold_high_s)
+    else:
+        path = HoverPath(f.centre_m, f.altitude_m, f.altitude_wobble_m)
+    rng = np.random.default_rng([sim.seed, 3])
+    drift = (Oscillation(), Oscillation())
+    if f.pilot is not None:
+        drift = (
+            Oscillation.random(rng, f.pilot.drift_m, f.pilot.drift_hz),
+            Oscillation.random(rng, f.pilot.drift_m, f.pilot.drift_hz),
+        )
+    vibration = (Oscillation(), Oscillation(), Oscillation())
+    if f.vibration is not None:
+        v = f.vibration
+        peak, peak_yaw = np.deg2rad(v.amplitude_deg), np.deg2rad(v.yaw_amplitude_deg)
+        vibration = (
+            Oscillation.random(rng, float(peak), v.frequency_hz),
+            Oscillation.random(rng, float(peak), v.frequency_hz),
+            Oscillation.random(rng, float(peak_yaw), v.frequency_hz),
+        )
+    return Flight(path, float(np.deg2rad(f.heading_deg)), float(np.deg2rad(f.yaw_wobble_deg)), drift, vibration)
+
+
+def scene_for(sim: SimConfig, arena: ArenaConfig) -> Scene:
+    """The content the flight's settings ask for (``content.kind``), at the projector's size."""
+    pr = arena.projector
+    c = sim.content
+    if c.kind == "map":
+        return GeneratedScene(pr.width_px, pr.height_px, seed=sim.seed)
+    return PanningPhotoScene(pr.width_px, pr.height_px, sim.seed, c.pan_px_per_frame, c.cut_every_s)
 
 
 class SimulatedArena:
     """Renders the camera's view frame by frame; deterministic for a given seed."""
 
     def __init__(self, arena: ArenaConfig, sim: SimConfig, scene: Scene, tag_map: TagMap | None = None) -> None:
+        arena = apply_arena_changes(arena, sim.arena)
         self.arena, self.sim, self.scene = arena, sim, scene
         self.tag_map = tag_map if tag_map is not None else grid_tag_map(arena)
         mod = arena.modulation
@@ -73,15 +114,23 @@ class SimulatedArena:
         self.timing = FrameTiming(mod.input_rate_hz, arena.projector.rate_hz)
         self.projector_period_s = 1.0 / (arena.projector.rate_hz * (1.0 + sim.projector_clock_ppm * 1e-6))
         self.renderer = CameraRenderer(
-            sim.camera, arena_to_pixel_matrix(arena), (arena.projector.width_px, arena.projector.height_px)
+            sim.camera,
+            arena_to_pixel_matrix(arena),
+            (arena.projector.width_px, arena.projector.height_px),
+            shadow=sim.shadow,
+            seed=sim.seed,
         )
-        self._rng = np.random.default_rng(sim.seed)
         self._inputs: OrderedDict[int, U8] = OrderedDict()
+        self._dither: dict[int, tuple[U8, U8]] = {}
 
     def projector_index(self, t_s: float) -> int:
         """Index of the projector frame on the floor at time ``t_s`` (frame 0 until the first flip)."""
+        return int(self.projector_indices(np.array([t_s]))[0])
+
+    def projector_indices(self, times_s: F64) -> I64:
+        """:meth:`projector_index` of each time."""
         offset = (self.sim.projector_offset_ms * 1e-3) % self.projector_period_s
-        return int(np.floor((t_s - offset) / self.projector_period_s)) + 1
+        return np.floor((np.asarray(times_s) - offset) / self.projector_period_s).astype(np.int64) + 1
 
     def _input_frame(self, index: int) -> U8:
         if index not in self._inputs:
@@ -101,18 +150,36 @@ class SimulatedArena:
         rgb = self._input_frame(self.timing.input_of(index))[y0:y1, x0:x1]
         return self.modulator.phase_region(np.ascontiguousarray(rgb), phase_sign(index), region)
 
+    def _dither_patterns(self, index: int) -> tuple[U8, U8]:
+        """Projector frame ``index``'s dithering as two 8-bit images: the levels added, the levels taken."""
+        key = index % DITHER_PATTERNS
+        if key not in self._dither:
+            pr, levels = self.arena.projector, self.sim.projector_dither_levels
+            rng = np.random.default_rng([self.sim.seed, 11, key])
+            step = rng.integers(-levels, levels + 1, (pr.height_px, pr.width_px), dtype=np.int8)
+            up, down = np.maximum(step, 0).astype(np.uint8), np.maximum(-step, 0).astype(np.uint8)
+            self._dither[key] = (cv2.merge([up, up, up]), cv2.merge([down, down, down]))
+        return self._dither[key]
+
+    def projected(self, index: int, region: tuple[int, int, int, int]) -> U8:
+        """What the projector puts on the floor in ``region`` during frame ``index``: :meth:`projector_crop`
+        with the projector's own temporal dithering (the same level on the three colours of a pixel)."""
+        crop = self.projector_crop(index, region)
+        if self.sim.projector_dither_levels == 0:
+            return crop
+        x0, y0, x1, y1 = region
+        up, down = self._dither_patterns(index)
+        out = np.asarray(cv2.add(crop, up[y0:y1, x0:x1]), dtype=np.uint8)  # saturating
+        return np.asarray(cv2.subtract(out, down[y0:y1, x0:x1]), dtype=np.uint8)
+
     def render(self, k: int) -> SimFrame:
         """Camera frame ``k``."""
-        cam = self.sim.camera
-        t = k / cam.fps
-        n = cam.time_samples
-        exposure_s = cam.exposure_ms * 1e-3
-        instants = [t + exposure_s * ((i + 0.5) / n - 0.5) for i in range(n)]
-        exposures = [Exposure(self.flight.state(ti), self.projector_index(ti)) for ti in instants]
-        image = self.renderer.render(exposures, self.projector_crop, self._rng)
+        t = k / self.sim.camera.fps
+        rng = np.random.default_rng([self.sim.seed, 5, k])
+        image = self.renderer.render_frame(t, self.flight.state, self.projector_indices, self.projected, rng)
         return SimFrame(k, t, image, self.flight.state(t))
 
-    def frames(self, count: int) -> Iterator[SimFrame]:
-        """Frames 0 .. count-1 in order."""
-        for k in range(count):
+    def frames(self, count: int, start: int = 0) -> Iterator[SimFrame]:
+        """Frames ``start`` .. ``start + count - 1`` in order."""
+        for k in range(start, start + count):
             yield self.render(k)

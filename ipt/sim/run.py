@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import TextIO
 
 import numpy as np
+import yaml
 
 from ipt.config.camera_info import save_camera_info
 from ipt.config.models import ArenaConfig
@@ -25,6 +26,7 @@ from ipt.videoio import FfvWriter
 VIDEO_NAME = "frames.mkv"
 CAMERA_NAME = "camera.yaml"
 TRUTH_NAME = "groundtruth.tum"
+ARENA_NAME = "arena.yaml"
 
 
 class SimError(IptError):
@@ -51,7 +53,7 @@ def simulate_to_folder(
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise SimError(f"{out_dir}: cannot create the output folder ({exc.strerror})") from None
-    for name in (VIDEO_NAME, CAMERA_NAME, TRUTH_NAME):
+    for name in (VIDEO_NAME, CAMERA_NAME, TRUTH_NAME, ARENA_NAME):
         # A previous run's files would look like this run's result if we stopped half way.
         (out_dir / name).unlink(missing_ok=True)
     cam = sim.camera
@@ -59,7 +61,7 @@ def simulate_to_folder(
     world = SimulatedArena(arena, sim, scene, tag_map)
     times, positions, quats = [], [], []
     start = last = time.monotonic()
-    with FfvWriter(out_dir / VIDEO_NAME, cam.width_px, cam.height_px, cam.fps) as writer:
+    with FfvWriter(out_dir / VIDEO_NAME, cam.width_px, cam.height_px, cam.fps, grey=cam.mono) as writer:
         for f in world.frames(count):
             writer.write(f.image_rgb)
             times.append(f.time_s)
@@ -75,4 +77,8 @@ def simulate_to_folder(
     save_camera_info(camera_info_of(cam), out_dir / CAMERA_NAME)
     write_tum(out_dir / TRUTH_NAME, Trajectory.from_arrays(np.array(times), np.array(positions), np.array(quats)))
     write_text_atomic(out_dir / "sim.json", sim.model_dump_json(indent=1) + "\n")
+    flown = "# The arena this flight was rendered with (the --config arena with the flight's changes).\n"
+    write_text_atomic(
+        out_dir / ARENA_NAME, flown + yaml.safe_dump(world.arena.model_dump(mode="json"), sort_keys=False)
+    )
     return count
