@@ -27,10 +27,13 @@ def _arena(path: str | None) -> ArenaConfig:
 
 def _scene(spec: str, arena: ArenaConfig, seed: int) -> Scene:
     from ipt.sender.content import GeneratedScene, StillImageScene, VideoScene
+    from ipt.sender.photos import PanningPhotoScene
 
     w, h = arena.projector.width_px, arena.projector.height_px
-    if spec == "generated":
+    if spec in ("generated", "map"):
         return GeneratedScene(w, h, seed=seed)
+    if spec == "photos":
+        return PanningPhotoScene(w, h, seed=seed)
     p = Path(spec)
     if p.suffix.lower() in {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}:
         return StillImageScene.from_file(p, w, h)
@@ -76,25 +79,29 @@ def _cmd_map_check(args: argparse.Namespace) -> int:
 
 
 def _cmd_sim(args: argparse.Namespace) -> int:
-    from ipt.sim.config import SimConfig
+    from ipt.sim.arena import scene_for
+    from ipt.sim.config import SimConfig, apply_arena_changes
     from ipt.sim.run import simulate_to_folder
 
-    arena = _arena(args.config)
     sim = load_yaml_model(args.sim_config, SimConfig) if args.sim_config else SimConfig()
     if args.seed is not None:
         sim = sim.model_copy(update={"seed": args.seed})
-    scene = _scene(args.content, arena, sim.seed)
+    arena = apply_arena_changes(_arena(args.config), sim.arena)
+    scene = scene_for(sim, arena) if args.content is None else _scene(args.content, arena, sim.seed)
     n = simulate_to_folder(arena, sim, scene, Path(args.out), args.seconds)
-    print(f"ipt sim: {n} frames -> {args.out}/frames.mkv, camera.yaml, groundtruth.tum")
+    print(f"ipt sim: {n} frames -> {args.out}/frames.mkv, camera.yaml, groundtruth.tum, arena.yaml")
     return 0
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from ipt.demo import run_demo
+    from ipt.sim.config import SimConfig
 
     arena_path = Path(args.config) if args.config is not None else DEFAULT_ARENA
+    _arena(str(arena_path))  # a bad arena file is one line before anything starts
+    sim = load_yaml_model(args.sim_config, SimConfig) if args.sim_config else None
     out = Path(args.out) if args.out else Path("results") / time.strftime("demo-%Y%m%d-%H%M%S")
-    return run_demo(arena_path, args.seconds, out, args.seed)
+    return run_demo(arena_path, args.seconds, out, args.seed, sim)
 
 
 def _cmd_invisibility(args: argparse.Namespace) -> int:
@@ -184,16 +191,30 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser(
         "sim",
         help="render a simulated flight (video, camera.yaml, ground truth)",
-        description="Render what a downward 120 FPS global-shutter camera sees while flying the paper's "
-        "rectangle over the projected, modulated floor. Writes OUT/frames.mkv (lossless FFV1), "
-        "OUT/camera.yaml (ROS camera_info) and OUT/groundtruth.tum (camera pose at each frame time).",
+        description="Render what a drone's downward 120 FPS camera sees over the projected, modulated floor. "
+        "By default the flight is a realistic one: the paper's rectangle at 0.8 m flown by a pilot, the "
+        "airframe vibrating (1-2° at 5-7 Hz), its shadow under a ceiling projector (3 m up) crossing the "
+        "view, over photographic video that pans and cuts. --sim-config changes any of it (camera: mono, "
+        "JPEG, rolling shutter, gain drift, vignetting; flight: rectangle, takeoff or hover; shadow; content; "
+        "arena changes such as ΔL): see benchmarks/flights/*.yaml. Writes OUT/frames.mkv (lossless FFV1; "
+        "grey for a mono camera), OUT/camera.yaml (ROS camera_info), OUT/groundtruth.tum (camera pose at "
+        "each frame time), OUT/arena.yaml (the arena flown, with the flight's changes) and OUT/sim.json.",
     )
     s.add_argument("--config", metavar="ARENA.yaml", help=cfg_help)
     s.add_argument("--out", required=True, metavar="DIR", help="output folder (created if needed)")
     s.add_argument("--seconds", type=positive_float, default=15.0, help="flight length (default 15, as in the paper)")
-    s.add_argument("--sim-config", metavar="SIM.yaml", help="camera, timing, noise and flight settings")
-    s.add_argument("--seed", type=int, help="random seed (noise and generated content)")
-    s.add_argument("--content", default="generated", metavar="generated|FILE", help="video content: built-in or a file")
+    s.add_argument(
+        "--sim-config",
+        metavar="SIM.yaml",
+        help="the flight: camera, timing, noise, path, vibration, shadow, content (default: the realistic flight)",
+    )
+    s.add_argument("--seed", type=int, help="random seed (noise, pilot, vibration and generated content)")
+    s.add_argument(
+        "--content",
+        metavar="photos|map|FILE",
+        help="the projected content: panning photographs, the paper's map app, or a video file / image folder "
+        "(default: the flight's content.kind, photos unless set)",
+    )
     s.set_defaults(func=_cmd_sim)
 
     # 'ipt eval' is dispatched to ipt.eval.eval_main before parsing; listed here for the help text.
@@ -203,7 +224,8 @@ def build_parser() -> argparse.ArgumentParser:
         "demo",
         help="the closed loop: sender, simulated drone and receiver together; prints the paper's error table",
         description="The whole system in one process on the built-in simulated arena: the sender modulates "
-        "the generated video and keeps its output frames in memory (the projector); a simulated drone camera "
+        "the content (by default photographs that pan and cut) and keeps its output frames in memory (the "
+        "projector); a simulated drone camera, on a hand-flown, vibrating drone casting its own shadow, "
         "films exactly those frames; the receiver daemon localises each camera frame and sends the pose over "
         "UDP (127.0.0.1) back to the sender, which draws the drone into the next frames. Simulated time drives "
         "everything, frame by frame, so the run is deterministic for a seed but slower than real time "
@@ -221,6 +243,11 @@ def build_parser() -> argparse.ArgumentParser:
         "second here)",
     )
     d.add_argument("--seed", type=int, default=0, help="random seed (content and camera noise; default 0)")
+    d.add_argument(
+        "--sim-config",
+        metavar="SIM.yaml",
+        help="another flight (e.g. benchmarks/flights/realcam.yaml); default: the realistic default flight",
+    )
     d.add_argument("--out", metavar="DIR", help="results folder (default results/demo-<time>)")
     d.set_defaults(func=_cmd_demo)
 

@@ -47,6 +47,7 @@ from typing import Any, Final, TextIO, TypeVar
 
 import numpy as np
 import numpy.typing as npt
+import yaml
 
 from ipt.config.camera_info import save_camera_info
 from ipt.config.models import ArenaConfig, load_arena_config
@@ -58,12 +59,12 @@ from ipt.protocol import PacketFilter, PosePacket
 from ipt.receiver.capture import CapturedFrame, CaptureError, capture_time_us
 from ipt.receiver.daemon import DaemonStats, run_daemon
 from ipt.receiver.pipeline import FrameResult
-from ipt.sender.content import GeneratedScene, Scene
+from ipt.sender.content import Scene
 from ipt.sender.modulator import frames_per_input
 from ipt.sender.scene import ArScene
 from ipt.sender.server import SenderStats, run_sender
-from ipt.sim.arena import SimulatedArena
-from ipt.sim.config import SimConfig
+from ipt.sim.arena import SimulatedArena, scene_for
+from ipt.sim.config import SimConfig, apply_arena_changes, describe_flight
 from ipt.sim.flight import FlightState
 from ipt.sim.render import camera_info_of
 from ipt.tagmap import TagMap, grid_tag_map
@@ -540,21 +541,27 @@ async def closed_loop(
     out: Path,
     seed: int = 0,
     *,
+    sim: SimConfig | None = None,
     status: TextIO | None = None,
     interrupt: asyncio.Event | None = None,
 ) -> DemoRun:
-    """Fly ``seconds`` of the paper's flight in the closed loop (see the module doc).
+    """Fly ``seconds`` of ``sim`` (default: the realistic default flight, :class:`SimConfig`) in the closed
+    loop (see the module doc); ``seed`` replaces the flight's seed.
 
     The status line goes to ``status`` (none without it). Setting ``interrupt`` stops the run early
     (what was flown is kept); SIGINT sets it when this runs on the main thread. Writes
-    ``out/camera.yaml``, ``out/sender.log`` and ``out/receiver.log``.
+    ``out/camera.yaml``, ``out/arena.yaml`` (the arena flown, with the flight's changes),
+    ``out/sender.log`` and ``out/receiver.log``.
     """
     if not seconds > 0 or not math.isfinite(seconds):
         raise DemoError(f"--seconds must be a positive number, got {seconds:g}")
     wall_start = time.monotonic()
     loop = asyncio.get_running_loop()
-    arena = load_arena_config(arena_path)
-    sim = SimConfig(seed=seed)
+    sim = (sim if sim is not None else SimConfig()).model_copy(update={"seed": seed})
+    try:
+        arena = apply_arena_changes(load_arena_config(arena_path), sim.arena)
+    except ValueError as exc:
+        raise DemoError(f"the flight's arena changes do not fit {arena_path}: {exc}") from None
     cam = sim.camera
     count = max(1, round(seconds * cam.fps))
     tag_map = grid_tag_map(arena)
@@ -567,14 +574,15 @@ async def closed_loop(
         (out / name).unlink(missing_ok=True)
     camera_path = out / "camera.yaml"
     save_camera_info(camera_info_of(cam), camera_path)
+    flown_arena = out / "arena.yaml"
+    write_text_atomic(flown_arena, yaml.safe_dump(arena.model_dump(mode="json"), sort_keys=False))
 
     projector = LockstepProjector(per_input)
     lockstep = Lockstep()
     clock = SimClock()
     source = ClosedLoopCapture(arena, sim, projector, lockstep, clock, count, tag_map)
     flight = FlightLog(source, lockstep)
-    pr = arena.projector
-    scene = projector.gated(GeneratedScene(pr.width_px, pr.height_px, seed=sim.seed))
+    scene = projector.gated(scene_for(sim, arena))
     interrupt = interrupt if interrupt is not None else asyncio.Event()
     sender_stop, daemon_stop = asyncio.Event(), asyncio.Event()
     listening: asyncio.Future[tuple[str, int]] = loop.create_future()
@@ -628,7 +636,7 @@ async def closed_loop(
                 await sender_task  # raises what stopped it
                 raise DemoError("the sender stopped before it listened for pose packets")
             host, port = listening.result()
-            cfg = ReceiverConfig(arena=arena_path, camera=camera_path, send=[f"{host}:{port}"], stats_interval_s=5.0)
+            cfg = ReceiverConfig(arena=flown_arena, camera=camera_path, send=[f"{host}:{port}"], stats_interval_s=5.0)
             loop_start = time.monotonic()
             daemon_task = loop.create_task(
                 run_daemon(
@@ -803,19 +811,20 @@ def _run_loop(make: Callable[[], Coroutine[Any, Any, T]]) -> T:
         return runner.run(make())
 
 
-def run_demo(arena_path: Path, seconds: float, out: Path, seed: int = 0) -> int:
+def run_demo(arena_path: Path, seconds: float, out: Path, seed: int = 0, sim: SimConfig | None = None) -> int:
     """``ipt demo``: the closed loop, then the paper's table on stdout and the results in ``out``.
 
     Exit status: 0, or 130 when interrupted (Ctrl-C), or 1 when the flight gave no pose at all.
     """
     if not seconds > 0 or not math.isfinite(seconds):
         raise DemoError(f"--seconds must be a positive number, got {seconds:g}")
+    flight = sim if sim is not None else SimConfig()
     print(
-        f"ipt demo: {seconds:g} s of the paper's flight in the closed loop: sender -> simulated camera -> "
-        f"receiver -> udp -> sender (results -> {out})",
+        f"ipt demo: {seconds:g} s in the closed loop: sender -> simulated camera -> receiver -> udp -> sender "
+        f"(results -> {out})\nipt demo: the flight: {describe_flight(flight)}",
         flush=True,
     )
-    run = _run_loop(lambda: closed_loop(arena_path, seconds, out, seed, status=sys.stderr))
+    run = _run_loop(lambda: closed_loop(arena_path, seconds, out, seed, sim=flight, status=sys.stderr))
     table = write_results(run, out)
     s = summary_dict(run)
     print(

@@ -1,0 +1,230 @@
+"""The scenario suite: every flight of benchmarks/flights/ through both receiver profiles, as JSON.
+
+    python benchmarks/suite.py [--seconds S] [--only NAME,NAME] [--profiles ipt,paper] [--markdown FILE]
+
+Each flight file is an ``ipt sim --sim-config`` file. It is rendered once (``ipt sim``'s renderer, into
+``--cache``, default ``benchmarks/.cache/``) and kept under a hash of its settings, the arena, the length
+and the simulator's source code, so a changed flight or renderer renders again and an unchanged one does
+not. Each rendering is then replayed through each receiver profile, pinned to one core (the detector's
+helper process too) with OpenCV on one thread, and scored against its ground truth:
+
+- ``yield_pct``: poses per camera frame; ``yield_by_height_pct``: the same per band of true height;
+- ``mae_mm``: X, Y, Z mean absolute error; ``tilt_mae_deg`` and ``yaw_mae_deg``; ``poses_over_10cm`` and
+  the worst position error;
+- ``frames_per_s``: frames over the pipeline's processor time on one core (decoding not counted), and the
+  per-stage times; ``reasons``: why frames gave no pose.
+
+JSON goes to stdout (one object: every flight, every profile); a Markdown table of the same figures goes to
+stderr at the end and, with ``--markdown``, to a file (the README's "How well it works" table).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import hashlib
+import json
+import os
+import shutil
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ipt.config.camera_info import load_camera_info
+from ipt.config.models import PROFILES, ArenaConfig, PipelineConfig, load_arena_config, load_yaml_model
+from ipt.eval import evaluate
+from ipt.receiver.pipeline import Pipeline
+from ipt.sim.arena import scene_for
+from ipt.sim.config import SimConfig, apply_arena_changes, describe_flight
+from ipt.sim.run import simulate_to_folder
+from ipt.tagmap import grid_tag_map
+from ipt.tum import Trajectory, read_tum
+from ipt.videoio import open_frames
+
+ROOT = Path(__file__).resolve().parents[1]
+FLIGHTS = ROOT / "benchmarks" / "flights"
+DEFAULT_CACHE = ROOT / "benchmarks" / ".cache"
+#: The order of the table: the issue's flights first, then the others in name order.
+ORDER = ("moving-content", "shadow-vibration", "realcam", "rolling", "fast", "takeoff", "smooth")
+#: Bands of true camera height (m) for the per-height yield.
+HEIGHT_BANDS_M = ((0.0, 0.4), (0.4, 0.7), (0.7, 1.2), (1.2, 1.7), (1.7, 2.2), (2.2, 10.0))
+#: Sources whose change invalidates a cached rendering.
+RENDER_SOURCES = ("ipt/sim", "ipt/sender/photos.py", "ipt/sender/content.py", "ipt/sender/modulator.py",
+                  "ipt/sender/colour.py", "ipt/tagmap.py", "ipt/videoio.py")  # fmt: skip
+
+
+def scenario_files(only: list[str] | None) -> list[Path]:
+    files = {p.stem: p for p in sorted(FLIGHTS.glob("*.yaml"))}
+    if only:
+        unknown = [n for n in only if n not in files]
+        if unknown:
+            raise SystemExit(f"suite: no flight {', '.join(unknown)} in {FLIGHTS} (have {', '.join(files)})")
+        return [files[n] for n in only]
+    ordered = [n for n in ORDER if n in files] + [n for n in files if n not in ORDER]
+    return [files[n] for n in ordered]
+
+
+def _source_digest() -> str:
+    h = hashlib.sha256()
+    for rel in RENDER_SOURCES:
+        path = ROOT / rel
+        for f in sorted(path.rglob("*.py")) if path.is_dir() else [path]:
+            h.update(f.relative_to(ROOT).as_posix().encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def flight_key(sim: SimConfig, arena: ArenaConfig, seconds: float, source_digest: str) -> str:
+    text = json.dumps([sim.model_dump(mode="json"), arena.model_dump(mode="json"), seconds, source_digest])
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def render(name: str, sim: SimConfig, arena: ArenaConfig, seconds: float, cache: Path, digest: str) -> Path:
+    """The flight's folder (frames.mkv, camera.yaml, groundtruth.tum), rendered now unless cached."""
+    folder = cache / f"{name}-{flight_key(sim, arena, seconds, digest)}"
+    if (folder / "groundtruth.tum").is_file() and (folder / "frames.mkv").is_file():
+        return folder
+    for old in cache.glob(f"{name}-*"):  # an older rendering of this flight: settings or code changed
+        shutil.rmtree(old, ignore_errors=True)
+    start = time.monotonic()
+    print(f"suite: rendering {name} ({seconds:g} s): {describe_flight(sim)}", file=sys.stderr, flush=True)
+    simulate_to_folder(arena, sim, scene_for(sim, arena), folder, seconds)
+    print(f"suite: rendered {name} in {time.monotonic() - start:.0f} s", file=sys.stderr, flush=True)
+    return folder
+
+
+@contextlib.contextmanager
+def one_core() -> Iterator[None]:
+    """Pin this process (and what it starts meanwhile) to one core, OpenCV to one thread."""
+    saved = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    if saved is not None:
+        os.sched_setaffinity(0, {min(saved)})
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(threads)
+        if saved is not None:
+            os.sched_setaffinity(0, saved)
+
+
+def score(folder: Path, arena: ArenaConfig, profile: str) -> dict[str, Any]:
+    camera = load_camera_info(folder / "camera.yaml")
+    truth = read_tum(folder / "groundtruth.tum")
+    rate = 1.0 / float(np.median(np.diff(truth.times_s)))
+    times, positions, quats, busy_s = [], [], [], 0.0
+    with one_core():
+        pipeline = Pipeline(grid_tag_map(arena), camera, PipelineConfig.profile(profile), arena.projector.rate_hz)
+        try:
+            with open_frames(folder / "frames.mkv") as src:
+                for k, frame in enumerate(src):
+                    t_us = round(float(truth.times_s[k]) * 1e6) if k < len(truth) else round(k / rate * 1e6)
+                    t0 = time.perf_counter()
+                    result = pipeline.process(k, frame, t_us)
+                    busy_s += time.perf_counter() - t0
+                    if result.pose is not None:
+                        times.append(t_us * 1e-6)
+                        positions.append(result.pose.position_m)
+                        quats.append(result.pose.quat_wxyz)
+            frames = k + 1
+        finally:
+            pipeline.close()
+    out: dict[str, Any] = {"frames": frames, "poses": len(times), "yield_pct": 100.0 * len(times) / frames}
+    if len(times):
+        r = evaluate(truth, Trajectory.from_arrays(times, positions, quats))
+        out.update(
+            mae_mm=[round(1e3 * v, 2) for v in (r.mae_x_m, r.mae_y_m, r.mae_z_m)],
+            tilt_mae_deg=round(r.mae_tilt_deg, 3),
+            yaw_mae_deg=round(r.mae_yaw_deg, 3),
+            poses_over_10cm=r.n_outliers,
+            max_error_mm=round(1e3 * r.max_pos_err_m, 1),
+        )
+    else:
+        out.update(mae_mm=None, tilt_mae_deg=None, yaw_mae_deg=None, poses_over_10cm=0, max_error_mm=None)
+    heights = truth.positions_m[:frames, 2]
+    posed = np.isin(np.round(truth.times_s[:frames], 6), np.round(np.array(times), 6))
+    bands = {}
+    for lo, hi in HEIGHT_BANDS_M:
+        inside = (heights >= lo) & (heights < hi)
+        if inside.sum() >= 10:
+            bands[f"{lo:g}-{hi:g}"] = round(100.0 * float(posed[inside].mean()), 1)
+    out["yield_by_height_pct"] = bands
+    out["frames_per_s"] = round(frames / busy_s, 1) if busy_s > 0 else None
+    out["stage_ms_per_frame"] = {k: round(1e3 * v / frames, 3) for k, v in pipeline.stage_seconds.items()}
+    out["reasons"] = dict(sorted(pipeline.reasons.items()))
+    return out
+
+
+def _cell_mm(v: list[float] | None) -> str:
+    return "—" if v is None else " / ".join(f"{x:.1f}" for x in v)
+
+
+def markdown(results: dict[str, Any]) -> str:
+    lines = [
+        "| flight | profile | yield | X / Y / Z MAE (mm) | tilt / yaw MAE | poses > 10 cm (worst) "
+        "| frames/s (1 core) |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for name, flight in results["flights"].items():
+        for profile, r in flight["profiles"].items():
+            angles = "—" if r["tilt_mae_deg"] is None else f"{r['tilt_mae_deg']:.2f}° / {r['yaw_mae_deg']:.2f}°"
+            worst = "—" if r["max_error_mm"] is None else f"{r['max_error_mm']:.0f} mm"
+            lines.append(
+                f"| {name} | `{profile}` | {r['yield_pct']:.1f} % | {_cell_mm(r['mae_mm'])} | {angles} | "
+                f"{r['poses_over_10cm']} ({worst}) | {r['frames_per_s']:.0f} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seconds", type=float, default=8.0, help="length of each flight (default 8)")
+    p.add_argument("--only", help="comma-separated flight names (default: every file in benchmarks/flights)")
+    p.add_argument("--profiles", default=",".join(PROFILES), help="comma-separated receiver profiles")
+    p.add_argument("--arena", type=Path, help="arena YAML the flights' changes apply to (default: the shipped one)")
+    p.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="where renderings are kept")
+    p.add_argument("--markdown", type=Path, help="also write the Markdown table here")
+    args = p.parse_args()
+    if not 0 < args.seconds <= 600:
+        print(f"suite: --seconds must be in (0, 600], got {args.seconds:g}", file=sys.stderr)
+        return 2
+    profiles = [s for s in args.profiles.split(",") if s]
+    if not profiles or any(s not in PROFILES for s in profiles):
+        print(f"suite: --profiles must name some of {', '.join(PROFILES)}", file=sys.stderr)
+        return 2
+    base = load_arena_config(args.arena) if args.arena else ArenaConfig()
+    args.cache.mkdir(parents=True, exist_ok=True)
+    digest = _source_digest()
+    results: dict[str, Any] = {"seconds": args.seconds, "flights": {}}
+    for path in scenario_files(args.only.split(",") if args.only else None):
+        sim = load_yaml_model(path, SimConfig)
+        arena = apply_arena_changes(base, sim.arena)
+        folder = render(path.stem, sim, arena, args.seconds, args.cache, digest)
+        flight: dict[str, Any] = {"description": sim.description or describe_flight(sim), "profiles": {}}
+        for profile in profiles:
+            start = time.monotonic()
+            flight["profiles"][profile] = score(folder, arena, profile)
+            r = flight["profiles"][profile]
+            print(
+                f"suite: {path.stem} / {profile}: yield {r['yield_pct']:.1f} %, MAE {_cell_mm(r['mae_mm'])} mm, "
+                f"{r['frames_per_s']} frames/s ({time.monotonic() - start:.0f} s)",
+                file=sys.stderr,
+                flush=True,
+            )
+        results["flights"][path.stem] = flight
+    print(json.dumps(results, indent=1))
+    table = markdown(results)
+    print("\n" + table, file=sys.stderr)
+    if args.markdown is not None:
+        args.markdown.write_text(table, encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
