@@ -19,6 +19,11 @@ Three stages, each on its own thread, joined by bounded queues::
   Results are awaited in submission order too, so packets leave in capture order.
 - Latency is ``time.monotonic()`` right after the packet was sent minus the frame's grab (or read)
   instant, so it includes the time a frame waited in the queues.
+- The other outputs take each result on the event loop after the UDP packet: MAVLink
+  (:mod:`ipt.receiver.mavlink`), ROS 2 over DDS (:mod:`ipt.receiver.ros2`) and the MCAP recording
+  (:mod:`ipt.receiver.record`, written on its own thread). Each is set up before the first frame (a
+  mistake there is an :class:`~ipt.errors.IptError`), and a failure later is counted in its own summary
+  line while the others go on.
 
 Shutdown (SIGTERM, SIGINT, the end of a recording, or ``--max-frames``): the signal handlers only set
 the stop event; then, within :data:`SHUTDOWN_BUDGET_S`, capture stops, queued frames are dropped,
@@ -45,7 +50,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.config.camera_info import CameraInfo, load_camera_info
-from ipt.config.models import ArenaConfig, load_arena_config
+from ipt.config.models import ArenaConfig, ConfigError, load_arena_config
 from ipt.config.receiver import ReceiverConfig, read_auth_key
 from ipt.protocol import ProtocolError
 from ipt.receiver.capture import (
@@ -61,11 +66,15 @@ from ipt.receiver.capture import (
 )
 from ipt.receiver.outputs import PacketMaker, UdpPoseSender
 from ipt.receiver.pipeline import FrameResult, Pipeline
+from ipt.receiver.rosframes import RosMessageMaker, RosNames, StampClock
+from ipt.rosmsg import ODOMETRY, POSE, TF
 from ipt.sim.config import SimCameraConfig, SimConfig
 from ipt.tagmap import grid_tag_map
 
 if TYPE_CHECKING:
     from ipt.receiver.mavlink import MavlinkOutput
+    from ipt.receiver.record import McapRecorder
+    from ipt.receiver.ros2 import Ros2Output
 
 MAX_IN_FLIGHT = 2
 """Frames submitted to the pipeline worker at once from a recording (one processing, one waiting); a live
@@ -272,6 +281,7 @@ async def run_daemon(
     sender = UdpPoseSender(cfg.send_targets)
     maker = PacketMaker(cfg.vehicle_id, key)
     mavlink = _mavlink_output(cfg, out)
+    ros = _RosSide.create(cfg, arena.projector.rate_hz, out)
     meter = _Meter()
     errors_reported = 0
 
@@ -279,7 +289,20 @@ async def run_daemon(
     # waiting in the executor would be stale by a whole processing time when its turn comes). A recording
     # keeps the worker busy instead: the next frame waits while this one is processed.
     slots = asyncio.Semaphore(1 if source.live else MAX_IN_FLIGHT)
-    results: asyncio.Queue[tuple[CapturedFrame, asyncio.Future[FrameResult]] | None] = asyncio.Queue()
+    results: asyncio.Queue[tuple[CapturedFrame, asyncio.Future[tuple[FrameResult, dict[str, float]]]] | None] = (
+        asyncio.Queue()
+    )
+    stage_totals: dict[str, float] | None = getattr(pipeline, "stage_seconds", None)
+
+    def process(frame: CapturedFrame) -> tuple[FrameResult, dict[str, float]]:
+        """On the worker thread: the frame's result and the processor time each stage took for it (from the
+        pipeline's running totals, read on the same thread, so no other frame is counted in)."""
+        if ros is None or stage_totals is None:
+            return pipeline.process(frame.index, frame.image_rgb, frame.capture_time_us), {}
+        before = dict(stage_totals)
+        result = pipeline.process(frame.index, frame.image_rgb, frame.capture_time_us)
+        stages = {k: v - before.get(k, 0.0) for k, v in stage_totals.items() if v != before.get(k, 0.0)}
+        return result, stages
 
     async def submit() -> None:
         """Frames from the capture queue to the pipeline worker, in capture order."""
@@ -290,9 +313,7 @@ async def run_daemon(
                 if frame is None:
                     slots.release()
                     return
-                fut = loop.run_in_executor(
-                    worker, pipeline.process, frame.index, frame.image_rgb, frame.capture_time_us
-                )
+                fut = loop.run_in_executor(worker, process, frame)
                 results.put_nowait((frame, fut))
         finally:
             results.put_nowait(None)
@@ -306,9 +327,10 @@ async def run_daemon(
                 return
             frame, fut = item
             result: FrameResult | None = None
+            stages: dict[str, float] = {}
             sent = 0
             try:
-                result = await fut
+                result, stages = await fut
             except Exception as exc:  # a bug or a library failure on one frame: report, count, go on
                 meter.frame("error")
                 if errors_reported < MAX_ERROR_REPORTS:
@@ -323,6 +345,8 @@ async def run_daemon(
                 sent = deliver_one(frame, result)
                 if mavlink is not None:
                     mavlink.on_result(frame, result)
+            if ros is not None:
+                ros.on_result(frame, result, stages)
             if on_result is not None:
                 on_result(frame, result, sent)
 
@@ -359,6 +383,8 @@ async def run_daemon(
     deliver_task: asyncio.Task[None] | None = None
     start = time.monotonic()
     try:
+        if ros is not None:
+            ros.start()
         await sender.open()
         if mavlink is not None:
             await mavlink.open()  # the link itself is (re)opened in the background
@@ -385,6 +411,8 @@ async def run_daemon(
         await _shutdown(capture, frames, deliver_task, tasks, sender, deadline)
         if mavlink is not None:
             await mavlink.close()
+        if ros is not None:
+            await asyncio.to_thread(ros.close)
         worker.shutdown(wait=False, cancel_futures=True)
         # The read in progress (a render, a decode, a camera grab) ends by itself; wait for it within the
         # budget. If it does not end, the thread is a daemon thread and `capture_running` tells the caller.
@@ -415,7 +443,110 @@ async def run_daemon(
         _write(out, f"{PROG}: last send error: {sender.last_error}")
     if mavlink is not None:
         mavlink.say_summary()
+    if ros is not None:
+        for line in ros.summaries():
+            _write(out, f"{PROG}: {line}")
     return stats
+
+
+class _RosSide:
+    """The ROS 2 outputs of one run: the messages every frame makes, sent over DDS and/or recorded."""
+
+    def __init__(self, maker: RosMessageMaker, ros2: Ros2Output | None, recorder: McapRecorder | None) -> None:
+        self.maker, self.ros2, self.recorder = maker, ros2, recorder
+        self._offset_noted = False
+
+    @classmethod
+    def create(cls, cfg: ReceiverConfig, projector_hz: float, out: TextIO) -> _RosSide | None:
+        """The outputs ``cfg.ros2`` and ``cfg.record`` ask for (None for neither); raises
+        :class:`~ipt.errors.IptError` if one cannot be set up (nothing is left open then)."""
+        if not cfg.ros2.enabled and cfg.record.path is None:
+            return None
+        from ipt.receiver.mavlink import mounting_from
+
+        r = cfg.ros2
+        names = RosNames(r.frame_id, r.base_frame_id, r.camera_frame_id, r.namespace)
+        mounting = mounting_from(cfg.mavlink.r_frd_cam, cfg.mavlink.camera_position_frd_m)
+        maker = RosMessageMaker(names, mounting, StampClock(), hardware_id=f"ipt vehicle {cfg.vehicle_id}")
+
+        def report(line: str) -> None:
+            _write(out, f"{PROG}: {line}")
+
+        recorder: McapRecorder | None = None
+        if cfg.record.path is not None:
+            from ipt import __version__
+            from ipt.receiver.record import McapRecorder
+
+            recorder = McapRecorder(
+                cfg.record.path,
+                metadata={"vehicle_id": str(cfg.vehicle_id), "frame_id": names.frame_id, "ipt_version": __version__},
+                image_hz=cfg.record.image_hz,
+                projector_hz=projector_hz,
+                camera_frame_id=names.child(names.camera_frame_id),
+                image_topic=names.topic("difference"),
+                report=report,
+            )
+        ros2: Ros2Output | None = None
+        if r.enabled:
+            try:
+                from ipt.receiver.ros2 import Ros2Output
+            except ImportError as exc:
+                if recorder is not None:
+                    recorder.close()
+                raise ConfigError(
+                    f"ros2 output needs the cyclonedds package ({exc}); install it with: pip install 'ipt[ros2]'"
+                ) from None
+            topics = [(names.pose_topic, POSE), (names.odom_topic, ODOMETRY)] + ([(names.tf_topic, TF)] if r.tf else [])
+            try:
+                ros2 = Ros2Output(r, topics, report=report)
+            except BaseException:
+                if recorder is not None:
+                    recorder.close()
+                raise
+        return cls(maker, ros2, recorder)
+
+    def start(self) -> None:
+        if self.recorder is not None:
+            self.recorder.start()
+
+    def on_result(self, frame: CapturedFrame, result: FrameResult | None, stages: dict[str, float]) -> None:
+        """One frame's messages (``result`` None: processing failed) to DDS and the recording."""
+        if result is None:
+            items = self.maker.frame(frame.index, frame.capture_time_us, frame.grabbed_s, "error", 0, None)
+        else:
+            items = self.maker.frame(
+                frame.index,
+                frame.capture_time_us,
+                frame.grabbed_s,
+                result.reason,
+                result.num_detections,
+                result.pose,
+                result.reset,
+                stages,
+            )
+        if self.ros2 is not None:
+            self.ros2.publish(items)
+        if self.recorder is not None:
+            if not self._offset_noted and self.maker.clock.offset_ns is not None:
+                self._offset_noted = True
+                self.recorder.set_metadata({"capture_time_offset_ns": str(self.maker.clock.offset_ns)})
+            self.recorder.put(items)
+            self.recorder.offer_frame(frame.capture_time_us, items[-1].stamp_ns, frame.image_rgb)
+
+    def close(self) -> None:
+        """Finish the recording and leave the DDS domain (blocking: run it off the event loop)."""
+        if self.recorder is not None:
+            self.recorder.close()
+        if self.ros2 is not None:
+            self.ros2.close()
+
+    def summaries(self) -> list[str]:
+        lines = []
+        if self.ros2 is not None:
+            lines.append(self.ros2.summary())
+        if self.recorder is not None:
+            lines.append(self.recorder.summary())
+        return lines
 
 
 def _mavlink_output(cfg: ReceiverConfig, out: TextIO) -> MavlinkOutput | None:
