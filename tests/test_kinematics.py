@@ -58,7 +58,8 @@ def test_a_gap_time_going_back_or_clear_start_afresh() -> None:
     _feed(fit, [1000])
     assert len(fit) == 1
     fit.clear()
-    assert len(fit) == 0 and fit.twist() is None
+    assert len(fit) == 0
+    assert fit.twist() is None
 
 
 def test_the_covariance_is_honest_on_noisy_poses() -> None:

@@ -49,7 +49,8 @@ STAMP_NS = 1_700_000_123_456_789_012
 
 
 def _pose(position_m: tuple[float, float, float] = (0.31, -0.22, 0.81), heading_rad: float = 0.4) -> PoseEstimate:
-    r_arena_cam = rot_z(heading_rad) @ matrix_from_ypr(0.0, 0.05, -0.03) @ np.diag([1.0, -1.0, -1.0]) @ R_FRD_CAM_DOWNWARD
+    r_arena_flu = rot_z(heading_rad) @ matrix_from_ypr(0.0, 0.05, -0.03)
+    r_arena_cam = r_arena_flu @ np.diag([1.0, -1.0, -1.0]) @ R_FRD_CAM_DOWNWARD
     return PoseEstimate(
         np.asarray(position_m),
         r_arena_cam,
@@ -93,7 +94,9 @@ def _messages() -> dict[str, Any]:
         POSE: pose_message(pose, STAMP_NS, "arena"),
         ODOMETRY: odometry_message(pose, _twist(), mounting, STAMP_NS, names),
         TF: tf_message(pose, mounting, STAMP_NS, names),
-        DIAGNOSTICS: diagnostics_message(STAMP_NS, names, "ipt vehicle 3", 42, 350_000, "pose", 3, pose, {"detect": 1e-3}),
+        DIAGNOSTICS: diagnostics_message(
+            STAMP_NS, names, "ipt vehicle 3", 42, 350_000, "pose", 3, pose, {"detect": 1e-3}
+        ),
     }
 
 
