@@ -22,7 +22,6 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -74,9 +73,16 @@ class Twist:
         )
 
 
-def _rotvec(r: F64) -> F64:
-    vec, _ = cv2.Rodrigues(np.asarray(r, np.float64))
-    return np.asarray(vec, np.float64).reshape(3)
+def _rotvecs_relative(rotations: F64, reference: F64) -> F64:
+    """(N, 3) rotation vectors of ``R_i Rᵀ_ref`` (small rotations about the fixed axes), all at once."""
+    rel = rotations @ reference.T  # (N, 3, 3)
+    axis = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], axis=1)
+    sin2 = np.linalg.norm(axis, axis=1)  # 2 sin(angle)
+    cos2 = np.trace(rel, axis1=1, axis2=2) - 1.0  # 2 cos(angle)
+    angle = np.arctan2(sin2, cos2)
+    # angle / (2 sin angle), with its limit 1/2 at 0 (the poses of 100 ms differ by a few degrees at most)
+    scale = np.where(sin2 > 1e-12, angle / np.maximum(sin2, 1e-300), 0.5)
+    return np.asarray(axis * scale[:, None], np.float64)
 
 
 def _weight(cov: F64, floor_std: float, unknown_std: float) -> F64:
@@ -87,24 +93,22 @@ def _weight(cov: F64, floor_std: float, unknown_std: float) -> F64:
     return np.asarray(np.linalg.inv(c + np.eye(3) * floor_std**2), np.float64)
 
 
-def _line_fit(taus_s: F64, values: F64, weights: list[F64]) -> tuple[F64, F64] | None:
+def _line_fit(taus_s: F64, values: F64, weights: F64) -> tuple[F64, F64] | None:
     """Slope and its 3x3 covariance of ``values[i] ≈ a + b τ_i`` (3-vectors), each row weighted by its 3x3
-    inverse covariance; None if the normal equations are singular."""
-    normal = np.zeros((6, 6))
-    rhs = np.zeros(6)
-    for tau, y, w in zip(taus_s, values, weights, strict=True):
-        a = np.hstack([np.eye(3), tau * np.eye(3)])  # 3x6
-        normal += a.T @ w @ a
-        rhs += a.T @ w @ y
+    inverse covariance ``weights[i]``; None if the normal equations are singular. The normal matrix of
+    ``[I, τ I]`` rows is built from the sums of W, τW and τ²W."""
+    t = taus_s[:, None, None]
+    s0, s1, s2 = weights.sum(axis=0), (t * weights).sum(axis=0), (t * t * weights).sum(axis=0)
+    normal = np.block([[s0, s1], [s1, s2]])
+    wy = np.einsum("nij,nj->ni", weights, values)
+    rhs = np.concatenate([wy.sum(axis=0), (taus_s[:, None] * wy).sum(axis=0)])
     try:
         cov = np.linalg.inv(normal)
     except np.linalg.LinAlgError:
         return None
     theta = cov @ rhs
-    chi2 = 0.0
-    for tau, y, w in zip(taus_s, values, weights, strict=True):
-        r = y - theta[:3] - tau * theta[3:]
-        chi2 += float(r @ w @ r)
+    r = values - theta[:3] - taus_s[:, None] * theta[3:]
+    chi2 = float(np.einsum("ni,nij,nj->", r, weights, r))
     dof = 3 * len(taus_s) - 6
     scale = max(1.0, chi2 / dof) if dof > 0 else 1.0
     slope_cov = scale * cov[3:, 3:]
@@ -163,9 +167,9 @@ class VelocityFit:
         if t_new - self._poses[0][0] < self.min_span_us:
             return None
         taus = np.array([(p[0] - t_new) * 1e-6 for p in self._poses])
-        linear = _line_fit(taus, np.stack([p[1] for p in self._poses]), [p[3] for p in self._poses])
-        rotvecs = np.stack([_rotvec(p[2] @ r_new.T) for p in self._poses])
-        angular = _line_fit(taus, rotvecs, [p[4] for p in self._poses])
+        linear = _line_fit(taus, np.stack([p[1] for p in self._poses]), np.stack([p[3] for p in self._poses]))
+        rotvecs = _rotvecs_relative(np.stack([p[2] for p in self._poses]), r_new)
+        angular = _line_fit(taus, rotvecs, np.stack([p[4] for p in self._poses]))
         if linear is None or angular is None:
             return None
         return Twist(t_new, linear[0], linear[1], angular[0], angular[1], len(self._poses))
