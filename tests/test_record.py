@@ -186,3 +186,14 @@ def test_daemon_goes_on_localising_when_the_disk_fills(short_flight: Path, tmp_p
     assert summary.startswith("ipt-receiver: record: flight.mcap.partial: stopped by a write error (No space")
     assert os.path.islink(tmp_path / "flight.mcap.partial")
     assert not (tmp_path / "flight.mcap").exists()
+
+
+def test_a_run_that_cannot_start_leaves_no_recording(tmp_path: Path) -> None:
+    # The recording cannot be opened: the daemon stops before its first frame (after the recorder started), exit 2.
+    proc = _run(tmp_path, "--source", "video:missing.mkv", "--record", "x.mcap")
+    assert proc.returncode == 2, proc.stderr
+    assert "missing.mkv" in proc.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # neither x.mcap nor x.mcap.partial
+    rec = McapRecorder(tmp_path / "y.mcap")
+    rec.abort()
+    assert sorted(p.name for p in tmp_path.iterdir()) == []

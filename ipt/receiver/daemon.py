@@ -382,6 +382,7 @@ async def run_daemon(
     stop_wait = spawn(_wait_event(stop), "ipt-stop")
     deliver_task: asyncio.Task[None] | None = None
     start = time.monotonic()
+    running = False
     try:
         if ros is not None:
             ros.start()
@@ -395,6 +396,7 @@ async def run_daemon(
             ready.cancel()
         else:
             ready.result()  # raises the error of a first open that is not retried (bad video file, ...)
+            running = True
             start = meter.i_start = time.monotonic()
             auth = ", authenticated" if key is not None else ""
             _write(
@@ -412,7 +414,9 @@ async def run_daemon(
         if mavlink is not None:
             await mavlink.close()
         if ros is not None:
-            await asyncio.to_thread(ros.close)
+            # A run that never got going (a camera or a send target that cannot be opened) leaves no
+            # recording that looks complete.
+            await asyncio.to_thread(ros.close if running else ros.abort)
         worker.shutdown(wait=False, cancel_futures=True)
         # The read in progress (a render, a decode, a camera grab) ends by itself; wait for it within the
         # budget. If it does not end, the thread is a daemon thread and `capture_running` tells the caller.
@@ -492,7 +496,7 @@ class _RosSide:
                 from ipt.receiver.ros2 import Ros2Output
             except ImportError as exc:
                 if recorder is not None:
-                    recorder.close()
+                    recorder.abort()
                 raise ConfigError(
                     f"ros2 output needs the cyclonedds package ({exc}); install it with: pip install 'ipt[ros2]'"
                 ) from None
@@ -501,7 +505,7 @@ class _RosSide:
                 ros2 = Ros2Output(r, topics, report=report)
             except BaseException:
                 if recorder is not None:
-                    recorder.close()
+                    recorder.abort()
                 raise
         return cls(maker, ros2, recorder)
 
@@ -537,6 +541,14 @@ class _RosSide:
         """Finish the recording and leave the DDS domain (blocking: run it off the event loop)."""
         if self.recorder is not None:
             self.recorder.close()
+        if self.ros2 is not None:
+            self.ros2.close()
+
+    def abort(self) -> None:
+        """Leave without a recording (the run never started): the partial file is removed."""
+        if self.recorder is not None:
+            self.recorder.abort()
+            self.recorder = None
         if self.ros2 is not None:
             self.ros2.close()
 

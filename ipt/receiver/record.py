@@ -162,6 +162,7 @@ class McapRecorder:
         self._queue: queue.Queue[tuple[Any, ...] | None] = queue.Queue(maxsize=queue_size)
         self._thread = threading.Thread(target=self._run, name="ipt-record", daemon=True)
         self._closed = False
+        self._aborting = False
         self.completed = False
         """The file was finished and renamed onto :attr:`path`."""
 
@@ -208,6 +209,22 @@ class McapRecorder:
         if self._thread.is_alive():
             self._say(f"{self.partial}: not finished within {timeout_s:g} s; it holds what was written so far")
         return self.completed
+
+    def abort(self) -> None:
+        """Give the recording up (the daemon could not start): close and remove the partial file, so nothing
+        is left that looks like a recording."""
+        self._aborting = True
+        if self._thread.is_alive():
+            self.close()  # the writer thread sees _aborting when it finishes
+            return
+        self._closed = True
+        self._discard()
+
+    def _discard(self) -> None:
+        with contextlib.suppress(OSError):
+            self._file.close()
+        with contextlib.suppress(OSError):
+            self.partial.unlink()
 
     # -- the writer thread -------------------------------------------------------------------------------
 
@@ -272,6 +289,9 @@ class McapRecorder:
         )
 
     def _finish(self) -> None:
+        if self._aborting:
+            self._discard()
+            return
         try:
             if self.stats.failure is None:
                 self._write_metadata_once()
