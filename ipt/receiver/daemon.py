@@ -20,10 +20,10 @@ Three stages, each on its own thread, joined by bounded queues::
 - Latency is ``time.monotonic()`` right after the packet was sent minus the frame's grab (or read)
   instant, so it includes the time a frame waited in the queues.
 - The other outputs take each result on the event loop after the UDP packet: MAVLink
-  (:mod:`ipt.receiver.mavlink`), ROS 2 over DDS (:mod:`ipt.receiver.ros2`) and the MCAP recording
-  (:mod:`ipt.receiver.record`, written on its own thread). Each is set up before the first frame (a
-  mistake there is an :class:`~ipt.errors.IptError`), and a failure later is counted in its own summary
-  line while the others go on.
+  (:mod:`ipt.receiver.mavlink`) there, ROS 2 over DDS and the MCAP recording through
+  :class:`~ipt.receiver.rosoutputs.RosOutputs`, which only queues the result for its own thread. Each
+  is set up before the first frame (a mistake there is an :class:`~ipt.errors.IptError`), and a failure
+  later is counted in its own summary line while the others go on.
 
 Shutdown (SIGTERM, SIGINT, the end of a recording, or ``--max-frames``): the signal handlers only set
 the stop event; then, within :data:`SHUTDOWN_BUDGET_S`, capture stops, queued frames are dropped,
@@ -50,7 +50,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.config.camera_info import CameraInfo, load_camera_info
-from ipt.config.models import ArenaConfig, ConfigError, load_arena_config
+from ipt.config.models import ArenaConfig, load_arena_config
 from ipt.config.receiver import ReceiverConfig, read_auth_key
 from ipt.protocol import ProtocolError
 from ipt.receiver.capture import (
@@ -66,15 +66,12 @@ from ipt.receiver.capture import (
 )
 from ipt.receiver.outputs import PacketMaker, UdpPoseSender
 from ipt.receiver.pipeline import FrameResult, Pipeline
-from ipt.receiver.rosframes import RosMessageMaker, RosNames, StampClock
-from ipt.rosmsg import ODOMETRY, POSE, TF
+from ipt.receiver.rosoutputs import RosOutputs
 from ipt.sim.config import SimCameraConfig, SimConfig
 from ipt.tagmap import grid_tag_map
 
 if TYPE_CHECKING:
     from ipt.receiver.mavlink import MavlinkOutput
-    from ipt.receiver.record import McapRecorder
-    from ipt.receiver.ros2 import Ros2Output
 
 MAX_IN_FLIGHT = 2
 """Frames submitted to the pipeline worker at once from a recording (one processing, one waiting); a live
@@ -281,7 +278,7 @@ async def run_daemon(
     sender = UdpPoseSender(cfg.send_targets)
     maker = PacketMaker(cfg.vehicle_id, key)
     mavlink = _mavlink_output(cfg, out)
-    ros = _RosSide.create(cfg, arena.projector.rate_hz, out)
+    ros = RosOutputs.create(cfg, arena.projector.rate_hz, lambda line: _write(out, f"{PROG}: {line}"))
     meter = _Meter()
     errors_reported = 0
 
@@ -451,114 +448,6 @@ async def run_daemon(
         for line in ros.summaries():
             _write(out, f"{PROG}: {line}")
     return stats
-
-
-class _RosSide:
-    """The ROS 2 outputs of one run: the messages every frame makes, sent over DDS and/or recorded."""
-
-    def __init__(self, maker: RosMessageMaker, ros2: Ros2Output | None, recorder: McapRecorder | None) -> None:
-        self.maker, self.ros2, self.recorder = maker, ros2, recorder
-        self._offset_noted = False
-
-    @classmethod
-    def create(cls, cfg: ReceiverConfig, projector_hz: float, out: TextIO) -> _RosSide | None:
-        """The outputs ``cfg.ros2`` and ``cfg.record`` ask for (None for neither); raises
-        :class:`~ipt.errors.IptError` if one cannot be set up (nothing is left open then)."""
-        if not cfg.ros2.enabled and cfg.record.path is None:
-            return None
-        from ipt.receiver.mavlink import mounting_from
-
-        r = cfg.ros2
-        names = RosNames(r.frame_id, r.base_frame_id, r.camera_frame_id, r.namespace)
-        mounting = mounting_from(cfg.mavlink.r_frd_cam, cfg.mavlink.camera_position_frd_m)
-        maker = RosMessageMaker(names, mounting, StampClock(), hardware_id=f"ipt vehicle {cfg.vehicle_id}")
-
-        def report(line: str) -> None:
-            _write(out, f"{PROG}: {line}")
-
-        recorder: McapRecorder | None = None
-        if cfg.record.path is not None:
-            from ipt import __version__
-            from ipt.receiver.record import McapRecorder
-
-            recorder = McapRecorder(
-                cfg.record.path,
-                metadata={"vehicle_id": str(cfg.vehicle_id), "frame_id": names.frame_id, "ipt_version": __version__},
-                image_hz=cfg.record.image_hz,
-                projector_hz=projector_hz,
-                camera_frame_id=names.child(names.camera_frame_id),
-                image_topic=names.topic("difference"),
-                report=report,
-            )
-        ros2: Ros2Output | None = None
-        if r.enabled:
-            try:
-                from ipt.receiver.ros2 import Ros2Output
-            except ImportError as exc:
-                if recorder is not None:
-                    recorder.abort()
-                raise ConfigError(
-                    f"ros2 output needs the cyclonedds package ({exc}); install it with: pip install 'ipt[ros2]'"
-                ) from None
-            topics = [(names.pose_topic, POSE), (names.odom_topic, ODOMETRY)] + ([(names.tf_topic, TF)] if r.tf else [])
-            try:
-                ros2 = Ros2Output(r, topics, report=report)
-            except BaseException:
-                if recorder is not None:
-                    recorder.abort()
-                raise
-        return cls(maker, ros2, recorder)
-
-    def start(self) -> None:
-        if self.recorder is not None:
-            self.recorder.start()
-
-    def on_result(self, frame: CapturedFrame, result: FrameResult | None, stages: dict[str, float]) -> None:
-        """One frame's messages (``result`` None: processing failed) to DDS and the recording."""
-        if result is None:
-            items = self.maker.frame(frame.index, frame.capture_time_us, frame.grabbed_s, "error", 0, None)
-        else:
-            items = self.maker.frame(
-                frame.index,
-                frame.capture_time_us,
-                frame.grabbed_s,
-                result.reason,
-                result.num_detections,
-                result.pose,
-                result.reset,
-                stages,
-            )
-        if self.ros2 is not None:
-            self.ros2.publish(items)
-        if self.recorder is not None:
-            if not self._offset_noted and self.maker.clock.offset_ns is not None:
-                self._offset_noted = True
-                self.recorder.set_metadata({"capture_time_offset_ns": str(self.maker.clock.offset_ns)})
-            self.recorder.put(items)
-            self.recorder.offer_frame(frame.capture_time_us, items[-1].stamp_ns, frame.image_rgb)
-
-    def close(self) -> None:
-        """Finish the recording and leave the DDS domain (blocking: run it off the event loop)."""
-        if self.recorder is not None:
-            self.recorder.close()
-        if self.ros2 is not None:
-            self.ros2.close()
-
-    def abort(self) -> None:
-        """Leave without a recording (the run never started): the partial file is removed."""
-        if self.recorder is not None:
-            self.recorder.abort()
-            self.recorder = None
-        if self.ros2 is not None:
-            self.ros2.close()
-
-    def summaries(self) -> list[str]:
-        lines = []
-        if self.ros2 is not None:
-            lines.append(self.ros2.summary())
-        if self.recorder is not None:
-            lines.append(self.recorder.summary())
-        return lines
 
 
 def _mavlink_output(cfg: ReceiverConfig, out: TextIO) -> MavlinkOutput | None:
