@@ -18,7 +18,9 @@ turns them into its typed structs.
 
 from __future__ import annotations
 
+import contextlib
 import re
+import struct
 from pathlib import Path
 from typing import Any
 
@@ -163,44 +165,60 @@ def is_mcap(path: str | Path) -> bool:
         return False
 
 
-def read_mcap_trajectory(path: str | Path, topic: str = "/ipt/pose", *, capture_time: bool = True) -> Trajectory:
+def _read_poses(reader: Any, topic: str, offset_ns: int, path: Path, out: list[tuple[int, Any]]) -> None:
+    """Append (capture-clock ns, pose) of every message on ``topic`` to ``out``, in file order (so that what
+    was read stays when a cut-short file ends in the middle)."""
+    for schema, channel, _, msg in reader.iter_decoded_messages(topics=[topic], log_time_order=False):
+        if schema is None or schema.name != POSE:
+            kind = schema.name if schema is not None else "no schema"
+            raise RosMsgError(f"{path}: {channel.topic} holds {kind}, not {POSE}")
+        out.append((time_ns(msg.header.stamp) - offset_ns, msg.pose.pose))
+
+
+def _offset_ns(reader: Any) -> int:
+    for meta in reader.iter_metadata():
+        if meta.name == METADATA_NAME and "capture_time_offset_ns" in meta.metadata:
+            return int(meta.metadata["capture_time_offset_ns"])
+    return 0
+
+
+def read_mcap_trajectory(
+    path: str | Path, topic: str = "/ipt/pose", *, capture_time: bool = True
+) -> Trajectory:
     """The poses on ``topic`` (``geometry_msgs/msg/PoseWithCovarianceStamped``) of an MCAP recording.
 
     Times are the header stamps; with ``capture_time`` (and the receiver's ``ipt`` metadata in the file)
     they are turned back into the frames' capture times on the source's own clock, the time base of
     ``ipt-receiver replay`` and of a simulated flight's ground truth. Poses out of time order (or a repeated
     stamp) end the trajectory's strictly increasing times, so the later one is dropped.
+
+    A recording cut short (a ``.partial`` file of a run that was killed, or whose disk filled) has no
+    summary at its end: it is then read from the start as a stream, up to the last complete chunk.
     """
-    from mcap.exceptions import McapError
-    from mcap.reader import make_reader
+    from mcap.exceptions import EndOfFile, McapError
+    from mcap.reader import NonSeekingReader, make_reader
     from mcap_ros2.decoder import DecoderFactory
 
     p = Path(path)
-    offset_ns = 0
-    times: list[float] = []
-    positions: list[tuple[float, float, float]] = []
-    quats: list[tuple[float, float, float, float]] = []
+    decoders = [DecoderFactory()]
+    poses: list[tuple[int, Any]] = []
     try:
         with p.open("rb") as f:
-            reader = make_reader(f, decoder_factories=[DecoderFactory()])
-            if capture_time:
-                for meta in reader.iter_metadata():
-                    if meta.name == METADATA_NAME and "capture_time_offset_ns" in meta.metadata:
-                        offset_ns = int(meta.metadata["capture_time_offset_ns"])
-            last_ns: int | None = None
-            for schema, channel, _, msg in reader.iter_decoded_messages(topics=[topic]):
-                if schema is None or schema.name != POSE:
-                    kind = schema.name if schema is not None else "no schema"
-                    raise RosMsgError(f"{p}: {channel.topic} holds {kind}, not {POSE}")
-                stamp_ns = time_ns(msg.header.stamp) - offset_ns
-                if last_ns is not None and stamp_ns <= last_ns:
-                    continue
-                last_ns = stamp_ns
-                pose = msg.pose.pose
-                times.append(stamp_ns * 1e-9)
-                positions.append((pose.position.x, pose.position.y, pose.position.z))
-                o = pose.orientation
-                quats.append((o.w, o.x, o.y, o.z))
+            try:
+                reader = make_reader(f, decoder_factories=decoders)
+                offset = _offset_ns(reader) if capture_time else 0
+                _read_poses(reader, topic, offset, p, poses)
+            except (McapError, EOFError, ValueError, KeyError):  # no summary, or cut short: read it as a stream
+                offset = 0
+                cut = (EndOfFile, McapError, EOFError, struct.error)  # what the end of a cut-short file raises
+                if capture_time:
+                    f.seek(0)
+                    with contextlib.suppress(*cut):
+                        offset = _offset_ns(NonSeekingReader(f, decoder_factories=decoders))
+                f.seek(0)
+                poses.clear()
+                with contextlib.suppress(*cut):
+                    _read_poses(NonSeekingReader(f, decoder_factories=decoders), topic, offset, p, poses)
     except FileNotFoundError:
         raise RosMsgError(f"{p}: no such file") from None
     except IsADirectoryError:
@@ -209,6 +227,18 @@ def read_mcap_trajectory(path: str | Path, topic: str = "/ipt/pose", *, capture_
         raise RosMsgError(f"{p}: cannot read ({exc.strerror or exc})") from None
     except (McapError, ValueError, KeyError, AttributeError, EOFError) as exc:
         raise RosMsgError(f"{p}: not a readable MCAP recording ({type(exc).__name__}: {exc})") from None
+    times: list[float] = []
+    positions: list[tuple[float, float, float]] = []
+    quats: list[tuple[float, float, float, float]] = []
+    last_ns: int | None = None
+    for stamp_ns, pose in sorted(poses, key=lambda sp: sp[0]):
+        if last_ns is not None and stamp_ns <= last_ns:
+            continue
+        last_ns = stamp_ns
+        times.append(stamp_ns * 1e-9)
+        positions.append((pose.position.x, pose.position.y, pose.position.z))
+        o = pose.orientation
+        quats.append((o.w, o.x, o.y, o.z))
     if not times:
         raise RosMsgError(f"{p}: no messages on {topic}")
     pos, q = np.asarray(positions, np.float64), np.asarray(quats, np.float64)

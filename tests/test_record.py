@@ -197,3 +197,26 @@ def test_a_run_that_cannot_start_leaves_no_recording(tmp_path: Path) -> None:
     rec = McapRecorder(tmp_path / "y.mcap")
     rec.abort()
     assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_a_recording_cut_short_is_read_up_to_its_last_complete_chunk(tmp_path: Path) -> None:
+    path = tmp_path / "flight.mcap"
+    rec = McapRecorder(path)
+    clock = StampClock(lambda: WALL_NS, lambda: 0.0)
+    maker = RosMessageMaker(RosNames(), Mounting(), clock)
+    rec.start()
+    for k in range(1500):
+        items = maker.frame(k, 8333 * k, 0.0, "pose", 2, _pose(k))
+        if k == 0:
+            rec.set_metadata({"capture_time_offset_ns": str(clock.offset_ns)})
+        rec.put(items)
+    assert rec.close()
+    whole = read_mcap_trajectory(path)
+    assert len(whole) == 1500
+    cut = tmp_path / "cut.mcap.partial"
+    data = path.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])  # as a killed run or a full disk leaves it: no summary, half a chunk
+    part = read_mcap_trajectory(cut)
+    assert 0 < len(part) < len(whole)
+    np.testing.assert_array_equal(part.times_s, whole.times_s[: len(part)])  # the same poses, capture clock
+    np.testing.assert_array_equal(part.positions_m, whole.positions_m[: len(part)])

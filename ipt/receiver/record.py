@@ -13,7 +13,8 @@ and writes them. If the disk does not keep up, the queue's overflow is dropped a
 fails (a full disk, a removed USB stick) the failure is reported once, the recording stops there and
 later messages are counted as lost, while localisation and the other outputs go on. The file is written
 as ``NAME.partial`` beside the target and renamed when it is complete, so an interrupted run leaves no
-file that looks complete (and MCAP readers recover what the partial file holds).
+file that looks complete; what a partial file holds up to its last complete chunk stays readable
+(``ipt eval`` reads it as a stream when the summary at the end is missing).
 """
 
 from __future__ import annotations
@@ -307,7 +308,7 @@ class McapRecorder:
                 if self.stats.failure is None:
                     self._fail(exc)
         if self.stats.failure is not None:
-            self._say(f"{self.partial} is incomplete: MCAP readers recover the chunks written before the failure")
+            self._say(f"{self.partial} is incomplete: it holds the chunks written before the failure")
             return
         try:
             os.replace(self.partial, self.path)
