@@ -16,7 +16,7 @@ recorder (:mod:`ipt.receiver.record`) writes all four. Frames, as REP 103/105 as
   estimate yet it is zero with ``covariance[0] = -1`` (the ROS sign for "no estimate").
 - ``/tf`` (``tf2_msgs/msg/TFMessage``): arena → camera and arena → base_link, the same poses.
 - ``/ipt/diagnostics`` (``diagnostic_msgs/msg/DiagnosticArray``), recorded only: every frame's outcome
-  (why there is no pose), tag count and stage times.
+  (why there is no pose), tag count and stage times. (The recorder adds ``/ipt/difference`` itself.)
 
 With a ``namespace`` (one per drone) topics become ``/ipt/<namespace>/pose`` ... and the body frames
 ``<namespace>/base_link`` and ``<namespace>/camera``; ``/tf`` and the arena frame are shared.
@@ -78,6 +78,8 @@ class RosNames:
     base_frame_id: str = "base_link"
     camera_frame_id: str = "camera"
     namespace: str | None = None
+    tf_topic: str = "/tf"
+    """Shared by every vehicle (tf frames are global; the body frames carry the namespace)."""
 
     def topic(self, leaf: str) -> str:
         """``/ipt/<leaf>``, or ``/ipt/<namespace>/<leaf>``."""
@@ -99,11 +101,6 @@ class RosNames:
     def diagnostics_topic(self) -> str:
         return self.topic("diagnostics")
 
-    @property
-    def image_topic(self) -> str:
-        return self.topic("difference/compressed")
-
-    tf_topic: str = "/tf"
 
 
 @dataclass(frozen=True)
