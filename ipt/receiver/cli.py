@@ -165,8 +165,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument(
         "--record",
         metavar="FILE.mcap",
-        help="write every frame's pose, odometry, transforms and diagnostics to an MCAP flight log that Foxglove "
-        "and ros2 bag open (overrides the config's record.path)",
+        help="write every frame's pose, odometry, transforms and diagnostics to an MCAP flight log with ROS 2 "
+        "schemas, for Foxglove, ros2 bag and ipt eval (overrides the config's record.path)",
     )
     d.add_argument("--realtime", action="store_true", help="pace sim/video to the frame rate (a live source)")
     d.add_argument("--max-frames", type=_positive_int, metavar="N", help="stop after N captured frames")
