@@ -430,7 +430,16 @@ _EPILOG = """\
 input: TUM trajectory files, one pose per line 't x y z qx qy qz qw' (seconds, metres, unit
 quaternion with the scalar last); the pose is the camera's (optical centre and R_arena_cam, OpenCV
 camera axes) in the arena frame (ENU). --truth holds one sample per camera frame; --poses holds the
-estimates, compared with the truth interpolated at their time stamps.
+estimates, compared with the truth interpolated at their time stamps. Either may instead be an MCAP
+recording (ipt-receiver run --record): its --topic (default /ipt/pose) is read, on the frames' own
+capture clock.
+
+motion capture (--align): the truth is a mocap system's TUM file, in its own frame and on its own
+clock. The time offset is found by cross-correlating the two speed profiles (then refined to 0.5 ms
+by the position fit), the mocap frame is fitted onto the arena by a rotation and translation, and the
+rotation between the mocap rigid body and the camera is taken as the mean over all pairs; the
+alignment is printed, then the table for the aligned truth. Put the rigid body's origin at the
+camera, or its offset shows as a constant position error. Yield counts the truth's samples.
 
 output columns, as in the paper's Table I:
   X/Y/Z Error [m]             position error estimate - truth along the arena axes
@@ -451,9 +460,24 @@ def _parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument(
-        "--truth", required=True, metavar="FILE", help="ground-truth TUM file (one pose per frame)"
+        "--truth", required=True, metavar="FILE", help="ground-truth TUM file (one pose per frame), or a mocap TUM file"
     )
-    p.add_argument("--poses", required=True, metavar="FILE", help="estimated poses, TUM file")
+    p.add_argument("--poses", required=True, metavar="FILE", help="estimated poses: TUM file or MCAP recording")
+    p.add_argument(
+        "--topic", default="/ipt/pose", help="the pose topic of an MCAP recording (default %(default)s)"
+    )
+    p.add_argument(
+        "--align",
+        action="store_true",
+        help="the truth is motion capture: find the time offset, the mocap-to-arena transform and the body "
+        "rotation first (see below)",
+    )
+    p.add_argument(
+        "--time-offset",
+        type=float,
+        metavar="S",
+        help="with --align: truth time = estimate time + S, instead of finding it by cross-correlation",
+    )
     p.add_argument("--plot", metavar="FIG.png", help="also save a figure like the paper's Fig. 6 (PNG)")
     p.add_argument("--json", metavar="OUT.json", help="also write the summary as JSON")
     p.add_argument(
@@ -473,8 +497,16 @@ def eval_main(argv: list[str] | None = None) -> int:
     try:
         if not (math.isfinite(args.max_dt) and args.max_dt >= 0):
             raise EvalError(f"--max-dt must be a finite number >= 0, got {args.max_dt}")
-        truth = read_tum(args.truth)
-        est = read_tum(args.poses)
+        if args.time_offset is not None and not (args.align and math.isfinite(args.time_offset)):
+            raise EvalError("--time-offset needs --align and a finite number of seconds")
+        truth = read_trajectory(args.truth, args.topic)
+        est = read_trajectory(args.poses, args.topic)
+        if args.align:
+            from ipt.align import align
+
+            alignment = align(truth, est, args.time_offset)
+            truth = alignment.apply(truth)
+            sys.stdout.write(format_alignment(alignment))
         report = evaluate(truth, est, max_dt_s=args.max_dt)
         sys.stdout.write(format_table(report, paper=not args.no_paper))
         if args.json:
@@ -489,6 +521,29 @@ def eval_main(argv: list[str] | None = None) -> int:
         print(f"ipt eval: error: {exc}", file=sys.stderr)
         return 2
     return 0
+
+
+def read_trajectory(path: str | Path, topic: str = "/ipt/pose") -> Trajectory:
+    """A TUM file, or the poses on ``topic`` of an MCAP recording (told apart by the file's first bytes)."""
+    from ipt.rosmsg import is_mcap, read_mcap_trajectory
+
+    if is_mcap(path):
+        return read_mcap_trajectory(path, topic)
+    return read_tum(path)
+
+
+def format_alignment(a: Any) -> str:
+    """The alignment ``--align`` found (an :class:`ipt.align.Alignment`), as a few lines."""
+    ypr = np.degrees(ypr_from_matrix(a.r_arena_mocap))
+    body = np.degrees(ypr_from_matrix(a.r_mocap_body_cam))
+    x, y, z = a.t_arena_mocap_m
+    corr = "" if not math.isfinite(a.correlation) else f" (speed correlation {a.correlation:.3f})"
+    return (
+        f"alignment: truth time = estimate time + {a.offset_s:.4f} s{corr}\n"
+        f"alignment: mocap -> arena: yaw {ypr[0]:.2f}, pitch {ypr[1]:.2f}, roll {ypr[2]:.2f} deg, "
+        f"translation {x:.4f} {y:.4f} {z:.4f} m; position rms {1e3 * a.rms_m:.2f} mm over {a.pairs} pairs\n"
+        f"alignment: camera -> mocap body: yaw {body[0]:.2f}, pitch {body[1]:.2f}, roll {body[2]:.2f} deg\n\n"
+    )
 
 
 def _write_output(path: str, write: Callable[[str], None]) -> None:

@@ -18,7 +18,14 @@ def _loaded_ipt_modules(module: str) -> list[str]:
 
 @pytest.mark.parametrize(
     "module",
-    ["ipt.receiver.cli", "ipt.receiver.daemon", "ipt.receiver.pipeline", "ipt.receiver.replay"],
+    [
+        "ipt.receiver.cli",
+        "ipt.receiver.daemon",
+        "ipt.receiver.pipeline",
+        "ipt.receiver.replay",
+        "ipt.receiver.ros2",
+        "ipt.receiver.record",
+    ],
 )
 def test_receiver_does_not_import_the_sender(module: str) -> None:
     loaded = _loaded_ipt_modules(module)

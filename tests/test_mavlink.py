@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import fcntl
+import itertools
 import math
 import os
 import signal
@@ -45,6 +46,7 @@ from ipt.receiver.mavlink import (
     MavlinkOutput,
     Mounting,
     OdometryTracker,
+    RateLimiter,
     body_pose_ned,
     euler_jacobian,
     euler_rpy_rad,
@@ -244,6 +246,53 @@ def test_reset_counter_counts_reinitialisations_and_jumps_and_wraps() -> None:
     assert tracker.resets == 256
 
 
+def test_rate_limiter_keeps_at_most_max_rate_per_second_each_the_newest() -> None:
+    for fps, expected_per_s in ((120, 40), (200, 50), (50, 50), (30, 30)):
+        limiter = RateLimiter(50.0)
+        times = [round(k * 1e6 / fps) for k in range(10 * fps)]  # 10 s of frames, every one a pose
+        sent = np.array([t for t in times if limiter.admit(t)])
+        assert np.diff(sent).min() >= 20_000  # ArduPilot's EKF takes nothing closer than 20 ms
+        per_window = [int(np.sum((sent >= t) & (sent < t + 1_000_000))) for t in times]
+        assert max(per_window) <= 50, (fps, max(per_window))
+        assert len(sent) == 10 * expected_per_s, (fps, len(sent))
+        # "the newest": a pose goes out as soon as it may; the one before it was held back for being too soon
+        for t in sent[1:]:
+            k = times.index(int(t))
+            assert times[k - 1] - sent[sent < t].max() < 20_000
+        assert limiter.held_back == len(times) - len(sent)
+    everything = RateLimiter(None)
+    assert all(everything.admit(t) for t in (0, 1, 2, 3))
+    again = RateLimiter(50.0)
+    assert again.admit(1_000_000)
+    assert not again.admit(1_010_000)
+    assert again.admit(0)  # time went backwards: a new recording, start afresh
+
+
+def test_odometry_carries_the_body_velocity_in_frd_with_its_covariance() -> None:
+    out = MavlinkOutput(MavlinkConfig(link="udpout:127.0.0.1:9", max_rate_hz=None), report=None)
+    heading = 0.7
+    v_arena = np.array([0.6, -0.4, 0.05])
+    samples = []
+    for k in range(14):
+        t_us = round(k * 1e6 / 120)
+        pose = _pose((0.1 + v_arena[0] * t_us * 1e-6, v_arena[1] * t_us * 1e-6, 0.8 + v_arena[2] * t_us * 1e-6),
+                     _r_arena_cam_level(heading))  # fmt: skip
+        samples.append(out.on_result(_frame(k, t_us), FrameResult(k, t_us, pose, 3, "pose")))
+    assert all(s is not None for s in samples)
+    assert not np.isfinite(samples[1].velocity_frd_mps).any()  # two poses: no fit yet
+    last = samples[-1]
+    r_arena_frd = _r_arena_cam_level(heading) @ R_FRD_CAM_DOWNWARD.T
+    np.testing.assert_allclose(last.velocity_frd_mps, r_arena_frd.T @ v_arena, atol=1e-9)
+    cov = last.velocity_covariance
+    assert min(cov[0], cov[6], cov[11]) > 0  # vx, vy, vz variances where PX4 reads them
+    assert all(math.isnan(cov[i]) for i in (15, 18, 20))  # the rates are not sent
+    msg = out._odometry_message(last)
+    decoded = mavlink2.MAVLink(None).decode(bytearray(msg.pack(mavlink2.MAVLink(None, srcSystem=1, srcComponent=197))))
+    np.testing.assert_allclose([decoded.vx, decoded.vy, decoded.vz], last.velocity_frd_mps, atol=1e-6)
+    assert math.isnan(decoded.rollspeed)
+    assert out.stats.odometry == 0  # the link was never opened: nothing was sent, and nothing counted
+
+
 def test_fix_monitor_says_lost_once_and_regained() -> None:
     fix = FixMonitor(0.5)
     assert fix.tick(10.0) is None  # never had a fix: nothing to lose
@@ -367,7 +416,7 @@ async def test_output_answers_timesync_says_fix_lost_and_regained() -> None:
             assert before_ns <= reply.tc1 <= time.monotonic_ns()  # the monotonic clock, in ns
             listener.conn.mav.timesync_send(5, ts1)  # a reply to someone else: not answered
             await asyncio.sleep(0.6)  # longer than fix_timeout_s: the fix is lost
-            out.on_result(_frame(1, 8333), FrameResult(1, 8333, _pose(), 3, "pose"))
+            out.on_result(_frame(1, 600_000), FrameResult(1, 600_000, _pose(), 3, "pose"))
             texts = await asyncio.to_thread(listener.wait_for, "STATUSTEXT", 3, 10.0)
         finally:
             await out.close()
@@ -383,7 +432,7 @@ async def test_output_answers_timesync_says_fix_lost_and_regained() -> None:
         assert len(listener.of("TIMESYNC")) == 1
         assert len(listener.of("VISION_POSITION_ESTIMATE")) == 2
         odo = [h.msg for h in listener.of("ODOMETRY")]
-        assert [m.time_usec for m in odo] == [100_000_000, 100_008_333]  # capture times on the grab clock
+        assert [m.time_usec for m in odo] == [100_000_000, 100_600_000]  # capture times on the grab clock
         assert odo[0].get_srcSystem() == 1
         assert odo[0].get_srcComponent() == 197
         assert texts
@@ -503,13 +552,23 @@ def test_replayed_flight_odometry_matches_the_arena_poses(short_flight: Path, tm
     poses = [decode_pose(p) for p in packets]
     odometry = [h.msg for h in mav.of("ODOMETRY")]
     assert poses, err
-    assert len(odometry) == len(poses), err  # one ODOMETRY per pose: the pose rate
-    assert f"{len(poses)} ODOMETRY" in err
+    assert f"{len(odometry)} ODOMETRY ({len(poses) - len(odometry)} poses held back by max_rate_hz)" in err
+    # At most 50 per second of capture time (max_rate_hz's default), each one a pose that was sent, and the
+    # newest at that moment: every pose between two ODOMETRY came too soon after the first of them.
     offset = odometry[0].time_usec - poses[0].capture_time_us
+    by_time = {p.capture_time_us: p for p in poses}
+    sent_us = [o.time_usec - offset for o in odometry]
+    assert all(t in by_time for t in sent_us)
+    assert min(np.diff(sent_us)) >= 20_000
+    assert max(sum(1 for u in sent_us if t <= u < t + 1_000_000) for t in sent_us) <= 50
+    for before, after in itertools.pairwise(sent_us):
+        skipped = [p.capture_time_us for p in poses if before < p.capture_time_us < after]
+        assert all(t - before < 20_000 for t in skipped)
     worst_m = 0.0
     by_tags: dict[int, list[float]] = {}
-    for o, p in zip(odometry, poses, strict=True):
-        assert o.time_usec - p.capture_time_us == offset  # time_usec is the capture time, on one clock
+    with_velocity = 0
+    for o, t in zip(odometry, sent_us, strict=True):
+        p = by_time[t]
         assert (o.frame_id, o.child_frame_id) == (mavlink2.MAV_FRAME_LOCAL_FRD, mavlink2.MAV_FRAME_BODY_FRD)
         x, y, z = p.position_m
         worst_m = max(worst_m, float(np.abs(np.array([o.x, o.y, o.z]) - np.array([y, x, -z])).max()))
@@ -518,11 +577,19 @@ def test_replayed_flight_odometry_matches_the_arena_poses(short_flight: Path, tm
         assert all(math.isfinite(v) for v in o.pose_covariance)
         assert o.pose_covariance[0] > 0
         assert o.pose_covariance[15] > 0
-        assert math.isnan(o.vx)
-        assert math.isnan(o.velocity_covariance[0])
+        if math.isfinite(o.vx):
+            with_velocity += 1
+            assert abs(math.hypot(o.vx, o.vy, o.vz)) < 3.0  # the simulated flight stays under 1.5 m/s
+            assert o.velocity_covariance[0] > 0
+        else:
+            assert math.isnan(o.velocity_covariance[0])
         by_tags.setdefault(p.num_tags, []).append(o.pose_covariance[0] + o.pose_covariance[6] + o.pose_covariance[11])
     assert worst_m < 1e-3, worst_m
-    print(f"ODOMETRY {len(odometry)} for {len(poses)} poses; worst NED difference {worst_m * 1e3:.4f} mm")
+    assert with_velocity >= 0.9 * len(odometry), (with_velocity, len(odometry))
+    print(
+        f"ODOMETRY {len(odometry)} for {len(poses)} poses, {with_velocity} with a velocity; "
+        f"worst NED difference {worst_m * 1e3:.4f} mm"
+    )
     few, many = min(by_tags), max(by_tags)
     if few != many:
         assert np.median(by_tags[few]) > np.median(by_tags[many])

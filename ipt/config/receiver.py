@@ -149,6 +149,15 @@ class MavlinkConfig(StrictModel):
         description="MAVLink component id of this receiver (197: MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY).",
     )
     odometry: bool = Field(True, description="Send ODOMETRY (frame MAV_FRAME_LOCAL_FRD, child MAV_FRAME_BODY_FRD).")
+    max_rate_hz: float | None = Field(
+        50.0,
+        gt=0,
+        le=1000,
+        description="At most this many ODOMETRY (and VISION_POSITION_ESTIMATE) per second of capture time: "
+        "consecutive ones are at least 1/max_rate_hz apart, and each carries the newest pose. ArduPilot's EKF "
+        "drops external navigation closer than 20 ms to the last it took, PX4's EKF2 samples closer than its "
+        "observation interval (about 10 ms by default). null: every pose.",
+    )
     vision_position_estimate: bool = Field(
         False, description="Also send VISION_POSITION_ESTIMATE (for autopilots that do not take ODOMETRY)."
     )
@@ -233,6 +242,79 @@ class MavlinkConfig(StrictModel):
     def link_spec(self) -> LinkSpec | None:
         """The parsed :attr:`link`."""
         return None if self.link is None else parse_link(self.link)
+
+
+_ROS_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
+
+
+class Ros2Config(StrictModel):
+    """ROS 2 topics over DDS (see README "ROS 2"): off unless enabled (or ``--ros2``)."""
+
+    enabled: bool = Field(False, description="Publish /ipt/pose, /ipt/odom and /tf over DDS (needs ipt[ros2]).")
+    domain_id: int | None = Field(
+        None,
+        ge=0,
+        le=232,
+        description="DDS domain (ROS_DOMAIN_ID). null: the environment's ROS_DOMAIN_ID, else 0. The network "
+        "setup comes from CYCLONEDDS_URI, as for any CycloneDDS program.",
+    )
+    qos: Literal["sensor_data", "reliable"] = Field(
+        "sensor_data",
+        description="QoS of /ipt/pose and /ipt/odom: 'sensor_data' (best effort, keep last 5: a subscriber must "
+        "ask for best effort or sensor data QoS, or it gets nothing) or 'reliable' (keep last 10; any "
+        "subscriber matches). /tf is always reliable, keep last 100, as tf2 listeners expect.",
+    )
+    namespace: str | None = Field(
+        None,
+        description="This vehicle's name when several fly: topics become /ipt/<namespace>/pose ... and the body "
+        "frames <namespace>/base_link and <namespace>/camera. null: /ipt/pose, base_link, camera.",
+    )
+    frame_id: str = Field("arena", min_length=1, description="The arena's frame (header.frame_id of the poses).")
+    base_frame_id: str = Field(
+        "base_link", min_length=1, description="The vehicle body's frame (FLU), placed by the MAVLink mounting."
+    )
+    camera_frame_id: str = Field(
+        "camera", min_length=1, description="The camera's frame (OpenCV optical axes: x right, y down, z forward)."
+    )
+    tf: bool = Field(True, description="Also publish arena -> camera and arena -> base_link on /tf.")
+
+    @field_validator("namespace")
+    @classmethod
+    def _check_namespace(cls, value: str | None) -> str | None:
+        if value is not None and not _ROS_NAME.fullmatch(value):
+            raise ValueError(f"must be a ROS name (a letter, then letters, digits or _), got {value!r}")
+        return value
+
+    @field_validator("frame_id", "base_frame_id", "camera_frame_id")
+    @classmethod
+    def _check_frame(cls, value: str) -> str:
+        if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_/]*", value):
+            raise ValueError(f"must be a frame name (letters, digits, _ and /), got {value!r}")
+        return value
+
+
+class RecordConfig(StrictModel):
+    """The flight log (``--record``): an MCAP file that Foxglove and ros2 bag open."""
+
+    path: Path | None = Field(
+        None,
+        description="Where to write the MCAP recording (relative to this file's folder); null: no recording. "
+        "It is written as PATH.partial beside it and renamed when the run ends.",
+    )
+    image_hz: float = Field(
+        0.0,
+        ge=0,
+        le=30,
+        description="Also record the raw difference image (the frame minus the one a projector period before, "
+        "before any alignment) this many times per second of capture time, JPEG, on /ipt/difference. 0: none.",
+    )
+
+    @field_validator("path")
+    @classmethod
+    def _check_path(cls, value: Path | None) -> Path | None:
+        if value is not None and "\0" in str(value):
+            raise ValueError("a file name cannot contain a NUL character")
+        return value
 
 
 class CameraControls(StrictModel):
@@ -323,6 +405,10 @@ class ReceiverConfig(StrictModel):
     mavlink: MavlinkConfig = Field(
         default_factory=MavlinkConfig, description="MAVLink output to the flight controller (off unless link is set)."
     )
+    ros2: Ros2Config = Field(default_factory=Ros2Config, description="ROS 2 topics over DDS (off unless enabled).")
+    record: RecordConfig = Field(
+        default_factory=RecordConfig, description="The MCAP flight log (off unless a path is set)."
+    )
     pipeline: PipelineConfig = Field(default_factory=PipelineConfig, description="The per-frame processing.")
 
     @field_validator("arena", "camera", "auth_key_file")
@@ -368,6 +454,8 @@ def resolve_relative_paths(cfg: ReceiverConfig, base: Path) -> ReceiverConfig:
     spec = cfg.source_spec
     if spec.kind in ("video", "images") and spec.path is not None:
         updates["source"] = f"{spec.kind}:{_resolve(base, spec.path)}"
+    if cfg.record.path is not None:
+        updates["record"] = cfg.record.model_copy(update={"path": _resolve(base, cfg.record.path)})
     return cfg.model_copy(update=updates)
 
 

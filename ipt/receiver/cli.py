@@ -60,6 +60,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
     updates: dict[str, object] = {k: v for k, v in flags.items() if v is not None}
     if args.mavlink is not None:
         updates["mavlink"] = {**cfg.mavlink.model_dump(), "link": None if args.mavlink == "off" else args.mavlink}
+    if args.ros2:
+        updates["ros2"] = {**cfg.ros2.model_dump(), "enabled": True}
+    if args.record is not None:
+        updates["record"] = {**cfg.record.model_dump(), "path": Path(args.record)}
     if updates:
         cfg = with_overrides(cfg, **updates)
     stats = run(cfg, max_frames=args.max_frames)
@@ -126,8 +130,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Read frames from the simulator, a recording or a camera (V4L2 or picamera2), localise each "
         "and send one UDP pose packet per pose to every target, and with --mavlink (or mavlink.link) ODOMETRY to "
         "the flight controller (docs/flight-controllers.md). Statistics go to stderr every stats_interval_s "
-        "seconds and at exit. Stops on SIGTERM/SIGINT (exit code 0), at the end of a recording, or after "
-        "--max-frames.",
+        "seconds and at exit. With --ros2 (or ros2.enabled) also /ipt/pose, /ipt/odom and /tf as ROS 2 topics over "
+        "DDS, and with --record an MCAP flight log (README \"ROS 2 and flight logs\"). Stops on SIGTERM/SIGINT "
+        "(exit code 0), at the end of a recording, or after --max-frames.",
     )
     d.add_argument("--config", metavar="RECEIVER.yaml", help="receiver YAML (default: the shipped receiver.yaml)")
     d.add_argument("--arena", metavar="ARENA.yaml", help="arena YAML (overrides the config)")
@@ -150,6 +155,18 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="LINK",
         help="MAVLink to the flight controller: udpout:HOST:PORT or serial:DEVICE:BAUD (e.g. "
         "serial:/dev/ttyAMA0:921600); 'off' for none (overrides the config's mavlink.link)",
+    )
+    d.add_argument(
+        "--ros2",
+        action="store_true",
+        help="publish /ipt/pose, /ipt/odom and /tf as ROS 2 topics over DDS (CycloneDDS, no ROS needed: pip install "
+        "'ipt[ros2]'); domain, QoS and names in the config's ros2: section, the network in $CYCLONEDDS_URI",
+    )
+    d.add_argument(
+        "--record",
+        metavar="FILE.mcap",
+        help="write every frame's pose, odometry, transforms and diagnostics to an MCAP flight log with ROS 2 "
+        "schemas, for Foxglove, ros2 bag and ipt eval (overrides the config's record.path)",
     )
     d.add_argument("--realtime", action="store_true", help="pace sim/video to the frame rate (a live source)")
     d.add_argument("--max-frames", type=_positive_int, metavar="N", help="stop after N captured frames")

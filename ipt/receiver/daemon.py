@@ -19,6 +19,11 @@ Three stages, each on its own thread, joined by bounded queues::
   Results are awaited in submission order too, so packets leave in capture order.
 - Latency is ``time.monotonic()`` right after the packet was sent minus the frame's grab (or read)
   instant, so it includes the time a frame waited in the queues.
+- The other outputs take each result on the event loop after the UDP packet: MAVLink
+  (:mod:`ipt.receiver.mavlink`) there, ROS 2 over DDS and the MCAP recording through
+  :class:`~ipt.receiver.rosoutputs.RosOutputs`, which only queues the result for its own thread. Each
+  is set up before the first frame (a mistake there is an :class:`~ipt.errors.IptError`), and a failure
+  later is counted in its own summary line while the others go on.
 
 Shutdown (SIGTERM, SIGINT, the end of a recording, or ``--max-frames``): the signal handlers only set
 the stop event; then, within :data:`SHUTDOWN_BUDGET_S`, capture stops, queued frames are dropped,
@@ -61,6 +66,7 @@ from ipt.receiver.capture import (
 )
 from ipt.receiver.outputs import PacketMaker, UdpPoseSender
 from ipt.receiver.pipeline import FrameResult, Pipeline
+from ipt.receiver.rosoutputs import RosOutputs
 from ipt.sim.config import SimCameraConfig, SimConfig
 from ipt.tagmap import grid_tag_map
 
@@ -272,6 +278,7 @@ async def run_daemon(
     sender = UdpPoseSender(cfg.send_targets)
     maker = PacketMaker(cfg.vehicle_id, key)
     mavlink = _mavlink_output(cfg, out)
+    ros = RosOutputs.create(cfg, arena.projector.rate_hz, lambda line: _write(out, f"{PROG}: {line}"))
     meter = _Meter()
     errors_reported = 0
 
@@ -279,7 +286,20 @@ async def run_daemon(
     # waiting in the executor would be stale by a whole processing time when its turn comes). A recording
     # keeps the worker busy instead: the next frame waits while this one is processed.
     slots = asyncio.Semaphore(1 if source.live else MAX_IN_FLIGHT)
-    results: asyncio.Queue[tuple[CapturedFrame, asyncio.Future[FrameResult]] | None] = asyncio.Queue()
+    results: asyncio.Queue[tuple[CapturedFrame, asyncio.Future[tuple[FrameResult, dict[str, float]]]] | None] = (
+        asyncio.Queue()
+    )
+    stage_totals: dict[str, float] | None = getattr(pipeline, "stage_seconds", None)
+
+    def process(frame: CapturedFrame) -> tuple[FrameResult, dict[str, float]]:
+        """On the worker thread: the frame's result and the processor time each stage took for it (from the
+        pipeline's running totals, read on the same thread, so no other frame is counted in)."""
+        if ros is None or stage_totals is None:
+            return pipeline.process(frame.index, frame.image_rgb, frame.capture_time_us), {}
+        before = dict(stage_totals)
+        result = pipeline.process(frame.index, frame.image_rgb, frame.capture_time_us)
+        stages = {k: v - before.get(k, 0.0) for k, v in stage_totals.items() if v != before.get(k, 0.0)}
+        return result, stages
 
     async def submit() -> None:
         """Frames from the capture queue to the pipeline worker, in capture order."""
@@ -290,9 +310,7 @@ async def run_daemon(
                 if frame is None:
                     slots.release()
                     return
-                fut = loop.run_in_executor(
-                    worker, pipeline.process, frame.index, frame.image_rgb, frame.capture_time_us
-                )
+                fut = loop.run_in_executor(worker, process, frame)
                 results.put_nowait((frame, fut))
         finally:
             results.put_nowait(None)
@@ -306,9 +324,10 @@ async def run_daemon(
                 return
             frame, fut = item
             result: FrameResult | None = None
+            stages: dict[str, float] = {}
             sent = 0
             try:
-                result = await fut
+                result, stages = await fut
             except Exception as exc:  # a bug or a library failure on one frame: report, count, go on
                 meter.frame("error")
                 if errors_reported < MAX_ERROR_REPORTS:
@@ -323,6 +342,8 @@ async def run_daemon(
                 sent = deliver_one(frame, result)
                 if mavlink is not None:
                     mavlink.on_result(frame, result)
+            if ros is not None:
+                ros.on_result(frame, result, stages)
             if on_result is not None:
                 on_result(frame, result, sent)
 
@@ -358,7 +379,10 @@ async def run_daemon(
     stop_wait = spawn(_wait_event(stop), "ipt-stop")
     deliver_task: asyncio.Task[None] | None = None
     start = time.monotonic()
+    running = False
     try:
+        if ros is not None:
+            ros.start()
         await sender.open()
         if mavlink is not None:
             await mavlink.open()  # the link itself is (re)opened in the background
@@ -369,6 +393,7 @@ async def run_daemon(
             ready.cancel()
         else:
             ready.result()  # raises the error of a first open that is not retried (bad video file, ...)
+            running = True
             start = meter.i_start = time.monotonic()
             auth = ", authenticated" if key is not None else ""
             _write(
@@ -385,6 +410,10 @@ async def run_daemon(
         await _shutdown(capture, frames, deliver_task, tasks, sender, deadline)
         if mavlink is not None:
             await mavlink.close()
+        if ros is not None:
+            # A run that never got going (a camera or a send target that cannot be opened) leaves no
+            # recording that looks complete.
+            await asyncio.to_thread(ros.close if running else ros.abort)
         worker.shutdown(wait=False, cancel_futures=True)
         # The read in progress (a render, a decode, a camera grab) ends by itself; wait for it within the
         # budget. If it does not end, the thread is a daemon thread and `capture_running` tells the caller.
@@ -415,6 +444,9 @@ async def run_daemon(
         _write(out, f"{PROG}: last send error: {sender.last_error}")
     if mavlink is not None:
         mavlink.say_summary()
+    if ros is not None:
+        for line in ros.summaries():
+            _write(out, f"{PROG}: {line}")
     return stats
 
 

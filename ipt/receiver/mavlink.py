@@ -2,9 +2,10 @@
 
 Two layers:
 
-- **The maths, pure** (:func:`body_pose_ned`, :func:`odometry_sample`, :class:`OdometryTracker`,
-  :class:`FixMonitor`): a camera pose in the arena in, the vehicle body's pose in the autopilot's frames out,
-  with its covariance, a quality and a reset counter. No clock, no socket.
+- **The maths, pure** (:func:`body_pose_ned`, :func:`odometry_sample`, :func:`body_velocity_frd`,
+  :class:`OdometryTracker`, :class:`RateLimiter`, :class:`FixMonitor`): a camera pose in the arena in, the
+  vehicle body's pose in the autopilot's frames out, with its covariance, a quality, a reset counter and
+  the body's velocity fitted over the recent poses (:mod:`ipt.receiver.kinematics`). No clock, no socket.
 - **The connection, thin** (:class:`MavlinkOutput`): pymavlink encodes and decodes; the bytes go through
   an asyncio UDP endpoint (``udpout:HOST:PORT``) or a raw serial port (``serial:DEVICE:BAUD``) opened here
   with termios, so every read and write is non-blocking on the daemon's event loop. A link that cannot be
@@ -23,6 +24,9 @@ optical axes in body axes) and ``camera_position_frd_m`` (the optical centre fro
 Time: ``time_usec`` is the frame's capture time on this computer's monotonic clock (for a recording or the
 simulator, its frame times shifted so that the first frame is at its read instant), the same clock
 TIMESYNC answers with, so the autopilot can map one to its own.
+
+Rate: at most ``max_rate_hz`` ODOMETRY per second of capture time (:class:`RateLimiter`), each the newest
+pose; the velocity fit still sees every pose.
 """
 
 from __future__ import annotations
@@ -48,6 +52,7 @@ import numpy.typing as npt
 from ipt.config.receiver import LinkSpec, parse_link
 from ipt.errors import IptError
 from ipt.geometry import R_BODY_CAM_DOWNWARD, quat_wxyz_from_matrix, ypr_from_matrix
+from ipt.receiver.kinematics import Twist, VelocityFit
 from ipt.receiver.pose import PoseEstimate
 
 if TYPE_CHECKING:
@@ -194,11 +199,28 @@ class OdometrySample:
     quality: int
     reset_counter: int
     num_tags: int
+    velocity_frd_mps: F64 = field(default_factory=lambda: np.full(3, np.nan))
+    """The body origin's velocity in body FRD axes (ODOMETRY's child frame); NaN when unknown."""
+    velocity_cov_frd: F64 = field(default_factory=lambda: np.full((3, 3), np.nan))
+    """3x3 covariance of :attr:`velocity_frd_mps`."""
 
     @property
     def pose_covariance(self) -> tuple[float, ...]:
         """The 21 values of the covariance's upper-right triangle."""
         return upper_triangle_21(self.covariance_6x6)
+
+    @property
+    def velocity_covariance(self) -> tuple[float, ...]:
+        """ODOMETRY's ``velocity_covariance``: (vx, vy, vz, rollspeed, pitchspeed, yawspeed), upper triangle.
+        The rates are not sent, so their variances are NaN; the whole is "unknown" (NaN first) without a
+        velocity."""
+        if not (np.all(np.isfinite(self.velocity_frd_mps)) and np.all(np.isfinite(self.velocity_cov_frd))):
+            return (math.nan,) + (0.0,) * 20
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = self.velocity_cov_frd
+        for i in range(3, 6):
+            cov[i, i] = math.nan
+        return tuple(float(cov[i, j]) for i in range(6) for j in range(i, 6))
 
 
 def odometry_sample(
@@ -223,6 +245,37 @@ def odometry_sample(
         reset_counter=reset_counter % 256,
         num_tags=len(pose.tag_ids),
     )
+
+
+def body_velocity_frd(twist: Twist, pose: PoseEstimate, mounting: Mounting) -> tuple[F64, F64]:
+    """The body origin's velocity in body FRD axes and its covariance, from the camera's twist: the origin
+    sits at ``-R t`` from the camera (t its offset on the body), so it moves at ``v + ω × (-R t)``."""
+    r_arena_frd = pose.r_arena_cam @ mounting.r_frd_cam.T
+    v_arena, cov_arena = twist.velocity_of_point(-(r_arena_frd @ mounting.camera_position_frd_m))
+    r = r_arena_frd.T
+    return r @ v_arena, r @ cov_arena @ r.T
+
+
+class RateLimiter:
+    """At most ``max_rate_hz`` messages per second of capture time: a sample goes out when it is at least
+    ``1 / max_rate_hz`` after the last one that went out (so any second holds at most ``max_rate_hz``), and
+    the one that goes out is always the newest. ``None``: everything goes out. Time going backwards (a
+    new recording) starts afresh."""
+
+    def __init__(self, max_rate_hz: float | None) -> None:
+        self.min_interval_us = None if max_rate_hz is None else 1e6 / max_rate_hz
+        self._last_us: int | None = None
+        self.held_back = 0
+        """Samples not sent because they came too soon."""
+
+    def admit(self, time_us: int) -> bool:
+        """Whether a sample captured at ``time_us`` goes out now (and if so, it is counted as sent)."""
+        last = self._last_us
+        if self.min_interval_us is not None and last is not None and 0 <= time_us - last < self.min_interval_us:
+            self.held_back += 1
+            return False
+        self._last_us = time_us
+        return True
 
 
 class OdometryTracker:
@@ -470,6 +523,10 @@ class MavlinkStats:
     """Counts of one run of the MAVLink output."""
 
     odometry: int = 0
+    odometry_with_velocity: int = 0
+    """ODOMETRY that carried a velocity (the fit had enough recent poses)."""
+    held_back: int = 0
+    """Poses not sent because they came sooner than 1/max_rate_hz after the last one sent."""
     vision_position: int = 0
     heartbeats: int = 0
     timesync_answered: int = 0
@@ -515,6 +572,8 @@ class MavlinkOutput:
             cfg.min_attitude_std_rad,
         )
         self.fix = FixMonitor(cfg.fix_timeout_s)
+        self.rate = RateLimiter(cfg.max_rate_hz)
+        self.velocity = VelocityFit()
         self.stats = MavlinkStats()
         self.report, self.prog = report, prog
         self._clock_s, self._clock_ns = clock_s, clock_ns
@@ -682,8 +741,23 @@ class MavlinkOutput:
         self.stats.resets += self.tracker.resets - resets_before
         if not all(math.isfinite(float(v)) for v in (*sample.position_ned_m, *sample.quat_wxyz)):
             return None
+        if result.reset:
+            self.velocity.clear()  # the motion before a re-initialised track says nothing about after it
+        self.velocity.add(
+            frame.capture_time_us, pose.position_m, pose.r_arena_cam, pose.position_cov_m2, pose.attitude_cov_rad2
+        )
+        if not self.rate.admit(frame.capture_time_us):
+            self.stats.held_back += 1
+            return None
+        twist = self.velocity.twist()
+        if twist is not None:
+            v, cov = body_velocity_frd(twist, pose, self.tracker.mounting)
+            if np.all(np.isfinite(v)) and np.all(np.isfinite(cov)):
+                sample = OdometrySample(**{**sample.__dict__, "velocity_frd_mps": v, "velocity_cov_frd": cov})
         if self.cfg.odometry and self._send(self._odometry_message(sample)):
             self.stats.odometry += 1
+            if np.all(np.isfinite(sample.velocity_frd_mps)):
+                self.stats.odometry_with_velocity += 1
         if self.cfg.vision_position_estimate and self._send(self._vision_message(sample)):
             self.stats.vision_position += 1
         return sample
@@ -692,6 +766,7 @@ class MavlinkOutput:
         d = self.dialect
         nan = math.nan
         x, y, z = (float(v) for v in s.position_ned_m)
+        vx, vy, vz = (float(v) for v in s.velocity_frd_mps)  # NaN until the fit has enough poses
         return self.mav.odometry_encode(
             s.time_usec,
             d.MAV_FRAME_LOCAL_FRD,
@@ -700,14 +775,14 @@ class MavlinkOutput:
             y,
             z,
             [float(v) for v in s.quat_wxyz],
-            nan,  # no velocity: a single-frame pose has none (EKF2_EV_CTRL bit 2 / EK3_SRC1_VELXY off)
-            nan,
-            nan,
-            nan,
+            vx,  # in the child frame, body FRD, as MAVLink defines it (PX4 and ArduPilot rotate it to NED)
+            vy,
+            vz,
+            nan,  # angular rates are not sent (no autopilot fuses them from external vision)
             nan,
             nan,
             list(s.pose_covariance),
-            [nan] + [0.0] * 20,
+            list(s.velocity_covariance),
             s.reset_counter,
             d.MAV_ESTIMATOR_TYPE_VISION,
             s.quality,
@@ -764,8 +839,10 @@ class MavlinkOutput:
         s = self.stats
         vpe = f", {s.vision_position} VISION_POSITION_ESTIMATE" if self.cfg.vision_position_estimate else ""
         heard = s.autopilot if s.autopilot is not None else "no autopilot heard"
+        limit = "" if self.cfg.max_rate_hz is None else f" ({s.held_back} poses held back by max_rate_hz)"
         return (
-            f"{self.spec}: {s.odometry} ODOMETRY{vpe}, {s.heartbeats} HEARTBEAT, {s.timesync_answered} TIMESYNC "
+            f"{self.spec}: {s.odometry} ODOMETRY{limit}, {s.odometry_with_velocity} with a velocity{vpe}, "
+            f"{s.heartbeats} HEARTBEAT, {s.timesync_answered} TIMESYNC "
             f"answered, {s.statustexts} STATUSTEXT, {s.resets} resets, send errors {s.send_errors}; {heard}"
         )
 
@@ -790,7 +867,9 @@ __all__ = [
     "Mounting",
     "OdometrySample",
     "OdometryTracker",
+    "RateLimiter",
     "body_pose_ned",
+    "body_velocity_frd",
     "load_dialect",
     "odometry_sample",
     "parse_link",
