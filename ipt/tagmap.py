@@ -208,6 +208,17 @@ def arena_to_pixel_matrix(arena: ArenaConfig) -> npt.NDArray[np.float64]:
     return np.array([[1 / sx, 0, arena.projector.width_px / 2], [0, -1 / sy, arena.projector.height_px / 2], [0, 0, 1]])
 
 
+def pixel_to_arena(tag_map: TagMap) -> npt.NDArray[np.float64]:
+    """3x3 homography from projector pixels (edge origin) to arena floor metres, from the map's own tags
+    (least squares over every corner: exact for a grid, and for a map whose tags were measured)."""
+    px = np.concatenate([np.asarray(t.corners_px, np.float64) for t in tag_map.tags])
+    m = np.concatenate([np.asarray(t.corners_m, np.float64)[:, :2] for t in tag_map.tags])
+    if len(tag_map.tags) == 1:  # four points: the homography is exact
+        return np.asarray(cv2.getPerspectiveTransform(px.astype(np.float32), m.astype(np.float32)), np.float64)
+    h, _ = cv2.findHomography(px, m, 0)
+    return np.asarray(h, np.float64)
+
+
 def grid_tag_map(arena: ArenaConfig) -> TagMap:
     """The evenly spaced grid of the arena config: ids left to right, then bottom to top."""
     tm, pr = arena.tag_map, arena.projector

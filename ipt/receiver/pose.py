@@ -39,10 +39,16 @@ def _covariances(obj: F64, rvec: F64, tvec: F64, camera: CameraInfo, sigma_px: f
     _, jac = cv2.projectPoints(obj, rvec, tvec, camera.camera_matrix, camera.dist_coeffs)
     j = np.asarray(jac, np.float64)[:, :6]
     try:
-        cov_rt = sigma_px**2 * np.linalg.inv(j.T @ j)
+        cov_rt = np.asarray(sigma_px**2 * np.linalg.inv(j.T @ j), np.float64)
     except np.linalg.LinAlgError:
         nan = np.full((3, 3), np.nan)
         return nan, nan
+    return pose_covariances(rvec, tvec, cov_rt)
+
+
+def pose_covariances(rvec: F64, tvec: F64, cov_rt: F64) -> tuple[F64, F64]:
+    """The covariance of (rvec, tvec) (6x6, OpenCV's arena → camera) carried to the camera's position in
+    the arena and to a small rotation about the arena axes (each 3x3)."""
     position0, r0 = _pose_of(rvec, tvec)
     jp = np.zeros((3, 6))
     ja = np.zeros((3, 6))
@@ -89,6 +95,14 @@ class PoseEstimate:
     def quat_wxyz(self) -> F64:
         """``r_arena_cam`` as a unit quaternion (w, x, y, z)."""
         return quat_wxyz_from_matrix(self.r_arena_cam)
+
+
+def estimate_from(rvec: F64, tvec: F64, cov_rt: F64, tag_ids: tuple[int, ...], rms_px: float) -> PoseEstimate:
+    """A :class:`PoseEstimate` from OpenCV's (rvec, tvec) and their covariance."""
+    rvec, tvec = np.asarray(rvec, np.float64), np.asarray(tvec, np.float64)
+    position_m, r_arena_cam = _pose_of(rvec, tvec)
+    cov_p, cov_a = pose_covariances(rvec, tvec, cov_rt)
+    return PoseEstimate(position_m, r_arena_cam, tag_ids, rms_px, cov_p, cov_a)
 
 
 def correspondences(detections: Sequence[TagDetection], tag_map: TagMap) -> tuple[F64, F64, tuple[int, ...]]:

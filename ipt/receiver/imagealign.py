@@ -1,0 +1,203 @@
+"""Image alignment of two camera frames: the floor homography between them, from their content.
+
+The two frames of a pair are a projector period apart (16.7 ms); the drone moved and, vibrating, turned
+by up to a degree, so the floor moved in the image by a translation plus a small perspective change.
+The floor homography is found on the frames' gradient magnitudes at half resolution (the same for a tag
+in either phase, so the hidden tags' sign flip does not pull the match): phase correlation for the
+translation, whatever its size, then Lucas-Kanade with all eight homography parameters in the
+inverse-compositional form (the current frame's gradients and the normal matrix are computed once per
+frame, each step only warps the earlier frame and takes eight dot products). Pixels without signal (the
+drone's shadow, the floor outside the projection) are left out of the fit, and a robust weight drops
+what moved differently (the shadow's edge, which moves with the camera, not with the floor).
+
+Pure: arrays in, a 3x3 warp out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TypeVar
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+U8 = npt.NDArray[np.uint8]
+F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
+
+_HALF = np.diag([0.5, 0.5, 1.0])
+_DOUBLE = np.diag([2.0, 2.0, 1.0])
+#: Margin (half-resolution pixels) left out at the image border.
+MARGIN = 8
+#: Lucas-Kanade steps, and the step size (half-resolution pixels at the image corners) below which it stops.
+LK_STEPS, LK_DONE_PX = 6, 0.02
+#: Residuals beyond this many robust standard deviations get no weight.
+ROBUST_K = 3.0
+#: Most pixels the fit looks at (those with the strongest gradients).
+MAX_SAMPLES = 6000
+
+
+def gradient_magnitude(img: F32) -> F32:
+    """Smoothed L1 gradient magnitude: the same for a tag in either phase."""
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
+    return np.asarray(cv2.GaussianBlur(np.abs(gx) + np.abs(gy), (5, 5), 1.0), dtype=np.float32)
+
+
+def alignment_features(lightness_u8: U8) -> F32:
+    """What the alignment matches: the gradient magnitude at half resolution."""
+    return gradient_magnitude(np.asarray(cv2.pyrDown(lightness_u8), dtype=np.float32))
+
+
+_HANNING: dict[tuple[int, int], F32] = {}
+
+
+def _hanning(w: int, h: int) -> F32:
+    if (w, h) not in _HANNING:
+        _HANNING[(w, h)] = np.asarray(cv2.createHanningWindow((w, h), cv2.CV_32F), dtype=np.float32)
+    return _HANNING[(w, h)]
+
+
+def phase_correlate(a: F32, b: F32) -> tuple[float, float]:
+    """The shift (dx, dy) of ``b`` against ``a``, by phase correlation with a Hanning window.
+
+    OpenCV 5's ``phaseCorrelate`` multiplies its inputs by the window in place, so it gets copies: the
+    features are kept per frame and used again."""
+    h, w = a.shape
+    (dx, dy), _ = cv2.phaseCorrelate(a.copy(), b.copy(), _hanning(w, h))
+    return float(dx), float(dy)
+
+
+def translation(dx: float, dy: float) -> F64:
+    """The 3x3 warp that moves content by (dx, dy)."""
+    return np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
+
+
+A = TypeVar("A", np.uint8, np.float32)
+
+
+def warp_image(img: npt.NDArray[A], warp: F64, border: int = cv2.BORDER_REPLICATE) -> npt.NDArray[A]:
+    """``img`` carried by the 3x3 ``warp`` (what is at p ends up at warp·p); bilinear, same dtype."""
+    h, w = img.shape[:2]
+    if np.allclose(warp[2], (0.0, 0.0, 1.0)):
+        out = cv2.warpAffine(img, warp[:2], (w, h), flags=cv2.INTER_LINEAR, borderMode=border)
+    else:
+        out = cv2.warpPerspective(img, warp, (w, h), flags=cv2.INTER_LINEAR, borderMode=border)
+    return np.asarray(out, dtype=img.dtype)
+
+
+@dataclass
+class AlignTarget:
+    """A frame prepared as the fixed image of the inverse-compositional fit (computed once per frame)."""
+
+    features: F32
+    """Half-resolution gradient magnitude."""
+    weight: F32
+    """Where the fit may look (0/1), half resolution."""
+    sd: F32
+    """(N, 8) steepest-descent rows of the weighted pixels."""
+    rows: npt.NDArray[np.intp]
+    cols: npt.NDArray[np.intp]
+    norm: F64
+    """Coordinates are taken relative to the image centre and divided by half the width (conditioning)."""
+    flat: npt.NDArray[np.intp]
+    """rows · width + cols: the samples' places in the flattened image."""
+    values: F32
+    """The target's features at the samples."""
+
+    @classmethod
+    def of(cls, features: F32, signal: U8 | None = None) -> AlignTarget:
+        """``features`` (half resolution) and, optionally, the frame's signal mask at full resolution."""
+        h, w = features.shape
+        weight = np.zeros((h, w), np.float32)
+        weight[MARGIN : h - MARGIN, MARGIN : w - MARGIN] = 1.0
+        if signal is not None:
+            half = cv2.resize(signal, (w, h), interpolation=cv2.INTER_NEAREST) > 0
+            weight *= half
+        gx = cv2.Sobel(features, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
+        gy = cv2.Sobel(features, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
+        # Keep the pixels with the most gradient (the rest adds little but time), at most MAX_SAMPLES.
+        strength = (np.abs(gx) + np.abs(gy)) * weight
+        flat = strength.ravel()
+        candidates = np.flatnonzero(flat > 0)
+        if len(candidates) > MAX_SAMPLES:
+            cut = np.partition(flat[candidates], len(candidates) - MAX_SAMPLES)[len(candidates) - MAX_SAMPLES]
+            candidates = candidates[flat[candidates] >= cut][:MAX_SAMPLES]
+        rows, cols = np.divmod(candidates, w)
+        s = 2.0 / w
+        norm = np.array([[s, 0.0, -1.0], [0.0, s, -h / w], [0.0, 0.0, 1.0]])  # pixels → centred, scaled
+        x = (cols * s - 1.0).astype(np.float32)
+        y = (rows * s - h / w).astype(np.float32)
+        ix, iy = gx[rows, cols] / s, gy[rows, cols] / s  # gradients per normalised unit
+        sd = np.stack([ix * x, ix * y, ix, iy * x, iy * y, iy, -(ix * x + iy * y) * x, -(ix * x + iy * y) * y], axis=1)
+        flat_idx = rows * w + cols
+        return cls(
+            features,
+            weight,
+            np.ascontiguousarray(sd, np.float32),
+            rows,
+            cols,
+            norm,
+            flat_idx,
+            features.ravel()[flat_idx],
+        )
+
+
+def _update(params: F64) -> F64:
+    """The homography of the eight parameters (at 0: the identity)."""
+    p = params
+    return np.array([[1.0 + p[0], p[1], p[2]], [p[3], 1.0 + p[4], p[5]], [p[6], p[7], 1.0]])
+
+
+def refine_homography(target: AlignTarget, moving: F32, start: F64) -> F64 | None:
+    """The half-resolution warp carrying ``moving`` onto ``target``, refined from ``start`` (3x3, half
+    resolution); None if the fit is degenerate or runs away."""
+    if len(target.rows) < 200:
+        return None
+    norm, inv_norm = target.norm, np.linalg.inv(target.norm)
+    # In normalised coordinates the warp is n·W·n⁻¹; the fit finds M with moving(M⁻¹ x) = target(x).
+    m = norm @ start @ inv_norm
+    sd = target.sd
+    for _ in range(LK_STEPS):
+        warped = warp_image(moving, inv_norm @ m @ norm, border=cv2.BORDER_CONSTANT).ravel().take(target.flat)
+        e = warped - target.values
+        valid = warped > 0
+        if valid.sum() < 200:
+            return None
+        # A robust scale from the mean absolute residual (cheaper than the median, as good for a cut).
+        scale = 1.25 * float(np.abs(e[valid]).mean()) + 1e-6
+        keep = valid & (np.abs(e) < ROBUST_K * scale)
+        a = sd[keep]
+        hess = a.T @ a
+        try:
+            dp = np.linalg.solve(hess.astype(np.float64), (a.T @ e[keep]).astype(np.float64))
+        except np.linalg.LinAlgError:
+            return None
+        if not np.all(np.isfinite(dp)):
+            return None
+        # Inverse composition: moving(M⁻¹ x) = target(U x) gives the new M = U·M.
+        m = _update(dp) @ m
+        m /= m[2, 2]
+        corners = np.array([[-1.0, -0.56, 1.0], [1.0, 0.56, 1.0]])
+        moved = corners @ (_update(dp) - np.eye(3)).T
+        if np.abs(moved[:, :2]).max() / norm[0, 0] < LK_DONE_PX:
+            break
+        if np.abs(m - np.eye(3)).max() > 0.5:
+            return None
+    return np.asarray(inv_norm @ m @ norm, np.float64)
+
+
+def floor_warp_between(target: AlignTarget, moving_features: F32, predicted: F64 | None = None) -> F64 | None:
+    """The full-resolution warp that carries the earlier frame (``moving_features``) onto the target's
+    frame: ``predicted`` (full resolution, from the poses) corrected by phase correlation and refined as a
+    homography; None if the fit failed."""
+    a = moving_features
+    start = np.eye(3) if predicted is None else _HALF @ predicted @ _DOUBLE
+    shifted = warp_image(a, start) if predicted is not None else a
+    dx, dy = phase_correlate(shifted, target.features)
+    start = translation(dx, dy) @ start
+    refined = refine_homography(target, a, start)
+    if refined is None:
+        return None
+    return np.asarray(_DOUBLE @ refined @ _HALF, np.float64)

@@ -1,0 +1,554 @@
+"""Pose from the whole visible hidden map: every edge of every tag cell in view votes.
+
+AprilTag needs a whole tag, border and quiet zone, to decode it. Once the pose is roughly known (from a
+detection, or from the recent poses and the image alignment), the receiver knows where every cell edge
+of the hidden map falls in the image, and which way the difference image must step across it: up by
+2ΔL from a black cell to a white one (times the phase's sign), half that to the untouched floor. So the
+pose can be refined against the difference image directly: each edge sample searches along its normal
+for the step, and the pose moves to put the samples on their steps (Gauss-Newton, robust weights). Tags
+cut by the image border, tags half in the drone's shadow and tags too small to decode all contribute
+their visible edges; samples in shadow find no step and drop out.
+
+Pure: a difference image, the camera model and a pose guess in; a pose, its covariance and how well the
+map fitted out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from ipt.receiver.pose import PoseEstimate
+from ipt.tagmap import TAG36H11_CELLS, TagMap, tag36h11_bitmap
+
+F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
+
+#: Where along each cell edge it is sampled (fractions of the edge).
+SAMPLE_FRACTIONS = (0.25, 0.75)
+
+
+@dataclass(frozen=True)
+class MapEdges:
+    """Every cell edge of the hidden map where the mask changes, as sample points on the floor."""
+
+    points_m: F64
+    """(N, 3) arena points (z = 0)."""
+    normals_m: F64
+    """(N, 3) unit vectors in the floor plane across the edge."""
+    step: F64
+    """(N,) the mask's change across the edge along the normal: ±2 between cells, ±1 to untouched floor."""
+    tag: I64
+    """(N,) index of the edge's tag in :attr:`tag_ids`."""
+    tag_ids: tuple[int, ...]
+    tag_centres_m: F64
+    """(T, 3) centre of each tag."""
+    tag_radius_m: F64
+    """(T,) distance from each tag's centre to its farthest quiet-zone corner."""
+    cell_m: float
+    """The smallest cell side in the map, metres."""
+    cells_m: F64
+    """(M, 3) the centre of every data cell (the 6x6 inside the border) of every tag."""
+    cell_value: F64
+    """(M,) the mask there: +1 white, -1 black."""
+    cell_tag: I64
+    """(M,) index of the cell's tag."""
+
+    @classmethod
+    def from_tag_map(cls, tag_map: TagMap) -> MapEdges:
+        points, normals, steps, owners, centres, radii, cells = [], [], [], [], [], [], []
+        cell_pts, cell_vals, cell_owner = [], [], []
+        lo, hi = 1.0, float(TAG36H11_CELLS - 1)  # the black border square in cell units
+        src = np.array([[lo, hi], [hi, hi], [hi, lo], [lo, lo]], np.float32)  # BL, BR, TR, TL
+        for t_index, tag in enumerate(tag_map.tags):
+            corners = np.asarray(tag.corners_m, np.float64)
+            h = cv2.getPerspectiveTransform(src, corners[:, :2].astype(np.float32)).astype(np.float64)
+            value = np.pad(tag36h11_bitmap(tag.tag_id).astype(np.int64) * 2 - 1, 1)  # +1 white, -1 black, 0 out
+            pts_c: list[tuple[float, float]] = []
+            nrm_c: list[tuple[float, float]] = []
+            stp: list[int] = []
+            n = TAG36H11_CELLS
+            for r in range(n):
+                for c in range(n + 1):  # vertical edges: left of column c, step to the right
+                    step = int(value[r + 1, c + 1] - value[r + 1, c])
+                    if step:
+                        for f in SAMPLE_FRACTIONS:
+                            pts_c.append((c, r + f))
+                            nrm_c.append((1.0, 0.0))
+                            stp.append(step)
+            for r in range(n + 1):
+                for c in range(n):  # horizontal edges: above row r, step downwards
+                    step = int(value[r + 1, c + 1] - value[r, c + 1])
+                    if step:
+                        for f in SAMPLE_FRACTIONS:
+                            pts_c.append((c + f, r))
+                            nrm_c.append((0.0, 1.0))
+                            stp.append(step)
+            p = np.asarray(pts_c, np.float64)
+            q = p + 0.01 * np.asarray(nrm_c, np.float64)
+            pm = cv2.perspectiveTransform(p[None], h)[0]
+            qm = cv2.perspectiveTransform(q[None], h)[0]
+            d = qm - pm
+            d /= np.linalg.norm(d, axis=1, keepdims=True)
+            points.append(np.column_stack([pm, np.zeros(len(pm))]))
+            normals.append(np.column_stack([d, np.zeros(len(d))]))
+            steps.append(np.asarray(stp, np.float64))
+            owners.append(np.full(len(pm), t_index, np.int64))
+            # The 6x6 data cells only: the quiet zone and the border are the same ring in every tag, so a
+            # pose off by part of a tag would still find most of them right.
+            data = np.arange(2, n - 2)
+            grid = np.stack(np.meshgrid(data + 0.5, data + 0.5), axis=-1).reshape(-1, 2)
+            cell_pts.append(np.column_stack([cv2.perspectiveTransform(grid[None], h)[0], np.zeros(len(grid))]))
+            cell_vals.append(value[1:-1, 1:-1][np.ix_(data, data)].reshape(-1).astype(np.float64))
+            cell_owner.append(np.full(len(grid), t_index, np.int64))
+            outer = cv2.perspectiveTransform(np.array([[[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]]]), h)[0]
+            centre = outer.mean(axis=0)
+            centres.append((*centre, 0.0))
+            radii.append(float(np.linalg.norm(outer - centre, axis=1).max()))
+            cells.append(float(np.linalg.norm(corners[1] - corners[0])) / (hi - lo))
+        return cls(
+            np.concatenate(points),
+            np.concatenate(normals),
+            np.concatenate(steps),
+            np.concatenate(owners),
+            tuple(t.tag_id for t in tag_map.tags),
+            np.asarray(centres, np.float64),
+            np.asarray(radii, np.float64),
+            float(min(cells)),
+            np.concatenate(cell_pts),
+            np.concatenate(cell_vals),
+            np.concatenate(cell_owner),
+        )
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """The pose refined against the map's edges."""
+
+    rvec: F64
+    """Rotation arena → camera (Rodrigues), as OpenCV's solvePnP gives it."""
+    tvec: F64
+    """Arena origin in the camera frame, metres."""
+    inliers: int
+    """Edge samples that found their step and agree with the pose."""
+    tried: int
+    """Edge samples predicted where the difference image carries signal."""
+    rms_px: float
+    """RMS distance of the inliers from their steps after the fit."""
+    tags: tuple[int, ...]
+    """Ids of the tags with inliers."""
+    cov_rt: F64
+    """6x6 covariance of the fit's last update (δ, Δt): a small rotation δ applied on the arena → camera
+    side (R ← exp([δ]×)·R) and the change of ``tvec``."""
+    sign: int
+    """The sign of the difference's steps (+1: white cells brighter) over most of the image."""
+    flipped_rows: tuple[int, int] | None = None
+    """Rows (first, last) where the sign was the other one (a rolling shutter's flip inside the frame)."""
+    cell_agreement: float = 1.0
+    """Of the data cells in view whose difference is clearly positive or negative, the fraction whose sign
+    is the map's at this pose: near 1 when the pose is right, near one half when it is off by a cell."""
+
+    @property
+    def inlier_fraction(self) -> float:
+        return self.inliers / self.tried if self.tried else 0.0
+
+    def estimate(self) -> PoseEstimate:
+        """The camera's pose in the arena, with the fit's covariance carried to its position (m²) and to a
+        small rotation about the arena axes (rad²)."""
+        r, _ = cv2.Rodrigues(self.rvec.reshape(3, 1))
+        rt = np.asarray(r, np.float64).T
+        # p = −Rᵀt: dp/dδ = −Rᵀ[t]×, dp/dΔt = −Rᵀ; the arena-axis rotation of Rᵀ is −Rᵀδ.
+        j_p = np.hstack([-rt @ _skew(self.tvec), -rt])
+        j_a = np.hstack([-rt, np.zeros((3, 3))])
+        return PoseEstimate(
+            -rt @ self.tvec, rt, self.tags, self.rms_px, j_p @ self.cov_rt @ j_p.T, j_a @ self.cov_rt @ j_a.T
+        )
+
+
+@dataclass(frozen=True)
+class TrackSettings:
+    """How the edges are searched and the pose fitted."""
+
+    search_px: float = 4.0
+    """How far along its normal each sample looks for its step, in the first pass (pixels)."""
+    iterations: int = 3
+    min_inliers: int = 60
+    """Fewer samples on their steps than this: no pose."""
+    min_tags: int = 2
+    """Inliers must come from at least this many tags (one tag leaves the tilt ambiguous)."""
+    contrast: float = 2.0
+    """A step must rise this many times the difference image's noise (its median absolute slope)."""
+    border_px: float = 3.0
+    """Samples closer than this to the image border are not used."""
+    max_samples: int = 700
+    """At most this many edge samples are used (spread over the tags in view)."""
+    bands: int = 6
+    """Bands of rows whose sign is decided apart (a rolling shutter flips it inside a frame)."""
+
+
+#: The fit has converged when its last step moved no sample by more than this (pixels).
+CONVERGED_PX = 0.05
+
+
+def _profiles(image: F32, pts: F64, normals: F64, radius: int) -> F32:
+    """Values of ``image`` along each normal, at offsets -radius..radius pixels (bilinear)."""
+    offsets = np.arange(-radius, radius + 1, dtype=np.float64)
+    grid = (pts[:, None, :] + offsets[None, :, None] * normals[:, None, :]).astype(np.float32)
+    out = cv2.remap(image, grid[:, :, 0], grid[:, :, 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return np.asarray(out, np.float32)
+
+
+def _select(edges: MapEdges, camera_matrix: F64, r: F64, t: F64, size: tuple[int, int], most: int) -> I64:
+    """Indices of the edge samples of the tags that may be in view, at most ``most`` of them, spread evenly."""
+    w, h = size
+    centres = edges.tag_centres_m @ r.T + t
+    depth = centres[:, 2]
+    ahead = depth > 0.05
+    k = camera_matrix
+    uv = np.full((len(depth), 2), -1e9)
+    uv[ahead] = (k[:2, :2] @ (centres[ahead, :2] / depth[ahead, None]).T).T + k[:2, 2]
+    reach = k[0, 0] * edges.tag_radius_m / np.maximum(depth, 0.05)
+    near = ahead & (uv[:, 0] > -reach) & (uv[:, 0] < w + reach) & (uv[:, 1] > -reach) & (uv[:, 1] < h + reach)
+    chosen = np.flatnonzero(near[edges.tag])
+    if len(chosen) > most:
+        chosen = chosen[np.linspace(0, len(chosen) - 1, most).astype(np.int64)]
+    return chosen
+
+
+def _slope_noise(diff: F32, valid: npt.NDArray[np.uint8] | None) -> float:
+    """The median absolute slope of ``diff`` along rows (where valid): what a step must stand out from."""
+    slopes = np.abs(np.diff(diff[::4, ::2], axis=1))
+    if valid is not None:
+        inside = valid[::4, ::2][:, 1:] > 0
+        if inside.any():
+            slopes = slopes[inside]
+    return max(float(np.median(slopes)), 1e-3)
+
+
+def track_pose(
+    diff: F32,
+    camera_matrix: F64,
+    edges: MapEdges,
+    rvec: F64,
+    tvec: F64,
+    settings: TrackSettings = TrackSettings(),
+    sign: int | None = None,
+    valid: npt.NDArray[np.uint8] | None = None,
+    coarse_px: float = 0.0,
+) -> TrackResult | None:
+    """Refine the pose (``rvec``, ``tvec``: arena → camera) so that the map's edges sit on the steps of
+    ``diff`` (the signed difference of an undistorted pair in this frame's geometry: this frame minus the
+    other, smoothed; ``camera_matrix`` a pinhole). ``sign`` is the difference's polarity if known; without
+    it each band of rows decides its own from the data. ``valid`` (0/255) marks the pixels that carry
+    signal. With ``coarse_px`` > 0 a first pass searches that far on a blurred copy of ``diff`` (for a
+    guess that may be several pixels off). None if too few edges agree."""
+    h, w = diff.shape
+    rot, _ = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3, 1))
+    r, t = np.asarray(rot, np.float64), np.asarray(tvec, np.float64).reshape(3)
+    chosen = _select(edges, camera_matrix, r, t, (w, h), settings.max_samples)
+    if len(chosen) < settings.min_inliers:
+        return None
+    fit = _Fit(edges, chosen, camera_matrix, (w, h), settings, valid)
+    fit.band_sign = None if sign is None else np.full(settings.bands, float(sign))
+    radius = max(2, int(np.ceil(settings.search_px)))
+    if coarse_px > 0:
+        blurred = np.asarray(cv2.GaussianBlur(diff, (0, 0), max(1.0, coarse_px / 4)), np.float32)
+        noise = _slope_noise(blurred, valid)
+        for _ in range(2):
+            if not fit.step(blurred, noise, max(radius, int(np.ceil(coarse_px))), r, t):
+                return None
+            r, t = fit.r, fit.t
+    noise = _slope_noise(diff, valid)
+    for it in range(settings.iterations):
+        radius_now = radius if it == 0 else max(2, (radius + 1) // 2)
+        if not fit.step(diff, noise, radius_now, r, t):
+            return None
+        r, t = fit.r, fit.t
+        if fit.converged:
+            break
+    return fit.result(diff, valid)
+
+
+def _skew(v: F64) -> F64:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _project(k: F64, r: F64, t: F64, points: F64) -> tuple[F64, F64]:
+    """Pinhole projections (N×2) of arena points, and the points in the camera frame (N×3)."""
+    cam = points @ r.T + t
+    z = cam[:, 2]
+    uv = np.empty((len(points), 2))
+    uv[:, 0] = k[0, 0] * cam[:, 0] / z + k[0, 2]
+    uv[:, 1] = k[1, 1] * cam[:, 1] / z + k[1, 2]
+    return uv, cam
+
+
+class _Fit:
+    """The Gauss-Newton fit of the pose to the edge samples' steps, one step at a time.
+
+    The pose is (R, t) of arena → camera; each step updates it as R ← exp([δ]×)·R, t ← t + Δt, so the
+    Jacobian of a point's projection is closed-form: ∂X/∂δ = −[R·P]×, ∂X/∂t = I (a pinhole without
+    distortion: the frames were undistorted)."""
+
+    def __init__(
+        self,
+        edges: MapEdges,
+        chosen: I64,
+        camera_matrix: F64,
+        size: tuple[int, int],
+        settings: TrackSettings,
+        valid: npt.NDArray[np.uint8] | None,
+    ) -> None:
+        self.edges, self.k, self.size, self.settings, self.valid = edges, camera_matrix, size, settings, valid
+        self.obj, self.nrm = edges.points_m[chosen], edges.normals_m[chosen]
+        self.step_value, self.owner = edges.step[chosen], edges.tag[chosen]
+        self.band_sign: F64 | None = None
+        self.r = np.eye(3)
+        self.t = np.zeros(3)
+        self.inliers = np.zeros(0, bool)
+        self.a_rows = np.zeros((0, 6))
+        self.offsets = np.zeros(0)
+        self.idx = np.zeros(0, np.int64)
+        self.sol = np.zeros(6)
+        self.tried = 0
+        self.converged = False
+
+    def step(self, image: F32, noise: float, radius: int, r: F64, t: F64) -> bool:
+        """One Gauss-Newton step searching ``radius`` pixels on ``image``; False when too few samples agree."""
+        w, h = self.size
+        s = self.settings
+        k = self.k
+        u, cam = _project(k, r, t, self.obj)
+        z = cam[:, 2]
+        # d(u, v)/d(camera point), and the image direction of each sample's floor normal.
+        du = np.zeros((len(z), 2, 3))
+        du[:, 0, 0] = k[0, 0] / z
+        du[:, 0, 2] = -k[0, 0] * cam[:, 0] / z**2
+        du[:, 1, 1] = k[1, 1] / z
+        du[:, 1, 2] = -k[1, 1] * cam[:, 1] / z**2
+        n_img = np.einsum("nij,nj->ni", du, self.nrm @ r.T)
+        length = np.linalg.norm(n_img, axis=1)
+        b = s.border_px
+        inside = (u[:, 0] > b) & (u[:, 0] < w - 1 - b) & (u[:, 1] > b) & (u[:, 1] < h - 1 - b) & (length > 1e-9)
+        inside &= z > 0
+        if self.valid is not None:
+            ui = np.clip(np.rint(u).astype(np.int64), 0, [w - 1, h - 1])
+            inside &= self.valid[ui[:, 1], ui[:, 0]] > 0
+        idx = np.flatnonzero(inside)
+        self.tried = len(idx)
+        if self.tried < s.min_inliers:
+            return False
+        n_img = n_img[idx] / length[idx, None]
+        prof = _profiles(image, u[idx], n_img, radius)
+        raw = (prof[:, 1:] - prof[:, :-1]) * np.sign(self.step_value[idx])[:, None]  # a step of the map's sign: > 0
+        band = np.minimum((u[idx, 1] * s.bands / h).astype(np.int64), s.bands - 1)
+        if self.band_sign is None:
+            self.band_sign = _band_signs(raw, band, s.bands)
+        slope = raw * self.band_sign[band][:, None]
+        j = np.argmax(slope, axis=1)
+        rows = np.arange(len(idx))
+        peak = slope[rows, j]
+        last = slope.shape[1] - 1
+        yl, yr = slope[rows, np.clip(j - 1, 0, last)], slope[rows, np.clip(j + 1, 0, last)]
+        den = yl - 2 * peak + yr
+        frac = np.where((den < 0) & (j > 0) & (j < last), 0.5 * (yl - yr) / np.where(den < 0, den, -1), 0)
+        offsets = j + 0.5 + frac - radius  # slope index j lies between profile samples j and j + 1
+        strong = (peak > s.contrast * noise * np.abs(self.step_value[idx]) / 2) & (j > 0) & (j < last)
+        if strong.sum() < s.min_inliers:
+            return False
+        # Rows of the linear system: the image normal times d(u, v)/d(δ, Δt).
+        normal_du = np.einsum("ni,nij->nj", n_img, du[idx])  # d(offset)/d(camera point)
+        rotated = self.obj[idx] @ r.T
+        a_rows = np.empty((len(idx), 6))
+        a_rows[:, 3:] = normal_du
+        a_rows[:, :3] = np.cross(rotated, normal_du)  # nᵀ·(−[RP]×) = (RP × n)ᵀ
+        keep = strong.copy()
+        sol = np.zeros(6)
+        for _ in range(2):  # robust: drop samples far from the fit (from the median absolute deviation)
+            if keep.sum() < 6:
+                return False
+            sol = _solve(a_rows[keep], offsets[keep])
+            res = offsets - a_rows @ sol
+            scale = max(1.4826 * float(np.median(np.abs(res[keep]))), 0.25)
+            keep = strong & (np.abs(res) < 3.0 * scale)
+        if keep.sum() < s.min_inliers or len(np.unique(self.owner[idx][keep])) < s.min_tags:
+            return False
+        sol = _solve(a_rows[keep], offsets[keep])
+        self.idx, self.a_rows, self.offsets, self.inliers, self.sol = idx, a_rows, offsets, keep, sol
+        rot, _ = cv2.Rodrigues(sol[:3].reshape(3, 1))
+        self.r = np.asarray(rot, np.float64) @ r
+        self.t = t + sol[3:]
+        self.converged = float(np.abs(a_rows[keep] @ sol).max()) < CONVERGED_PX
+        return True
+
+    def result(self, diff: F32, valid: npt.NDArray[np.uint8] | None) -> TrackResult | None:
+        inl = self.inliers
+        residual = self.offsets[inl] - self.a_rows[inl] @ self.sol
+        rms = float(np.sqrt(np.mean(residual**2)))
+        try:
+            cov = np.asarray(max(rms, 0.1) ** 2 * np.linalg.inv(self.a_rows[inl].T @ self.a_rows[inl]), np.float64)
+        except np.linalg.LinAlgError:
+            return None
+        band_sign = self.band_sign if self.band_sign is not None else np.ones(self.settings.bands)
+        main = 1 if band_sign.sum() >= 0 else -1
+        other = np.flatnonzero(band_sign != main)
+        h = diff.shape[0]
+        bands = self.settings.bands
+        flipped = (int(other.min() * h / bands), int((other.max() + 1) * h / bands) - 1) if len(other) else None
+        tags = tuple(sorted({self.edges.tag_ids[t] for t in np.unique(self.owner[self.idx][inl])}))
+        agreement = _cell_agreement(diff, self.k, self.edges, self.r, self.t, np.unique(self.owner), band_sign, valid)
+        rvec, _ = cv2.Rodrigues(self.r)
+        return TrackResult(
+            np.asarray(rvec, np.float64).reshape(3),
+            self.t.copy(),
+            int(inl.sum()),
+            self.tried,
+            rms,
+            tags,
+            cov,
+            main,
+            flipped,
+            agreement,
+        )
+
+
+def _solve(a: F64, b: F64) -> F64:
+    """Least squares by the normal equations (six unknowns: cheaper than an SVD, as exact here)."""
+    return np.asarray(np.linalg.solve(a.T @ a, a.T @ b), np.float64)
+
+
+def _cell_agreement(
+    diff: F32,
+    camera_matrix: F64,
+    edges: MapEdges,
+    r: F64,
+    t: F64,
+    tags: I64,
+    band_sign: F64,
+    valid: npt.NDArray[np.uint8] | None,
+) -> float:
+    """How many of the visible data cells' centres have the sign the map gives them at this pose."""
+    h, w = diff.shape
+    mine = np.isin(edges.cell_tag, tags)
+    u, cam = _project(camera_matrix, r, t, edges.cells_m[mine])
+    inside = (cam[:, 2] > 0) & (u[:, 0] >= 0) & (u[:, 0] <= w - 1) & (u[:, 1] >= 0) & (u[:, 1] <= h - 1)
+    expected = edges.cell_value[mine][inside]
+    ui = np.rint(u[inside]).astype(np.int64)
+    if valid is not None:
+        ok = valid[ui[:, 1], ui[:, 0]] > 0
+        ui, expected = ui[ok], expected[ok]
+    if len(ui) < 20:
+        return 0.0
+    values = diff[ui[:, 1], ui[:, 0]]
+    band = np.minimum((ui[:, 1] * len(band_sign) / h).astype(np.int64), len(band_sign) - 1)
+    values = values * band_sign[band]
+    clear = np.abs(values) > 0.3 * float(np.median(np.abs(values)))
+    if clear.sum() < 20:
+        return 0.0
+    return float(np.mean(np.sign(values[clear]) == expected[clear]))
+
+
+def _band_signs(raw: F32, band: I64, bands: int) -> F64:
+    """Per band of rows, the sign under which more samples find a clear step (+1 or -1)."""
+    best_up = raw.max(axis=1)
+    best_down = (-raw).max(axis=1)
+    out = np.ones(bands)
+    votes = np.sign(best_up - best_down)
+    for b in range(bands):
+        mine = band == b
+        if mine.any():
+            out[b] = 1.0 if votes[mine].sum() >= 0 else -1.0
+    if not (band >= 0).any():
+        return out
+    # A band without samples takes the sign of the nearest band with some.
+    counts = np.bincount(band, minlength=bands)
+    filled = np.flatnonzero(counts)
+    for empty in np.flatnonzero(counts == 0):
+        out[empty] = out[filled[np.argmin(np.abs(filled - empty))]] if len(filled) else 1.0
+    return out
+
+
+class MaskRenderer:
+    """The hidden map's mask as the camera would see it at a pose (at half resolution), for the coarse
+    search of a guess that may be many pixels off."""
+
+    def __init__(self, mask: npt.NDArray[np.int8], pixel_to_arena: F64) -> None:
+        self._mask = np.asarray(cv2.pyrDown(mask.astype(np.float32)), np.float32)
+        # Half-resolution mask index s → projector pixels (edge origin; s covers 2s and 2s + 1, centre 2s + 1)
+        # → arena metres.
+        self._half_to_arena = pixel_to_arena @ np.array([[2.0, 0.0, 1.0], [0.0, 2.0, 1.0], [0.0, 0.0, 1.0]])
+
+    def render(self, camera_matrix: F64, rvec: F64, tvec: F64, size: tuple[int, int]) -> F32:
+        """The mask (+1 white cells, -1 black, 0 elsewhere) at half the image size ``size`` (w, h)."""
+        r, _ = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3, 1))
+        floor_to_image = camera_matrix @ np.column_stack([r[:, 0], r[:, 1], np.asarray(tvec).reshape(3)])
+        half = np.diag([0.5, 0.5, 1.0])
+        # Pixel centres: the image's half-resolution pixel i covers full-resolution pixels 2i and 2i+1.
+        centre = np.array([[1.0, 0.0, -0.25], [0.0, 1.0, -0.25], [0.0, 0.0, 1.0]])
+        h_map = centre @ half @ floor_to_image @ self._half_to_arena
+        w, h = size
+        out = cv2.warpPerspective(self._mask, h_map, ((w + 1) // 2, (h + 1) // 2), flags=cv2.INTER_LINEAR)
+        return np.asarray(out, np.float32)
+
+
+def coarse_shift(
+    diff: F32, predicted_mask_half: F32, valid: npt.NDArray[np.uint8] | None
+) -> tuple[float, float, float]:
+    """The image shift (dx, dy, full-resolution pixels) that best lays the predicted mask on the difference,
+    by cross-correlation at half resolution, and the normalised peak (its sign is the difference's)."""
+    small = np.asarray(cv2.pyrDown(diff), np.float32)
+    if valid is not None:
+        small = small * (cv2.resize(valid, small.shape[::-1], interpolation=cv2.INTER_NEAREST) > 0)
+    h, w = small.shape
+    window = np.asarray(cv2.createHanningWindow((w, h), cv2.CV_32F), np.float32)
+    fa = np.fft.rfft2(small * window)
+    fb = np.fft.rfft2(predicted_mask_half[:h, :w] * window)
+    corr = np.fft.irfft2(fa * np.conj(fb), s=(h, w))
+    magnitude = np.abs(corr)
+    peak = int(np.argmax(magnitude))
+    py, px = divmod(peak, w)
+    value = float(corr.flat[peak])
+    norm = float(np.sqrt((small * small * window).sum() * (predicted_mask_half[:h, :w] ** 2 * window).sum())) + 1e-9
+
+    def vertex(a: float, b: float, c: float) -> float:  # sub-pixel: the parabola through three samples
+        den = a - 2 * b + c
+        return 0.5 * (a - c) / den if den < 0 else 0.0
+
+    fx = vertex(magnitude[py, (px - 1) % w], magnitude[py, px], magnitude[py, (px + 1) % w])
+    fy = vertex(magnitude[(py - 1) % h, px], magnitude[py, px], magnitude[(py + 1) % h, px])
+    dy = (py if py <= h // 2 else py - h) + fy
+    dx = (px if px <= w // 2 else px - w) + fx
+    return 2.0 * dx, 2.0 * dy, value / norm
+
+
+def shifted_pose(
+    camera_matrix: F64, rvec: F64, tvec: F64, dx: float, dy: float, size: tuple[int, int]
+) -> tuple[F64, F64] | None:
+    """The pose whose view of the floor is that of (``rvec``, ``tvec``) moved by (dx, dy) pixels."""
+    w, h = size
+    img = np.array([[0.25 * w, 0.25 * h], [0.75 * w, 0.25 * h], [0.75 * w, 0.75 * h], [0.25 * w, 0.75 * h]])
+    floor = floor_points(camera_matrix, rvec, tvec, img)
+    if floor is None:
+        return None
+    ok, rv, tv = cv2.solvePnP(floor, img + np.array([dx, dy]), camera_matrix, None, flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        return None
+    return np.asarray(rv, np.float64).reshape(3), np.asarray(tv, np.float64).reshape(3)
+
+
+def floor_points(camera_matrix: F64, rvec: F64, tvec: F64, image_px: F64) -> F64 | None:
+    """The floor points (N×3, z = 0) that the pinhole camera at (``rvec``, ``tvec``) sees at ``image_px``."""
+    r_cam, _ = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3, 1))
+    t = np.asarray(tvec, np.float64).reshape(3)
+    rays = (np.linalg.inv(camera_matrix) @ np.column_stack([image_px, np.ones(len(image_px))]).T).T
+    dirs = (r_cam.T @ rays.T).T
+    centre = -r_cam.T @ t
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = -centre[2] / dirs[:, 2]
+    if not np.all(np.isfinite(s)) or np.any(s <= 0):
+        return None
+    return np.asarray(centre + s[:, None] * dirs, np.float64)
