@@ -48,7 +48,9 @@ def collect_images(folder: Path, out: Path) -> int:
 
     arena = ArenaConfig()
     camera = load_camera_info(folder / "camera.yaml")
-    cfg = PipelineConfig()
+    # AprilTag on every frame (the default profile runs it only to acquire and to check its track): the
+    # images are the detector's load in the worst case.
+    cfg = PipelineConfig.model_validate({"pose": {"method": "apriltag"}})
     pipeline = Pipeline(grid_tag_map(arena), camera, cfg, arena.projector.rate_hz)
     seen: list[np.ndarray] = []
     detect = pipeline.detector.detect

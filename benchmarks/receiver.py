@@ -50,13 +50,16 @@ def run_profile(folder: Path, frames: list[np.ndarray], profile: str, fps: float
     camera = load_camera_info(folder / "camera.yaml")
     pipeline = Pipeline(grid_tag_map(arena), camera, PipelineConfig.profile(profile), arena.projector.rate_hz)
     times, positions, quats, per_frame_s = [], [], [], []
+    results = []
     for k, frame in enumerate(frames):
         t_us = round(k / fps * 1e6)
         t0 = time.perf_counter()
-        result = pipeline.process(k, frame, t_us)
+        results += pipeline.process(k, frame, t_us)
         per_frame_s.append(time.perf_counter() - t0)
+    results += pipeline.flush()
+    for result in results:
         if result.pose is not None:
-            times.append(t_us * 1e-6)
+            times.append(result.capture_time_us * 1e-6)
             positions.append(result.pose.position_m)
             quats.append(result.pose.quat_wxyz)
     report = evaluate(read_tum(folder / "groundtruth.tum"), Trajectory.from_arrays(times, positions, quats))

@@ -123,15 +123,18 @@ def score(folder: Path, arena: ArenaConfig, profile: str) -> dict[str, Any]:
         pipeline = Pipeline(grid_tag_map(arena), camera, PipelineConfig.profile(profile), arena.projector.rate_hz)
         try:
             with open_frames(folder / "frames.mkv") as src:
+                results = []
                 for k, frame in enumerate(src):
                     t_us = round(float(truth.times_s[k]) * 1e6) if k < len(truth) else round(k / rate * 1e6)
                     t0 = time.perf_counter()
-                    result = pipeline.process(k, frame, t_us)
+                    results += pipeline.process(k, frame, t_us)
                     busy_s += time.perf_counter() - t0
-                    if result.pose is not None:
-                        times.append(t_us * 1e-6)
-                        positions.append(result.pose.position_m)
-                        quats.append(result.pose.quat_wxyz)
+                results += pipeline.flush()
+            for result in results:
+                if result.pose is not None:
+                    times.append(result.capture_time_us * 1e-6)
+                    positions.append(result.pose.position_m)
+                    quats.append(result.pose.quat_wxyz)
             frames = k + 1
         finally:
             pipeline.close()

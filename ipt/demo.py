@@ -394,7 +394,8 @@ class ClosedLoopCapture:
 class FlightLog:
     """Every camera frame the receiver finished: the truth, the pose sent, the error, the latency.
 
-    :meth:`on_result` is the daemon's result hook (on the event loop); it also tells the lockstep.
+    :meth:`on_result` is the daemon's result hook (on the event loop); :meth:`on_processed` tells the
+    lockstep that a frame went through.
     """
 
     source: ClosedLoopCapture
@@ -411,21 +412,23 @@ class FlightLog:
         return len(self.truth_rows)
 
     def on_result(self, frame: CapturedFrame, result: FrameResult | None, sent: int) -> None:
-        try:
-            latency = time.monotonic() - frame.grabbed_s
-            truth = self.source.truth.pop(frame.index)
-            t = frame.capture_time_us * 1e-6
-            self.truth_rows.append((t, truth.position_m, quat_wxyz_from_matrix(truth.r_arena_cam)))
-            if result is None:
-                self.failed_frames += 1
-            elif result.pose is not None and sent > 0:
-                p = np.asarray(result.pose.position_m, dtype=np.float64)
-                self.pose_rows.append((t, p, np.asarray(result.pose.quat_wxyz, dtype=np.float64)))
-                self.errors_m.append(float(np.linalg.norm(p - truth.position_m)))
-                self.latencies_s.append(latency)
-            self.packets_sent += sent
-        finally:
-            self.lockstep.frame_done(frame.index, sent)
+        latency = time.monotonic() - frame.grabbed_s
+        truth = self.source.truth.pop(frame.index)
+        t = frame.capture_time_us * 1e-6
+        self.truth_rows.append((t, truth.position_m, quat_wxyz_from_matrix(truth.r_arena_cam)))
+        if result is None:
+            self.failed_frames += 1
+        elif result.pose is not None and sent > 0:
+            p = np.asarray(result.pose.position_m, dtype=np.float64)
+            self.pose_rows.append((t, p, np.asarray(result.pose.quat_wxyz, dtype=np.float64)))
+            self.errors_m.append(float(np.linalg.norm(p - truth.position_m)))
+            self.latencies_s.append(latency)
+        self.packets_sent += sent
+
+    def on_processed(self, frame: CapturedFrame, sent: int) -> None:
+        """The daemon's hook for every frame processed: the camera may render the next one once the
+        packets of the results that came out with it are in."""
+        self.lockstep.frame_done(frame.index, sent)
 
     def truth(self) -> Trajectory | None:
         return _trajectory(self.truth_rows)
@@ -646,6 +649,7 @@ async def closed_loop(
                     handle_signals=False,
                     source=source,
                     on_result=flight.on_result,
+                    on_processed=flight.on_processed,
                 ),
                 name="ipt-demo-receiver",
             )

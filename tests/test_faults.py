@@ -41,6 +41,8 @@ class _UnpluggedCamera:
         self.unplugged_at: float | None = None
         self.back_at: float | None = None
         self.back_index: int | None = None
+        self.t0_us: int | None = None
+        self.skipped = 0
 
     def _gone(self) -> bool:
         if self.unplugged_at is None:
@@ -60,10 +62,17 @@ class _UnpluggedCamera:
             raise CaptureError("/dev/video0: no such device")
         if self.unplugged_at is not None and self.back_at is None:
             self.back_at, self.back_index = time.monotonic(), self.k
+            # The camera was away for the outage: its clock went on by a whole number of projector periods.
+            self.skipped = 2 * round((self.back_at - self.unplugged_at) * FPS / 2)
         time.sleep(1.0 / FPS)
         image = self.frames[self.k % len(self.frames)]
         self.k += 1
-        return CapturedFrame(self.k - 1, time.monotonic_ns() // 1000, image)
+        if self.t0_us is None:
+            self.t0_us = time.monotonic_ns() // 1000
+        # A camera stamps each frame with its exposure time: the frames here were rendered 1/FPS apart,
+        # so they are stamped so too (however late this busy machine hands them over).
+        stamp = self.t0_us + round((self.k - 1 + self.skipped) * 1e6 / FPS)
+        return CapturedFrame(self.k - 1, stamp, image)
 
     def close(self) -> None:
         pass
@@ -173,7 +182,7 @@ async def test_killed_detector_helper_is_reported_and_poses_resume_within_two_se
     short_flight: Path, flight_frames: list[npt.NDArray[np.uint8]]
 ) -> None:
     # A crash in AprilTag's C code takes down only the helper process: the daemon keeps its camera and
-    # sockets, fails the frame in hand, and the next frames go to a new helper.
+    # sockets, says so, and the next detection goes to a new helper.
     camera = _UnpluggedCamera(flight_frames, fail_after=10_000, outage_s=0.0, total=120)
     poses: list[tuple[int, float]] = []
     killed: list[tuple[int, int, float]] = []  # (pid, frame index, time)
@@ -195,8 +204,10 @@ async def test_killed_detector_helper_is_reported_and_poses_resume_within_two_se
     after = [t for i, t in poses if i > kill_index]
     assert after, "poses after the helper was killed"
     assert after[0] - killed_at < 2.0, f"first pose {after[0] - killed_at:.2f} s after the kill"
-    assert "helper process failed" in report.getvalue()
-    assert stats.reasons.get("detector_failed") == 1
+    assert report.getvalue().count("helper process failed") == 1
+    # The track needs AprilTag only to start and to check itself now and then: the frame whose check
+    # failed keeps its pose (or, while acquiring, counts as detector_failed).
+    assert stats.reasons.get("detector_failed", 0) <= 1
     assert stats.detector_restarts == 1
     assert "replaced 0 for memory and 1 after failures" in report.getvalue()
 

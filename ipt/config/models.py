@@ -130,8 +130,24 @@ class DemodulationConfig(StrictModel):
     alignment: Literal["gradient", "sampled_lines"] = Field(
         "gradient",
         description="How the earlier frame is aligned to the current one. 'sampled_lines' is the paper's "
-        "integer shift from N columns and rows (equation 5). 'gradient' is a sub-pixel translation by phase "
-        "correlation of gradient magnitudes, which the tags' sign flip between phases does not disturb.",
+        "integer shift from N columns and rows (equation 5). 'gradient' is the floor's full homography "
+        "between the two frames (phase correlation, then Lucas-Kanade with eight parameters) on their "
+        "gradient magnitudes, which the tags' sign flip between phases does not disturb: a vibrating drone "
+        "turns by up to a degree between the two frames, which a shift alone leaves misaligned.",
+    )
+    lookahead_frames: int = Field(
+        2,
+        ge=0,
+        le=4,
+        description="A frame whose earlier partners give no pose may wait for this many later frames and be "
+        "paired with one of them (its pose goes out that much later, in order). Needed whenever the content "
+        "changes between two projector frames (half the pairs of a 30 fps video at 60 Hz) or an exposure "
+        "straddles a flip. 0: each pose as soon as its frame is processed, from earlier frames only.",
+    )
+    undistort: bool = Field(
+        True,
+        description="Undistort each frame once (with 'gradient' alignment), so that the floor moves by an "
+        "exact homography between frames and the camera is a pinhole afterwards.",
     )
     polarity: Literal["tracked", "both"] = Field(
         "tracked",
@@ -154,9 +170,10 @@ class DemodulationConfig(StrictModel):
         1.2,
         gt=0.0,
         le=100.0,
-        description="The difference image is clipped to ± this many times its median magnitude before it is "
-        "normalised, so that edges of the video left by motion (tens of L units) cannot outweigh the tags' "
-        "2ΔL in the mean filter. None: no clipping (the paper).",
+        description="With 'sampled_lines' alignment: the difference image is clipped to ± this many times its "
+        "median magnitude before it is normalised, so that edges of the video left by motion (tens of L "
+        "units) cannot outweigh the tags' 2ΔL in the mean filter. None: no clipping (the paper). ('gradient' "
+        "alignment leaves out what changed more than the tags can instead.)",
     )
     sample_lines: int = Field(3, ge=1, le=64, description="N: columns (and rows) sampled for the alignment.")
     max_shift_px: int | None = Field(
@@ -220,8 +237,52 @@ class DetectorConfig(StrictModel):
     )
 
 
+class TrackConfig(StrictModel):
+    """Pose from every visible edge of the hidden map (method 'track', see ipt/receiver/track.py)."""
+
+    search_px: float = Field(
+        4.0,
+        gt=0.5,
+        le=20.0,
+        description="How far (pixels at 640 wide) each edge sample looks along its normal for its step.",
+    )
+    min_inliers: int = Field(
+        60, ge=10, le=10000, description="Fewest edge samples on their steps for a pose (two tags' worth)."
+    )
+    min_inlier_fraction: float = Field(
+        0.15,
+        gt=0,
+        le=1,
+        description="Fewest edge samples on their steps, as a fraction of those that could see signal: a "
+        "pose that explains less of the visible map is not taken.",
+    )
+    min_cell_agreement: float = Field(
+        0.8,
+        ge=0.5,
+        le=1,
+        description="Of the cells in view whose difference is clearly signed, at least this fraction must have "
+        "the sign the map gives them at the pose found: a pose off by a cell or more agrees with about half.",
+    )
+    verify_every: int = Field(
+        15,
+        ge=0,
+        le=10000,
+        description="Every this many tracked frames AprilTag checks the track (a pose whose tags it decodes "
+        "elsewhere restarts it). 0: never.",
+    )
+
+
 class PoseConfig(StrictModel):
-    """Pose from tag corners (OpenCV solvePnP with IPPE)."""
+    """Pose from tag corners (OpenCV solvePnP with IPPE) or from the whole visible map."""
+
+    method: Literal["track", "apriltag"] = Field(
+        "track",
+        description="'apriltag': every pose from the corners of the tags AprilTag decodes in its frame (the "
+        "paper). 'track': AprilTag acquires, then every pose is fitted to all the cell edges of the map in "
+        "view (partial tags, tags half in shadow or at the image border included), from the previous pose; "
+        "AprilTag takes over again whenever the track is lost. Needs 'gradient' alignment.",
+    )
+    track: TrackConfig = Field(default_factory=TrackConfig, description="Settings of method 'track'.")
 
     min_tags: int = Field(
         2,
@@ -283,6 +344,8 @@ class PipelineConfig(StrictModel):
                 demodulation=DemodulationConfig(
                     pairing="previous",
                     alignment="sampled_lines",
+                    lookahead_frames=0,
+                    undistort=False,
                     polarity="both",
                     predict_warp=False,
                     lightness="cielab",
@@ -292,6 +355,7 @@ class PipelineConfig(StrictModel):
                 ),
                 detector=DetectorConfig(quad_decimate=1.0, border_margin_px=0.0),
                 pose=PoseConfig(
+                    method="apriltag",
                     min_tags=1,
                     refine_lm=False,
                     max_reprojection_rms_px=3.0,

@@ -87,6 +87,8 @@ PROG = "ipt-receiver"
 
 ResultHook = Callable[[CapturedFrame, FrameResult | None, int], None]
 """``on_result(frame, result, datagrams_sent)`` of :func:`run_daemon`."""
+ProcessedHook = Callable[[CapturedFrame, int], None]
+"""``on_processed(frame, datagrams_sent)`` of :func:`run_daemon`."""
 
 
 class LatencyHistogram:
@@ -250,6 +252,7 @@ async def run_daemon(
     handle_signals: bool = True,
     source: CaptureSource | None = None,
     on_result: ResultHook | None = None,
+    on_processed: ProcessedHook | None = None,
 ) -> DaemonStats:
     """Run the receiver until ``stop`` is set (or SIGTERM/SIGINT), the recording ends or ``max_frames``
     frames were captured. Statistics go to ``stats_out`` (default: stderr). Configuration problems raise
@@ -257,9 +260,11 @@ async def run_daemon(
 
     ``source`` replaces the frame source ``cfg.source`` describes (the closed-loop demo feeds its
     simulation in this way); ``cfg.camera`` must still describe its frames. ``on_result`` is called on
-    the event loop for every frame taken from the queue, in capture order, once its packet (if any) was
-    handed to the kernel: with the frame, its :class:`FrameResult` (``None`` if processing raised) and
-    the number of datagrams sent for it."""
+    the event loop for every frame's result, in capture order, once its packet (if any) was handed to the
+    kernel: with the frame, its :class:`FrameResult` (``None`` if processing raised) and the number of
+    datagrams sent for it. A result may come a few frames after its frame was processed (the pipeline's
+    ``lookahead_frames``); ``on_processed`` is called once each frame was processed and the results that
+    became final with it were delivered, with the datagrams sent for them."""
     out = stats_out if stats_out is not None else sys.stderr
     loop = asyncio.get_running_loop()
     stop = stop if stop is not None else asyncio.Event()
@@ -286,20 +291,25 @@ async def run_daemon(
     # waiting in the executor would be stale by a whole processing time when its turn comes). A recording
     # keeps the worker busy instead: the next frame waits while this one is processed.
     slots = asyncio.Semaphore(1 if source.live else MAX_IN_FLIGHT)
-    results: asyncio.Queue[tuple[CapturedFrame, asyncio.Future[tuple[FrameResult, dict[str, float]]]] | None] = (
-        asyncio.Queue()
-    )
+    Batch = tuple[list[FrameResult], dict[str, float]]
+    results: asyncio.Queue[tuple[CapturedFrame | None, asyncio.Future[Batch]] | None] = asyncio.Queue()
     stage_totals: dict[str, float] | None = getattr(pipeline, "stage_seconds", None)
+    waiting: dict[int, CapturedFrame] = {}
+    """Frames processed whose result has not come out yet (the pipeline's look-ahead), by index."""
 
-    def process(frame: CapturedFrame) -> tuple[FrameResult, dict[str, float]]:
-        """On the worker thread: the frame's result and the processor time each stage took for it (from the
-        pipeline's running totals, read on the same thread, so no other frame is counted in)."""
-        if ros is None or stage_totals is None:
-            return pipeline.process(frame.index, frame.image_rgb, frame.capture_time_us), {}
-        before = dict(stage_totals)
-        result = pipeline.process(frame.index, frame.image_rgb, frame.capture_time_us)
+    def process(frame: CapturedFrame | None) -> Batch:
+        """On the worker thread: the results that became final with this frame (``None``: at the end, all
+        that wait) and the processor time each stage took for it (from the pipeline's running totals, read
+        on the same thread, so no other frame is counted in)."""
+        before = dict(stage_totals) if ros is not None and stage_totals is not None else None
+        if frame is None:
+            batch = pipeline.flush()
+        else:
+            batch = pipeline.process(frame.index, frame.image_rgb, frame.capture_time_us)
+        if before is None or stage_totals is None:
+            return batch, {}
         stages = {k: v - before.get(k, 0.0) for k, v in stage_totals.items() if v != before.get(k, 0.0)}
-        return result, stages
+        return batch, stages
 
     async def submit() -> None:
         """Frames from the capture queue to the pipeline worker, in capture order."""
@@ -307,45 +317,63 @@ async def run_daemon(
             while True:
                 await slots.acquire()  # before taking a frame, so that a live source's newest one is taken
                 frame = await frames.get()
-                if frame is None:
-                    slots.release()
+                if frame is None:  # the end of a recording: what still waits for later frames comes out
+                    results.put_nowait((None, loop.run_in_executor(worker, process, None)))
                     return
-                fut = loop.run_in_executor(worker, process, frame)
-                results.put_nowait((frame, fut))
+                results.put_nowait((frame, loop.run_in_executor(worker, process, frame)))
         finally:
             results.put_nowait(None)
 
     async def deliver() -> None:
-        """Results in submission order to the UDP targets."""
+        """Results in frame order to the UDP targets."""
         nonlocal errors_reported
         while True:
             item = await results.get()
             if item is None:
                 return
             frame, fut = item
-            result: FrameResult | None = None
+            if frame is not None:
+                waiting[frame.index] = frame
+            batch: list[FrameResult] = []
             stages: dict[str, float] = {}
-            sent = 0
             try:
-                result, stages = await fut
+                batch, stages = await fut
             except Exception as exc:  # a bug or a library failure on one frame: report, count, go on
-                meter.frame("error")
+                if frame is not None:
+                    waiting.pop(frame.index, None)
+                    meter.frame("error")
+                    if ros is not None:
+                        ros.on_result(frame, None, stages)
+                    if on_result is not None:
+                        on_result(frame, None, 0)
                 if errors_reported < MAX_ERROR_REPORTS:
                     errors_reported += 1
-                    _write(out, f"{PROG}: frame {frame.index}: processing failed: {type(exc).__name__}: {exc}")
+                    where = f"frame {frame.index}" if frame is not None else "the end of the recording"
+                    _write(out, f"{PROG}: {where}: processing failed: {type(exc).__name__}: {exc}")
             finally:
                 slots.release()
-            if result is not None and result.reason == "detector_failed" and errors_reported < MAX_ERROR_REPORTS:
-                errors_reported += 1
-                _write(out, f"{PROG}: frame {frame.index}: the tag detector's helper process failed; starting another")
-            if result is not None:
-                sent = deliver_one(frame, result)
-                if mavlink is not None:
-                    mavlink.on_result(frame, result)
-            if ros is not None:
-                ros.on_result(frame, result, stages)
-            if on_result is not None:
-                on_result(frame, result, sent)
+            sent_total = 0
+            for result in batch:
+                owner = waiting.pop(result.index, None)
+                if owner is None:  # not a frame this daemon submitted (cannot happen): nothing to send it for
+                    continue
+                sent_total += deliver_result(owner, result, stages if owner is frame else {})
+            if frame is not None and on_processed is not None:
+                on_processed(frame, sent_total)
+
+    def deliver_result(frame: CapturedFrame, result: FrameResult, stages: dict[str, float]) -> int:
+        nonlocal errors_reported
+        if (result.reason == "detector_failed" or result.detector_failed) and errors_reported < MAX_ERROR_REPORTS:
+            errors_reported += 1
+            _write(out, f"{PROG}: frame {frame.index}: the tag detector's helper process failed; starting another")
+        sent = deliver_one(frame, result)
+        if mavlink is not None:
+            mavlink.on_result(frame, result)
+        if ros is not None:
+            ros.on_result(frame, result, stages)
+        if on_result is not None:
+            on_result(frame, result, sent)
+        return sent
 
     def deliver_one(frame: CapturedFrame, result: FrameResult) -> int:
         """Count one frame's result and send its pose; the number of datagrams sent."""

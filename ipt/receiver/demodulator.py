@@ -16,12 +16,18 @@ Two deliberate, documented details:
 The difference shows the tags with dark borders when the current frame is the ``+ΔL`` phase and
 inverted otherwise; :func:`demodulate` returns the binary image for the first case and the caller tries
 its inverse too (AprilTag 3 looks for dark borders only).
+
+The ``ipt`` profile works differently (see :mod:`ipt.receiver.pipeline`), with the pieces below the
+paper's: each frame undistorted once (:class:`Undistorter`), its lightness as it comes (a mono camera's
+grey) or BT.601 luma through a table, a mask of where it can carry signal at all (:func:`signal_mask`:
+not in the drone's shadow, not beyond the projection), and the pair's difference signed, brightness-
+matched and masked where content changed (:func:`pair_difference`); the homography that aligns the pair
+comes from :mod:`ipt.receiver.imagealign`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -29,6 +35,7 @@ import numpy.typing as npt
 
 from ipt.config.models import REFERENCE_WIDTH_PX, DemodulationConfig
 from ipt.errors import IptError
+from ipt.receiver.imagealign import translation
 
 U8 = npt.NDArray[np.uint8]
 
@@ -138,209 +145,168 @@ F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 
 
-def _gradient_magnitude(img: F32) -> F32:
-    """Smoothed L1 gradient magnitude: the same for a tag in either phase, so the flip does not matter."""
-    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)
-    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
-    return np.asarray(cv2.GaussianBlur(np.abs(gx) + np.abs(gy), (5, 5), 1.0), dtype=np.float32)
+# --- the ipt profile: undistorted luminance, signal masks, a signed and masked difference ----------------
 
 
-def alignment_features(lightness_u8: U8) -> F32:
-    """What :func:`gradient_shift` matches: the gradient magnitude at half resolution.
+class Undistorter:
+    """Undistorts camera frames once each, so that the floor's motion between two frames is an exact
+    homography and the camera a pinhole (:attr:`camera_matrix`, no distortion) for everything after.
 
-    A frame is paired more than once (as the current frame, then as the earlier one), so callers may
-    compute this once per frame and pass it in.
+    The undistorted image keeps the size and the camera matrix of the camera; what falls outside the
+    sensor (corners of a barrel-distorted lens) is 0 and is left out by :func:`signal_mask`.
     """
-    return _gradient_magnitude(np.asarray(cv2.pyrDown(lightness_u8), dtype=np.float32))
+
+    def __init__(self, camera_matrix: F64, dist_coeffs: F64, size: tuple[int, int]) -> None:
+        self.camera_matrix = np.asarray(camera_matrix, np.float64)
+        self.size = size
+        self.identity = not np.any(np.asarray(dist_coeffs))
+        if not self.identity:
+            self._maps = cv2.initUndistortRectifyMap(
+                self.camera_matrix, np.asarray(dist_coeffs, np.float64), None, self.camera_matrix, size, cv2.CV_16SC2
+            )
+            ones = np.full((size[1], size[0]), 255, np.uint8)
+            self.coverage = np.asarray(
+                cv2.remap(ones, *self._maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT), np.uint8
+            )
+        else:
+            self.coverage = np.full((size[1], size[0]), 255, np.uint8)
+
+    def __call__(self, image: U8) -> U8:
+        if self.identity:
+            return image
+        out: U8 = np.asarray(cv2.remap(image, *self._maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT), np.uint8)
+        return out
 
 
-def _translate(img: F32, dx: float, dy: float) -> F32:
-    """``img`` moved by (dx, dy): what is at (x, y) ends up at (x + dx, y + dy); bilinear."""
-    h, w = img.shape
-    m = np.array([[1.0, 0.0, dx], [0.0, 1.0, dy]], np.float32)
-    return np.asarray(cv2.warpAffine(img, m, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
+def luminance(frame: U8, method: str = "luma") -> U8:
+    """The frame's lightness: a grey (mono camera) frame as it is, an RGB one through :func:`lightness`."""
+    if frame.ndim == 2 and frame.dtype == np.uint8:
+        return frame
+    return lightness(frame, method)
 
 
-A = TypeVar("A", np.uint8, np.float32)
+#: Lightness below ``DARK_FRACTION`` of the way from the frame's darkest tenth to its median is taken for
+#: floor without projector light (the drone's shadow, beyond the projection): no signal can be there.
+DARK_FRACTION = 0.35
+#: The mask keeps this far (pixels at 640 wide) from the dark regions: their soft edges carry no signal.
+DARK_MARGIN_PX = 5
 
 
-def _warp(img: npt.NDArray[A], warp: F64, border: int = cv2.BORDER_REPLICATE) -> npt.NDArray[A]:
-    """``img`` carried by the 3x3 ``warp`` (what is at p ends up at warp·p); bilinear, same dtype."""
-    h, w = img.shape
-    if np.allclose(warp[2], (0.0, 0.0, 1.0)):
-        out = cv2.warpAffine(img, warp[:2], (w, h), flags=cv2.INTER_LINEAR, borderMode=border)
-    else:
-        out = cv2.warpPerspective(img, warp, (w, h), flags=cv2.INTER_LINEAR, borderMode=border)
-    return np.asarray(out, dtype=img.dtype)
+def signal_mask(lum: U8, coverage: U8 | None = None) -> U8:
+    """255 where the frame may carry the hidden tags: lit by the projector, inside the sensor's view."""
+    _h, w = lum.shape
+    small = lum[::4, ::4]
+    low, mid = np.percentile(small, (10, 50))
+    level = max(12.0, low + DARK_FRACTION * (mid - low))
+    lit = np.asarray((lum > level), np.uint8) * np.uint8(255)
+    if coverage is not None:
+        lit = np.minimum(lit, coverage)
+    margin = max(1, round(DARK_MARGIN_PX * w / REFERENCE_WIDTH_PX))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1))
+    return np.asarray(cv2.erode(cv2.morphologyEx(lit, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)), kernel), np.uint8)
 
 
-_HALF = np.diag([0.5, 0.5, 1.0])
-_DOUBLE = np.diag([2.0, 2.0, 1.0])
+#: A difference larger than this many times the typical tag step is content that changed (a new video
+#: frame, the shadow's edge): such pixels are left out rather than clipped.
+CHANGE_FACTOR = 3.0
+#: Gaussian smoothing of the signed difference (pixels at 640 wide).
+DIFF_SIGMA_PX = 1.0
 
 
-def translation(dx: float, dy: float) -> F64:
-    """The 3x3 warp that moves content by (dx, dy)."""
-    return np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
+@dataclass(frozen=True)
+class PairDifference:
+    """The signed difference of a pair in the later frame's geometry, and where it means something."""
+
+    diff: F32
+    """later − (gain · earlier carried by the warp + offset), smoothed; 0 where not valid."""
+    valid: U8
+    """255 where both frames carry signal and nothing but the tags changed."""
+    amplitude: float
+    """The typical size of the tag step (the median absolute difference where valid)."""
+    changed: float
+    """Fraction of the pixels lit in both frames that changed more than the tags can (content, shadow)."""
 
 
-_HANNING: dict[tuple[int, int], F32] = {}
+def pair_difference(
+    earlier: U8,
+    later: U8,
+    warp: F64,
+    earlier_signal: U8,
+    later_signal: U8,
+    coverage: U8 | None = None,
+    sigma_px: float = DIFF_SIGMA_PX,
+) -> PairDifference:
+    """:class:`PairDifference` of two undistorted frames; ``warp`` carries the earlier onto the later.
 
-
-def _hanning(w: int, h: int) -> F32:
-    if (w, h) not in _HANNING:
-        _HANNING[(w, h)] = np.asarray(cv2.createHanningWindow((w, h), cv2.CV_32F), dtype=np.float32)
-    return _HANNING[(w, h)]
-
-
-#: Lucas-Kanade steps after phase correlation, and the margin they ignore (half-resolution pixels).
-_LK_STEPS, _LK_MARGIN = 3, 16
-
-
-class _LucasKanade:
-    """Translation-only Lucas-Kanade against a fixed target image, in the inverse-compositional form:
-    the target's gradients and the 2x2 normal matrix are computed once, each step only moves the other
-    image and takes two dot products."""
-
-    def __init__(self, target: F32) -> None:
-        h, w = target.shape
-        self.inner = (slice(_LK_MARGIN, h - _LK_MARGIN), slice(_LK_MARGIN, w - _LK_MARGIN))
-        self.target = np.ascontiguousarray(target[self.inner])
-        self.gx = np.ascontiguousarray(cv2.Sobel(target, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)[self.inner])
-        self.gy = np.ascontiguousarray(cv2.Sobel(target, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)[self.inner])
-        gxx, gxy, gyy = (float(np.vdot(u, v)) for u, v in ((self.gx, self.gx), (self.gx, self.gy), (self.gy, self.gy)))
-        self.hess = np.array([[gxx, gxy], [gxy, gyy]], np.float64)
-
-    def refine(self, moving: F32, dx: float, dy: float) -> tuple[float, float] | None:
-        """(dx, dy) that carries ``moving`` onto the target, refined from the given start; None if a step
-        is degenerate or too large (no gradient, or the start was too far off)."""
-        if abs(np.linalg.det(self.hess)) < 1e-9:
-            return None
-        for _ in range(_LK_STEPS):
-            residual = np.ascontiguousarray(_translate(moving, dx, dy)[self.inner]) - self.target
-            grad = np.array([float(np.vdot(self.gx, residual)), float(np.vdot(self.gy, residual))])
-            step = np.linalg.solve(self.hess, grad)
-            if not np.all(np.isfinite(step)) or np.abs(step).max() > 2.0:
-                return None
-            dx, dy = dx + float(step[0]), dy + float(step[1])
-        return dx, dy
-
-
-def gradient_shift(
-    prev_l: U8,
-    now_l: U8,
-    predicted: F64 | None = None,
-    features: tuple[F32, F32] | None = None,
-) -> tuple[float, float]:
-    """Sub-pixel (dx, dy) of the floor between two frames, from their gradient magnitudes.
-
-    ``predicted`` (3x3, full-resolution pixels) is a warp of the earlier frame onto the current one known
-    beforehand, e.g. the floor homography from the recent poses; the shift returned is what remains after
-    it, so the whole warp is ``translation(dx, dy) @ predicted``. ``features`` are the two frames'
-    :func:`alignment_features` if already computed.
-
-    Phase correlation at half resolution gives the shift to about 0.3 px, whatever its size; three
-    Lucas-Kanade steps refine it (to about 0.07 px on the simulated arena). (Starting Lucas-Kanade at zero
-    after a prediction, without phase correlation, lost 14 % of the poses of the 720p flight.) Gradient
-    magnitudes are used because the tags change sign between the phases and would otherwise pull
-    the match away.
+    The earlier frame's brightness is matched to the later one's first (gain and offset fitted by least
+    squares over the pixels both light: a camera's automatic gain steps between frames), so that what
+    remains is the tags' ±ΔL and whatever content changed. Valid are the pixels both frames see
+    (``coverage``: inside the undistorted sensor) where nothing changed more than the tags can; dark
+    content keeps its signal, so darkness alone does not invalidate a pixel (the shadow's difference is
+    only noise, which the pose stages do not take for steps).
     """
-    a, b = features if features is not None else (alignment_features(prev_l), alignment_features(now_l))
-    if predicted is not None:
-        a = _warp(a, _HALF @ predicted @ _DOUBLE)
-    h, w = a.shape
-    if h <= 3 * _LK_MARGIN or w <= 3 * _LK_MARGIN:
-        (dx, dy), _ = cv2.phaseCorrelate(a, b, _hanning(w, h))
-        return 2.0 * dx, 2.0 * dy
-    (dx, dy), _ = cv2.phaseCorrelate(a, b, _hanning(w, h))
-    refined = _LucasKanade(b).refine(a, dx, dy)
-    if refined is not None:
-        dx, dy = refined
-    return 2.0 * dx, 2.0 * dy
+    h, w = later.shape
+    moved = np.asarray(cv2.warpPerspective(earlier, warp, (w, h), flags=cv2.INTER_LINEAR), np.float32)
+    moved_signal = cv2.warpPerspective(earlier_signal, warp, (w, h), flags=cv2.INTER_NEAREST)
+    both = np.minimum(later_signal, moved_signal)
+    seen = np.full((h, w), 255, np.uint8) if coverage is None else coverage.copy()
+    seen = np.minimum(seen, cv2.warpPerspective(seen, warp, (w, h), flags=cv2.INTER_NEAREST))
+    now = later.astype(np.float32)
+    sample = both[::4, ::4] > 0
+    if sample.sum() < 50:
+        empty = np.zeros((h, w), np.float32)
+        return PairDifference(empty, np.zeros((h, w), np.uint8), 0.0, 1.0)
+    x, y = moved[::4, ::4][sample], now[::4, ::4][sample]
+    xm, ym = float(x.mean()), float(y.mean())
+    var = float(((x - xm) ** 2).mean())
+    gain = float(((x - xm) * (y - ym)).mean()) / var if var > 1e-6 else 1.0
+    gain = min(max(gain, 0.5), 2.0)
+    diff = now - (gain * moved + (ym - gain * xm))
+    magnitude = np.abs(diff[::4, ::4][sample])
+    amplitude = max(float(np.median(magnitude)), 0.5)
+    changed_px = np.abs(diff) > CHANGE_FACTOR * amplitude * 2.0
+    valid = seen
+    if changed_px.any():
+        grown = cv2.dilate(changed_px.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        valid[grown] = 0
+    changed = float(np.mean(changed_px[::4, ::4][sample]))
+    diff[valid == 0] = 0.0
+    sigma = sigma_px * w / REFERENCE_WIDTH_PX
+    if sigma > 0:
+        diff = np.asarray(cv2.GaussianBlur(diff, (0, 0), sigma), np.float32)
+    return PairDifference(diff, valid, amplitude, changed)
 
 
-def covered_box(warp: F64, width: int, height: int) -> tuple[int, int, int, int]:
-    """(x0, y0, x1, y1): the largest axis-aligned box, in whole pixels, that the earlier frame still covers
-    after ``warp`` (a few pixels of the warped frame's slanted edges are given up for a cheap slice)."""
-    corners = np.array([[[0.0, 0.0], [width - 1.0, 0.0], [width - 1.0, height - 1.0], [0.0, height - 1.0]]])
-    (tl, tr, br, bl) = np.asarray(cv2.perspectiveTransform(corners, warp), np.float64)[0]
-    x0 = max(0, int(np.ceil(max(tl[0], bl[0]))))
-    x1 = min(width, int(np.floor(min(tr[0], br[0]))) + 1)
-    y0 = max(0, int(np.ceil(max(tl[1], tr[1]))))
-    y1 = min(height, int(np.floor(min(bl[1], br[1]))) + 1)
-    return x0, y0, max(x0, x1), max(y0, y1)
+def binarise_difference(pair: PairDifference, sign: int, ksize: int) -> U8:
+    """The difference as AprilTag wants it: 0/255, the tags' borders dark when ``sign`` is right
+    (+1: the later frame is the +ΔL phase), thresholded at zero difference, then opened and closed."""
+    scale = 127.0 / (2.5 * max(pair.amplitude, 0.5))
+    img = np.asarray(cv2.convertScaleAbs(pair.diff, alpha=sign * scale, beta=128.0), np.uint8)
+    if ksize > 1:
+        img = cv2.blur(img, (ksize, ksize))
+    _, binary = cv2.threshold(img, 128, 255, cv2.THRESH_BINARY)
+    binary = np.asarray(binary, np.uint8)
+    if ksize > 1:
+        kernel = np.ones((ksize, ksize), np.uint8)
+        binary = np.asarray(
+            cv2.morphologyEx(cv2.morphologyEx(binary, cv2.MORPH_OPEN, kernel), cv2.MORPH_CLOSE, kernel), np.uint8
+        )
+    return binary
 
 
-def _outside_box(img: npt.NDArray[np.generic], box: tuple[int, int, int, int], value: float) -> None:
-    x0, y0, x1, y1 = box
-    img[:y0] = value
-    img[y1:] = value
-    img[:, :x0] = value
-    img[:, x1:] = value
-
-
-def subpixel_difference(prev_l: U8, now_l: U8, dx: float, dy: float, predicted: F64 | None = None) -> F32:
-    """now − prev carried by ``translation(dx, dy) @ predicted``, zero where prev does not reach."""
-    warp = translation(dx, dy) if predicted is None else translation(dx, dy) @ predicted
-    moved = _warp(prev_l.astype(np.float32), warp, border=cv2.BORDER_CONSTANT)
-    diff = np.asarray(cv2.subtract(now_l.astype(np.float32), moved), dtype=np.float32)
-    _outside_box(diff, covered_box(warp, now_l.shape[1], now_l.shape[0]), 0.0)
-    return diff
-
-
-def clipped_difference(prev_l: U8, now_l: U8, warp: F64, clip_factor: float) -> U8:
-    """now − prev carried by ``warp``, clipped to ± ``clip_factor`` times its median magnitude and mapped
-    onto 0..255 (128: no difference, also where prev does not reach), in 8-bit arithmetic throughout.
-
-    The same as clipping :func:`subpixel_difference` and normalising it, up to the rounding of the warped
-    frame to whole lightness units, at a fraction of the float passes.
-    """
-    h, w = now_l.shape
-    box = covered_box(warp, w, h)
-    x0, y0, x1, y1 = box
-    if x1 <= x0 or y1 <= y0:  # the earlier frame covers none of this one (a wild motion prediction)
-        return np.full((h, w), 128, np.uint8)
-    moved = _warp(prev_l, warp)
-    magnitude = cv2.absdiff(now_l[y0:y1, x0:x1], moved[y0:y1, x0:x1])
-    limit = max(clip_factor * _median_u8(np.asarray(magnitude, np.uint8)), 1.0)
-    gain = 127.5 / limit
-    out = np.asarray(cv2.addWeighted(now_l, gain, moved, -gain, 127.5, dtype=cv2.CV_8U), dtype=np.uint8)
-    _outside_box(out, box, 128)
-    return out
-
-
-def demodulate(
-    prev_l: U8,
-    now_l: U8,
-    cfg: DemodulationConfig,
-    *,
-    predicted: F64 | None = None,
-    features: tuple[F32, F32] | None = None,
-) -> DemodResult:
-    """Algorithm 2, steps 4-10, on two lightness images of the same size.
-
-    ``predicted`` and ``features`` are passed to :func:`gradient_shift` ('gradient' alignment only).
-    """
+def demodulate(prev_l: U8, now_l: U8, cfg: DemodulationConfig) -> DemodResult:
+    """Algorithm 2, steps 4-10, on two lightness images of the same size: the paper's integer shift from
+    sampled lines, the difference, optionally clipped (``cfg.clip_factor``), normalised and binarised."""
     if prev_l.shape != now_l.shape or prev_l.dtype != np.uint8 or now_l.dtype != np.uint8:
         raise DemodulationError(f"frames differ: {prev_l.shape} {prev_l.dtype} vs {now_l.shape} {now_l.dtype}")
-    diff: npt.NDArray[np.int16] | F32
-    if cfg.alignment == "gradient":
-        fdx, fdy = gradient_shift(prev_l, now_l, predicted, features)
-        shift = (fdx, fdy)
-        warp = translation(fdx, fdy) if predicted is None else translation(fdx, fdy) @ predicted
-        if cfg.clip_factor is not None:
-            return _binarise(clipped_difference(prev_l, now_l, warp, cfg.clip_factor), cfg, shift, warp)
-        diff = subpixel_difference(prev_l, now_l, fdx, fdy, predicted)
-    else:
-        dx, dy = estimate_shift(prev_l, now_l, cfg.sample_lines, max_shift_for(cfg, now_l.shape[1]))
-        diff = aligned_difference(prev_l, now_l, dx, dy)
-        shift = (float(dx), float(dy))
-        warp = translation(dx, dy)
+    dx, dy = estimate_shift(prev_l, now_l, cfg.sample_lines, max_shift_for(cfg, now_l.shape[1]))
+    diff: npt.NDArray[np.int16] | F32 = aligned_difference(prev_l, now_l, dx, dy)
     if cfg.clip_factor is not None:
         magnitude = np.abs(diff[::4, ::4])
         limit = max(cfg.clip_factor * float(np.median(magnitude)), 1.0)
         diff = np.asarray(cv2.min(cv2.max(diff.astype(np.float32), -limit), limit), dtype=np.float32)
     norm = np.asarray(cv2.normalize(diff, None, 0, 255, cv2.NORM_MINMAX, dtype=cv2.CV_8U), dtype=np.uint8)
-    return _binarise(norm, cfg, shift, warp)
+    return _binarise(norm, cfg, (float(dx), float(dy)), translation(dx, dy))
 
 
 def _binarise(norm: U8, cfg: DemodulationConfig, shift: tuple[float, float], warp: F64) -> DemodResult:

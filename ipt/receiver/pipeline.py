@@ -1,26 +1,35 @@
-"""One frame in, at most one pose out: pairing → demodulation → detection → pose, with the reason when none.
+"""Camera frames in, poses out: pairing → alignment → difference → pose → gates, with the reason when none.
 
-Pure apart from the detector's C library: frames and their capture times go in, results come out; the
-pipeline keeps only the last few lightness images and what it learnt about the projector's phase.
+Pure apart from the detector's C library: frames and their capture times go in, results come out, in
+frame order. The pipeline keeps the last few frames, what it learnt about the projector's phase and the
+camera's recent motion.
 
-Pairing (``demodulation.pairing``):
-- ``previous``: the paper's lag 1. With a 120 FPS camera and 60 Hz phases only every other pair
-  straddles a flip, so at most half the frames can carry the tags.
-- ``opposite_phase``: among the last few frames, the one whose time step is closest to an odd number of
-  projector periods (one period at 120 FPS: lag 2; lag 3 at 180 FPS), then the next best on a miss.
-  Timing comes from the frames' capture times, so dropped frames and drifting clocks are handled.
+Two ways through, chosen by the profile (:meth:`PipelineConfig.profile`):
 
-Polarity (``demodulation.polarity``): the difference shows the tags with dark borders when the current
-frame is the ``+ΔL`` phase. ``both`` tries the image and its inverse (the paper's phase is unknown);
-``tracked`` predicts each frame's phase from what earlier detections revealed and tries the other only on
-a miss.
+**paper** (Algorithm 2 as published, ``alignment: sampled_lines``, ``pose.method: apriltag``): each
+frame against the previous one (lag 1), the paper's integer shift, the median threshold, AprilTag, IPPE.
+
+**ipt** (the default). Each frame is undistorted once and its signal mask taken (no signal in the drone's
+shadow or beyond the projection). A *pair* is two frames of opposite projector phase (a time step close to
+an odd number of projector periods); the floor homography between them comes from their content
+(:mod:`ipt.receiver.imagealign`), their difference is brightness-matched and masked where content changed
+(:func:`~ipt.receiver.demodulator.pair_difference`). The pose of a frame comes from the whole visible map
+(:mod:`ipt.receiver.track`), started from the partner frame's pose carried by the homography, or from the
+recent motion; AprilTag acquires when there is neither, and checks the track now and then. A pair serves
+both its frames: a frame whose earlier partners fail (its pair straddles a change of the video, or its
+exposure a flip) waits up to ``lookahead_frames`` for a later partner. Results come out in frame order, so
+a pose may leave up to that many frames after its frame.
+
+Gates (both profiles, where configured): a pose far from where the recent motion puts the camera is held
+back (``inconsistent``); before that motion is known, only a certain pose goes out (``unconfirmed``); a
+jump faster than a drone flies is held back (``motion_jump``) until it repeats.
 """
 
 from __future__ import annotations
 
 import time
 from collections import Counter, defaultdict, deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -28,30 +37,61 @@ import numpy.typing as npt
 
 from ipt.config.camera_info import CameraInfo
 from ipt.config.models import PipelineConfig
-from ipt.receiver.demodulator import alignment_features, demodulate, lightness
+from ipt.receiver.demodulator import (
+    PairDifference,
+    Undistorter,
+    binarise_difference,
+    demodulate,
+    ksize_for,
+    lightness,
+    luminance,
+    pair_difference,
+    signal_mask,
+)
 from ipt.receiver.detector import DetectorError, TagDetection, TagDetector
+from ipt.receiver.imagealign import AlignTarget, alignment_features, floor_warp_between, warp_image
 from ipt.receiver.motion import MotionTrack, floor_warp
 from ipt.receiver.pose import PoseEstimate, solve_pose
-from ipt.tagmap import TagMap
+from ipt.receiver.track import (
+    MapEdges,
+    MaskRenderer,
+    TrackResult,
+    TrackSettings,
+    coarse_shift,
+    floor_points,
+    shifted_pose,
+    track_pose,
+)
+from ipt.tagmap import TagMap, pixel_to_arena
 
 U8 = npt.NDArray[np.uint8]
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 
-#: Frames kept for pairing (lags up to this many frames back).
-HISTORY = 4
+#: Frames kept for pairing.
+HISTORY = 6
 #: A pairing whose time step is this far (in projector periods) from an odd number is not tried. Half a
 #: period is still tried as a fallback: when an exposure straddles a flip, its lag-2 partner straddles the
 #: same way and the signal cancels, while the neighbour on the other side of the flip keeps half of it.
 MAX_PHASE_ERROR = 0.55
-#: The motion gate compares with the last accepted pose only if it is this recent.
+#: The motion gate compares with accepted poses this close in time.
 GATE_WINDOW_US = 250_000
 #: After this many gated poses in a row the track is re-initialised (the earlier pose was the wrong one).
 GATE_RESET_AFTER = 4
 #: A gap in capture times longer than this (or time going backwards) starts pairing afresh.
 MAX_GAP_US = 100_000
-
-
+#: A predicted warp that moves the image centre further than this fraction of the width is not trusted.
+MAX_PREDICTED_MOVE = 0.25
+#: Partners tried for a frame from each side, best phase first.
+MAX_PARTNERS = 2
+#: Pairs further apart than this many projector periods are not tried (the content changes in between).
+MAX_PAIR_PERIODS = 2.6
+#: A candidate fitting this share of the map's visible edges is taken without trying more partners.
+GOOD_QUALITY = 0.3
+#: Without a pose for this long the track is lost, and AprilTag looks for tags again.
+LOST_AFTER_US = 50_000
+#: A coarse search whose normalised correlation peak is weaker than this is not followed.
+MIN_COARSE_SCORE = 0.1
 @dataclass(frozen=True)
 class FrameResult:
     """What one camera frame gave."""
@@ -60,23 +100,63 @@ class FrameResult:
     capture_time_us: int
     pose: PoseEstimate | None
     num_detections: int
+    """Tags the pose rests on (AprilTag detections, or tags whose edges the track used)."""
     reason: str
     """"pose" when a pose was made; otherwise why not (e.g. "first_frame", "no_tags", "bad_frame")."""
     reset: bool = False
     """The pose re-initialises the track (it disagreed with the previous ones, which were dropped)."""
+    method: str = ""
+    """How the pose was found: "track" (the map's edges), "apriltag" (tag corners), or "" for none."""
+    partner: int | None = None
+    """The frame it was paired with."""
+    detector_failed: bool = False
+    """The tag detector's helper process failed while this frame was processed (the frame may still have
+    a pose: the track does not need AprilTag)."""
 
 
 @dataclass
-class _Past:
+class _Frame:
     index: int
     time_us: int
-    lightness: U8
-    features: F32 | None
-    """The frame's alignment features ('gradient' alignment), computed once."""
+    lum: U8
+    """Lightness (undistorted in the ipt profile)."""
+    signal: U8 | None = None
+    features: F32 | None = None
+    target: AlignTarget | None = None
+    rt: tuple[F64, F64] | None = None
+    """OpenCV's (rvec, tvec) of the pose found for this frame."""
+    phase: int | None = None
+    """+1 if this frame showed the +ΔL phase, -1 the other, None if not known."""
+    result: FrameResult | None = None
+    final: bool = False
+    tried: set[int] = field(default_factory=set)
+    candidates: list[_Candidate] = field(default_factory=list)
+    """The poses found for this frame with each partner (ipt profile), not yet gated."""
+    best: _Candidate | None = None
+    """The candidate that fits the map best so far."""
+    failure: FrameResult | None = None
+    """Why the last attempt gave no pose."""
 
 
-#: A predicted warp that moves the image centre further than this fraction of the width is not trusted.
-MAX_PREDICTED_MOVE = 0.25
+@dataclass(frozen=True)
+class _Candidate:
+    """A pose found for a frame with one partner, and how well the map fitted it."""
+
+    pose: PoseEstimate
+    rt: tuple[F64, F64]
+    tags: int
+    method: str
+    partner: int
+    quality: float
+    """The share of the visible map's edges on their steps (0 for a pose from tag corners alone)."""
+
+
+@dataclass
+class _Pair:
+    warp: F64
+    """Carries the earlier frame onto the later one (undistorted pixels)."""
+    later: PairDifference
+    earlier: PairDifference | None = None
 
 
 class Pipeline:
@@ -85,15 +165,35 @@ class Pipeline:
     def __init__(self, tag_map: TagMap, camera: CameraInfo, cfg: PipelineConfig, projector_hz: float = 60.0) -> None:
         self.tag_map, self.camera, self.cfg = tag_map, camera, cfg
         self.projector_hz = projector_hz
+        demod = cfg.demodulation
+        self.ipt = demod.alignment == "gradient"
+        self.tracking = self.ipt and cfg.pose.method == "track"
+        size = (camera.width_px, camera.height_px)
+        self.undistort = (
+            Undistorter(camera.camera_matrix, camera.dist_coeffs, size) if self.ipt and demod.undistort else None
+        )
+        self.pinhole = replace(camera, distortion=(0.0, 0.0, 0.0, 0.0, 0.0)) if self.undistort is not None else camera
+        self.edges = MapEdges.from_tag_map(tag_map) if self.tracking else None
+        self.masks = MaskRenderer(tag_map.render_mask(), pixel_to_arena(tag_map)) if self.tracking else None
+        scale = camera.width_px / 640
+        t = cfg.pose.track
+        self.track_settings = TrackSettings(search_px=t.search_px * scale, min_inliers=t.min_inliers)
         self.detector = TagDetector(cfg.detector, known_ids=tag_map.by_id)
-        self._history: deque[_Past] = deque(maxlen=HISTORY)
-        self._phase: dict[int, int] = {}  # frame index -> +1 (the +ΔL phase) or -1, learnt from detections
-        self._last_pose: tuple[int, PoseEstimate] | None = None
+        self.lookahead = demod.lookahead_frames if self.ipt else 0
+        self._history: deque[_Frame] = deque(maxlen=HISTORY)
+        self._pending: deque[_Frame] = deque()
+        self._pairs: dict[tuple[int, int], _Pair | None] = {}
         self._track = MotionTrack()
+        """The motion of the poses that went out (or were held back), in frame order: the gates' reference."""
+        self._guide = MotionTrack()
+        """The motion of every frame's best candidate as soon as it is found: the first guesses' source."""
+        self._accepted: deque[tuple[int, PoseEstimate]] = deque(maxlen=16)
         self._gated_in_a_row = 0
+        self._since_verify = 0
+        self._detector_failed = False
         self.reasons: Counter[str] = Counter()
         self.stage_seconds: dict[str, float] = defaultdict(float)
-        """Processor time spent per stage (lightness, demodulate, detect, pose), for benchmarks."""
+        """Processor time spent per stage, for benchmarks."""
         self.detector_runs = 0
 
     def close(self) -> None:
@@ -106,38 +206,142 @@ class Pipeline:
         backend = self.detector.backend
         return (getattr(backend, "recycles", 0), getattr(backend, "restarts", 0))
 
-    def process(self, index: int, frame_rgb: U8, capture_time_us: int) -> FrameResult:
-        """Process camera frame ``index``; never raises for a bad frame (the reason says what happened)."""
-        result = self._process(index, frame_rgb, capture_time_us)
-        self.reasons[result.reason] += 1
-        return result
+    # -- the interface -------------------------------------------------------------------------------
 
-    # -- pairing -------------------------------------------------------------------------------------
+    def process(self, index: int, frame: U8, capture_time_us: int) -> list[FrameResult]:
+        """Take camera frame ``index`` (H×W×3 RGB or H×W grey); return the results that became final, in
+        frame order (this frame's, earlier ones' that waited for it, or none yet). Never raises for a bad
+        frame: its result says why."""
+        t0 = time.perf_counter()
+        expected = (self.camera.height_px, self.camera.width_px)
+        if (
+            not isinstance(frame, np.ndarray)
+            or frame.dtype != np.uint8
+            or frame.shape[:2] != expected
+            or frame.ndim not in (2, 3)
+            or (frame.ndim == 3 and frame.shape[2] != 3)
+        ):
+            self._restart()
+            bad = _Frame(index, capture_time_us, np.zeros(expected, np.uint8), final=True)
+            bad.result = FrameResult(index, capture_time_us, None, 0, "bad_frame")
+            self._pending.append(bad)
+            return self._emit()
+        if self._history and not 0 < capture_time_us - self._history[-1].time_us <= MAX_GAP_US:
+            self._restart()  # a jump in the video, or time going backwards
+        new = self._frame(index, frame, capture_time_us)
+        t0 = self._lap("lightness", t0)
+        self._history.append(new)
+        self._pending.append(new)
+        if not self.ipt:
+            new.result = self._paper(new)
+            new.final = True
+        else:
+            self._ipt(new)
+        return self._emit()
+
+    def flush(self) -> list[FrameResult]:
+        """The results still waiting for later frames (at the end of a recording)."""
+        self._finish_pending()
+        return self._emit()
+
+    def _finish_pending(self) -> None:
+        for f in self._pending:
+            if not f.final:
+                self._finish(f)
+
+    # -- frames and results ---------------------------------------------------------------------------
+
+    def _frame(self, index: int, image: U8, time_us: int) -> _Frame:
+        if not self.ipt:
+            return _Frame(index, time_us, lightness(image, self.cfg.demodulation.lightness))
+        lum = luminance(image, self.cfg.demodulation.lightness)
+        coverage = None
+        if self.undistort is not None:
+            lum = self.undistort(lum)
+            coverage = self.undistort.coverage
+        return _Frame(index, time_us, lum, signal_mask(lum, coverage), alignment_features(lum))
+
+    def _restart(self) -> None:
+        """Start pairing afresh: earlier frames get no more partners, the motion is forgotten."""
+        self._finish_pending()
+        self._history.clear()
+        self._pairs.clear()
+        self._track.clear()
+        self._guide.clear()
+
+    def _emit(self) -> list[FrameResult]:
+        out = []
+        while self._pending and self._pending[0].final:
+            f = self._pending.popleft()
+            result = f.result or FrameResult(f.index, f.time_us, None, 0, "first_frame" if not f.tried else "no_tags")
+            if self._detector_failed:
+                result = replace(result, detector_failed=True)
+                self._detector_failed = False
+            self.reasons[result.reason] += 1
+            out.append(result)
+        live = {f.index for f in self._history}
+        self._pairs = {k: v for k, v in self._pairs.items() if k[0] in live and k[1] in live}
+        return out
+
+    def _lap(self, stage: str, t0: float) -> float:
+        t1 = time.perf_counter()
+        self.stage_seconds[stage] += t1 - t0
+        return t1
+
+    # -- pairing --------------------------------------------------------------------------------------
 
     def _phase_error(self, dt_us: int) -> float:
-        periods = dt_us * 1e-6 * self.projector_hz
+        periods = abs(dt_us) * 1e-6 * self.projector_hz
         return float(abs(periods - (2 * np.floor(periods / 2) + 1)))
 
-    def _candidates(self, now_us: int) -> list[_Past]:
-        past = list(self._history)
+    def _partners(self, frame: _Frame, earlier: bool) -> list[_Frame]:
+        """Frames to pair ``frame`` with, on one side, the best phase first."""
+        others = [f for f in self._history if (f.index < frame.index if earlier else f.index > frame.index)]
         if self.cfg.demodulation.pairing == "previous":
-            return past[-1:]
-        scored = [(self._phase_error(now_us - p.time_us), -p.index, p) for p in past]
-        good = [(e, i, p) for e, i, p in scored if e < MAX_PHASE_ERROR]
-        good.sort(key=lambda t: (t[0], t[1]))
-        return [p for _, _, p in good[:2]]
+            return others[-1:] if earlier else []
+        span_us = MAX_PAIR_PERIODS * 1e6 / self.projector_hz
+        others = [f for f in others if abs(frame.time_us - f.time_us) <= span_us]
+        scored = [(self._phase_error(frame.time_us - f.time_us), abs(frame.time_us - f.time_us), f) for f in others]
+        # Phase errors within a twentieth of a period are equal here (capture times are whole microseconds):
+        # of those, the closer partner first.
+        good = sorted((s for s in scored if s[0] < MAX_PHASE_ERROR), key=lambda s: (round(s[0] * 20), s[1]))
+        return [f for _, _, f in good[:MAX_PARTNERS]]
 
-    def _predicted_sign(self, now_us: int, prev: _Past) -> int:
-        """+1 if the current frame is probably the +ΔL phase (tags with dark borders), else -1."""
-        if prev.index in self._phase:
-            return -self._phase[prev.index]
-        for p in reversed(self._history):
-            if p.index in self._phase:
-                flips = round((now_us - p.time_us) * 1e-6 * self.projector_hz)
-                return self._phase[p.index] * (-1 if flips % 2 else 1)
-        return 1
+    def _predicted_phase(self, frame: _Frame) -> int | None:
+        """+1 if ``frame`` probably showed the +ΔL phase, from what earlier poses revealed."""
+        if frame.phase is not None:
+            return frame.phase
+        for f in reversed(self._history):
+            if f.phase is not None and f is not frame:
+                flips = round((frame.time_us - f.time_us) * 1e-6 * self.projector_hz)
+                return f.phase * (-1 if flips % 2 else 1)
+        return None
 
-    # -- detection -----------------------------------------------------------------------------------
+    # -- the paper's way -----------------------------------------------------------------------------
+
+    def _paper(self, new: _Frame) -> FrameResult:
+        result = FrameResult(new.index, new.time_us, None, 0, "first_frame")
+        t0 = time.perf_counter()
+        for prev in self._partners(new, earlier=True):
+            new.tried.add(prev.index)
+            demod = demodulate(prev.lum, new.lum, self.cfg.demodulation)
+            t0 = self._lap("demodulate", t0)
+            try:
+                dets, sign = self._detect(demod.binary, self._predicted_phase(new) or 1)
+            except DetectorError:
+                self._lap("detect", t0)
+                return FrameResult(new.index, new.time_us, None, 0, "detector_failed")
+            t0 = self._lap("detect", t0)
+            if not dets:
+                result = FrameResult(new.index, new.time_us, None, 0, "no_tags", partner=prev.index)
+                continue
+            new.phase, prev.phase = sign, -sign
+            pose = solve_pose(dets, self.tag_map, self.camera, self.cfg.pose)
+            self._lap("pose", t0)
+            if pose is None:
+                return FrameResult(new.index, new.time_us, None, len(dets), "pose_rejected", partner=prev.index)
+            return self._gated(new, pose, len(dets), "apriltag", prev.index)
+        return result
 
     def _detect(self, binary: U8, first_sign: int) -> tuple[tuple[TagDetection, ...], int]:
         """Detections and the sign they were found with (+1: dark borders as is)."""
@@ -157,71 +361,261 @@ class Pipeline:
                 return dets, sign
         return (), first_sign
 
-    # -- the frame -----------------------------------------------------------------------------------
+    # -- the ipt way ----------------------------------------------------------------------------------
 
-    def _lap(self, stage: str, t0: float) -> float:
-        """Add the time since ``t0`` to ``stage`` in :attr:`stage_seconds`; returns the time now."""
-        t1 = time.perf_counter()
-        self.stage_seconds[stage] += t1 - t0
-        return t1
+    def _ipt(self, new: _Frame) -> None:
+        """Every pair ``new`` makes with an earlier frame gives each of its two frames a candidate pose; a
+        frame takes its best candidate (the one that fits most of the map's edges: a pair whose content
+        changed between its frames doubles the edges and fits fewer) once no later frame can pair with it,
+        and the gates judge it then, in frame order."""
+        for partner in self._partners(new, earlier=True):
+            self._solve(partner, new, new)
+            if not partner.final:
+                self._solve(partner, new, partner)
+            if new.best is not None and new.best.quality >= GOOD_QUALITY:
+                break
+        for f in self._pending:
+            if not f.final and new.index - f.index >= self.lookahead:
+                self._finish(f)
 
-    def _predicted_warp(self, prev_us: int, now_us: int) -> F64 | None:
-        """The floor homography from the earlier frame to this one, from the recent poses (or None)."""
-        demod = self.cfg.demodulation
-        if demod.alignment != "gradient" or not demod.predict_warp:
+    def _finish(self, f: _Frame) -> None:
+        """Judge ``f``'s candidates (in frame order: earlier frames are final already): the best fit that
+        the recent motion does not doubt, or else the best fit, which the gates then hold back."""
+        f.final = True
+        if not f.candidates:
+            f.result = f.failure
+            return
+        ranked = sorted(f.candidates, key=lambda c: -c.quality)
+        best = next((c for c in ranked if self._doubtful(f.time_us, c.pose) is None), ranked[0])
+        f.result = self._gated(f, best.pose, best.tags, best.method, best.partner)
+        if f.result.pose is None:
+            f.rt = None
+
+    def _pair(self, a: _Frame, b: _Frame) -> _Pair | None:
+        """The alignment and difference of ``a`` (earlier) and ``b`` (later), computed once."""
+        key = (a.index, b.index)
+        if key in self._pairs:
+            return self._pairs[key]
+        t0 = time.perf_counter()
+        assert a.features is not None
+        assert b.features is not None
+        assert a.signal is not None
+        assert b.signal is not None
+        if b.target is None:
+            b.target = AlignTarget.of(b.features, b.signal)
+        warp = floor_warp_between(b.target, a.features, self._predicted_warp(a, b))
+        t0 = self._lap("align", t0)
+        pair = None
+        if warp is not None:
+            coverage = self.undistort.coverage if self.undistort is not None else None
+            pair = _Pair(warp, pair_difference(a.lum, b.lum, warp, a.signal, b.signal, coverage))
+        self._lap("difference", t0)
+        self._pairs[key] = pair
+        return pair
+
+    def _predicted_warp(self, a: _Frame, b: _Frame) -> F64 | None:
+        """The floor homography from ``a`` to ``b`` from their poses (found or predicted), if trusted."""
+        if not self.cfg.demodulation.predict_warp:
             return None
-        before, after = self._track.pose_at(prev_us), self._track.pose_at(now_us)
-        if before is None or after is None:
-            return None
-        warp = floor_warp(self.camera.camera_matrix, before, after)
+        k = self.pinhole.camera_matrix
+        poses = []
+        for f in (a, b):
+            if f.rt is not None:
+                r_cam_arena, _ = cv2.Rodrigues(f.rt[0])
+                poses.append((-r_cam_arena.T @ f.rt[1], r_cam_arena.T))
+            else:
+                predicted = self._track.pose_at(f.time_us)
+                if predicted is None:
+                    return None
+                poses.append(predicted)
+        warp = floor_warp(k, poses[0], poses[1])
         if warp is None:
             return None
         centre = np.array([self.camera.width_px / 2, self.camera.height_px / 2, 1.0])
         moved = warp @ centre
-        if moved[2] <= 0:
-            return None
-        if np.linalg.norm(moved[:2] / moved[2] - centre[:2]) > MAX_PREDICTED_MOVE * self.camera.width_px:
+        if (
+            moved[2] <= 0
+            or np.linalg.norm(moved[:2] / moved[2] - centre[:2]) > MAX_PREDICTED_MOVE * self.camera.width_px
+        ):
             return None
         return warp
 
-    def _process(self, index: int, frame_rgb: U8, capture_time_us: int) -> FrameResult:
-        expected = (self.camera.height_px, self.camera.width_px, 3)
-        if not isinstance(frame_rgb, np.ndarray) or frame_rgb.shape != expected or frame_rgb.dtype != np.uint8:
-            self._history.clear()
-            return FrameResult(index, capture_time_us, None, 0, "bad_frame")
-        demod_cfg = self.cfg.demodulation
+    def _difference_in(self, pair: _Pair, target_is_later: bool) -> PairDifference:
+        """The pair's difference in the target frame's geometry, as target minus other."""
+        if target_is_later:
+            return pair.later
+        if pair.earlier is None:
+            inverse = np.asarray(np.linalg.inv(pair.warp), np.float64)
+            d = pair.later
+            diff = -np.asarray(warp_image(d.diff, inverse, border=cv2.BORDER_CONSTANT), np.float32)
+            valid = np.asarray(cv2.warpPerspective(d.valid, inverse, d.valid.shape[::-1], flags=cv2.INTER_NEAREST))
+            pair.earlier = PairDifference(diff, np.asarray(valid, np.uint8), d.amplitude, d.changed)
+        return pair.earlier
+
+    def _solve(self, a: _Frame, b: _Frame, target: _Frame) -> None:
+        """A candidate pose of ``target`` (``a`` or ``b``) from the pair (a earlier, b later)."""
+        other = b if target is a else a
+        target.tried.add(other.index)
+        pair = self._pair(a, b)
+        if pair is None:
+            target.failure = FrameResult(target.index, target.time_us, None, 0, "no_alignment", partner=other.index)
+            return
+        diff = self._difference_in(pair, target is b)
+        warp_other_to_target = pair.warp if target is b else np.asarray(np.linalg.inv(pair.warp), np.float64)
         t0 = time.perf_counter()
-        now_l = lightness(frame_rgb, demod_cfg.lightness)
-        now_f = alignment_features(now_l) if demod_cfg.alignment == "gradient" else None
-        t0 = self._lap("lightness", t0)
-        if self._history and not 0 < capture_time_us - self._history[-1].time_us <= MAX_GAP_US:
-            self._history.clear()  # a jump in the video, or time going backwards
-            self._track.clear()
-        candidates = self._candidates(capture_time_us)
-        result = FrameResult(index, capture_time_us, None, 0, "first_frame" if not self._history else "no_pair")
-        for prev in candidates:
-            features = (prev.features, now_f) if prev.features is not None and now_f is not None else None
-            predicted = self._predicted_warp(prev.time_us, capture_time_us)
-            demod = demodulate(prev.lightness, now_l, demod_cfg, predicted=predicted, features=features)
-            t0 = self._lap("demodulate", t0)
+        reason = "no_tags"
+        guess = self._initial_pose(target, other, warp_other_to_target)
+        tracked: TrackResult | None = None
+        if self.tracking and guess is not None:
+            init, close = guess
+            tracked = self._track_from(diff, init if close else self._coarse(diff, init))
+            if tracked is None and close:  # the partner's pose or the pair's homography was off: search
+                tracked = self._track_from(diff, self._coarse(diff, init))
+            t0 = self._lap("track", t0)
+            if tracked is None:
+                reason = "lost"
+            elif self.cfg.pose.track.verify_every and self._since_verify >= self.cfg.pose.track.verify_every:
+                if not self._verified(tracked, diff, t0):
+                    tracked, reason = None, "track_disagrees"
+                t0 = time.perf_counter()
+        candidate: _Candidate | None = None
+        if tracked is not None:
+            self._since_verify += 1
+            target.phase, other.phase = tracked.sign, -tracked.sign
+            candidate = self._candidate(tracked, other.index)
+        elif not self.tracking or guess is None or (not guess[1] and self._lost(target)):
+            # AprilTag when there is no track to follow: at the start, or once the motion it predicted from
+            # is too old (while it lasts, a pair that fails is just a bad pair: another partner may do).
             try:
-                dets, sign = self._detect(demod.binary, self._predicted_sign(capture_time_us, prev))
-            except DetectorError:  # the detector's helper process died or hung; a new one takes the next frame
-                self._lap("detect", t0)
-                result = FrameResult(index, capture_time_us, None, 0, "detector_failed")
-                break
+                candidate = self._acquire(target, other, diff)
+            except DetectorError:
+                target.failure = FrameResult(target.index, target.time_us, None, 0, "detector_failed")
+                self._detector_failed = True
+                return
             t0 = self._lap("detect", t0)
-            if not dets:
-                result = FrameResult(index, capture_time_us, None, 0, "no_tags")
-                continue
-            self._phase[index], self._phase[prev.index] = sign, -sign
-            result = self._pose(index, capture_time_us, dets)
-            self._lap("pose", t0)
-            break
-        self._history.append(_Past(index, capture_time_us, now_l, now_f))
-        for old in [i for i in self._phase if i < index - 4 * HISTORY]:
-            del self._phase[old]
+        if candidate is None:
+            target.failure = FrameResult(target.index, target.time_us, None, 0, reason, partner=other.index)
+            return
+        self._lap("pose", t0)
+        target.candidates.append(candidate)
+        if target.best is None or candidate.quality > target.best.quality:
+            target.best = candidate
+            target.rt = candidate.rt
+            p = candidate.pose
+            self._guide.add(target.time_us, p.position_m, p.r_arena_cam, float(np.linalg.norm(p.position_std_m)))
+
+    def _lost(self, target: _Frame) -> bool:
+        """No recent pose to track from: the newest is more than :data:`LOST_AFTER_US` before ``target``."""
+        newest = max((f.time_us for f in self._history if f.best is not None), default=None)
+        return newest is None or target.time_us - newest > LOST_AFTER_US
+
+    def _candidate(self, tracked: TrackResult, partner: int) -> _Candidate:
+        pose = tracked.estimate()
+        rt = (tracked.rvec, tracked.tvec)
+        return _Candidate(pose, rt, len(tracked.tags), "track", partner, tracked.inlier_fraction)
+
+    def _track_from(self, diff: PairDifference, init: tuple[F64, F64]) -> TrackResult | None:
+        assert self.edges is not None
+        result = track_pose(
+            diff.diff, self.pinhole.camera_matrix, self.edges, init[0], init[1], self.track_settings, None, diff.valid
+        )
+        t = self.cfg.pose.track
+        if result is None or result.inlier_fraction < t.min_inlier_fraction:
+            return None
+        if result.cell_agreement < t.min_cell_agreement:
+            return None
+        if len(result.tags) < self.cfg.pose.min_tags:
+            return None
         return result
+
+    def _initial_pose(
+        self, target: _Frame, other: _Frame, warp_other_to_target: F64
+    ) -> tuple[tuple[F64, F64], bool] | None:
+        """A first guess of ``target``'s pose and whether it is close (within a few pixels): the partner's
+        pose carried by the pair's homography (close), else the recent motion's prediction (not)."""
+        if other.rt is not None:
+            carried = self._carry(other.rt, warp_other_to_target)
+            if carried is not None:
+                return carried, True
+        predicted = self._guide.pose_at(target.time_us)
+        if predicted is None:
+            return None
+        position, r_arena_cam = predicted
+        rvec, _ = cv2.Rodrigues(r_arena_cam.T)
+        return (np.asarray(rvec, np.float64).reshape(3), -r_arena_cam.T @ position), False
+
+    def _carry(self, rt: tuple[F64, F64], warp: F64) -> tuple[F64, F64] | None:
+        """The pose whose view of the floor is that of ``rt`` carried by the image homography ``warp``."""
+        k = self.pinhole.camera_matrix
+        w, h = self.camera.width_px, self.camera.height_px
+        img = np.array([[0.2 * w, 0.2 * h], [0.8 * w, 0.2 * h], [0.8 * w, 0.8 * h], [0.2 * w, 0.8 * h]])
+        floor = floor_points(k, rt[0], rt[1], img)
+        if floor is None:
+            return None
+        moved = cv2.perspectiveTransform(img.reshape(1, -1, 2), warp).reshape(-1, 2)
+        ok, rvec, tvec = cv2.solvePnP(floor, moved, k, None, flags=cv2.SOLVEPNP_IPPE)
+        if not ok:
+            return None
+        return np.asarray(rvec, np.float64).reshape(3), np.asarray(tvec, np.float64).reshape(3)
+
+    def _coarse(self, diff: PairDifference, init: tuple[F64, F64]) -> tuple[F64, F64]:
+        """``init`` moved by the image shift that best lays the map on the difference."""
+        assert self.masks is not None
+        size = (self.camera.width_px, self.camera.height_px)
+        k = self.pinhole.camera_matrix
+        dx, dy, score = coarse_shift(diff.diff, self.masks.render(k, init[0], init[1], size), diff.valid)
+        if abs(score) < MIN_COARSE_SCORE:
+            return init
+        moved = shifted_pose(k, init[0], init[1], dx, dy, size)
+        return init if moved is None else moved
+
+    def _acquire(self, target: _Frame, other: _Frame, diff: PairDifference) -> _Candidate | None:
+        """AprilTag on the pair's difference, then (tracking) the map's edges from its pose; None: no pose."""
+        ksize = ksize_for(self.cfg.demodulation.blur_ksize, self.camera.width_px)
+        first = self._predicted_phase(target) or 1
+        for sign in (first, -first):
+            self.detector_runs += 1
+            dets = self.detector.detect(binarise_difference(diff, sign, ksize))
+            if len(dets) < self.cfg.pose.min_tags:
+                continue
+            target.phase, other.phase = sign, -sign
+            pose = solve_pose(dets, self.tag_map, self.pinhole, self.cfg.pose)
+            if pose is None:
+                target.failure = FrameResult(target.index, target.time_us, None, len(dets), "pose_rejected")
+                return None
+            r_cam = pose.r_arena_cam.T
+            rvec, _ = cv2.Rodrigues(r_cam)
+            start = (np.asarray(rvec, np.float64).reshape(3), -r_cam @ pose.position_m)
+            if self.tracking:
+                refined = self._track_from(diff, self._coarse(diff, start))
+                if refined is not None:
+                    self._since_verify = 0
+                    return self._candidate(refined, other.index)
+            return _Candidate(pose, start, len(dets), "apriltag", other.index, 0.0)
+        return None
+
+    def _verified(self, tracked: TrackResult, diff: PairDifference, t0: float) -> bool:
+        """AprilTag's view of the frame agrees with the track (or sees too little to say)."""
+        self._since_verify = 0
+        ksize = ksize_for(self.cfg.demodulation.blur_ksize, self.camera.width_px)
+        self.detector_runs += 1
+        try:
+            dets = self.detector.detect(binarise_difference(diff, tracked.sign, ksize))
+        except DetectorError:
+            self._detector_failed = True  # reported with the next result that comes out; the track goes on
+            return True
+        finally:
+            self._lap("detect", t0)
+        if len(dets) < self.cfg.pose.min_tags:
+            return True
+        pose = solve_pose(dets, self.tag_map, self.pinhole, self.cfg.pose)
+        if pose is None:
+            return True
+        r_cam, _ = cv2.Rodrigues(tracked.rvec)
+        position = -r_cam.T @ tracked.tvec
+        return float(np.linalg.norm(position - pose.position_m)) < 0.05
+
+    # -- gates ----------------------------------------------------------------------------------------
 
     def _doubtful(self, t_us: int, pose: PoseEstimate) -> str | None:
         """Why ``pose`` disagrees with the recent motion (the reason counted), or None if it does not."""
@@ -235,31 +629,30 @@ class Pipeline:
                     return "unconfirmed"
             elif float(np.linalg.norm(pose.position_m - predicted[0])) > cfg.max_prediction_error_m:
                 return "inconsistent"
-        if cfg.max_speed_mps is not None and self._last_pose is not None:
-            last_us, last = self._last_pose
-            dt_us = t_us - last_us
+        if cfg.max_speed_mps is not None and self._accepted:
+            last_us, last = min(self._accepted, key=lambda a: abs(a[0] - t_us))
+            dt_us = abs(t_us - last_us)
             if 0 < dt_us <= GATE_WINDOW_US:
                 allowed_m = 0.05 + cfg.max_speed_mps * dt_us * 1e-6
                 if float(np.linalg.norm(pose.position_m - last.position_m)) > allowed_m:
                     return "motion_jump"
         return None
 
-    def _pose(self, index: int, t_us: int, dets: tuple[TagDetection, ...]) -> FrameResult:
-        pose = solve_pose(dets, self.tag_map, self.camera, self.cfg.pose)
-        if pose is None:
-            return FrameResult(index, t_us, None, len(dets), "pose_rejected")
+    def _gated(self, frame: _Frame, pose: PoseEstimate, tags: int, method: str, partner: int) -> FrameResult:
+        t_us = frame.time_us
         doubt = self._doubtful(t_us, pose)
         # Every solved pose goes into the track, gated or not: its fit is robust, and a gate that fed only
         # on what it let through could lock onto a wrong track and reject every good pose after it.
         self._track.add(t_us, pose.position_m, pose.r_arena_cam, float(np.linalg.norm(pose.position_std_m)))
         reset = False
         if doubt in ("inconsistent", "unconfirmed"):
-            return FrameResult(index, t_us, None, len(dets), doubt)
+            return FrameResult(frame.index, t_us, None, tags, doubt, method=method, partner=partner)
         if doubt == "motion_jump":
             self._gated_in_a_row += 1
             if self._gated_in_a_row < GATE_RESET_AFTER:
-                return FrameResult(index, t_us, None, len(dets), doubt)
+                return FrameResult(frame.index, t_us, None, tags, doubt, method=method, partner=partner)
             reset = True
+            self._accepted.clear()
         self._gated_in_a_row = 0
-        self._last_pose = (t_us, pose)
-        return FrameResult(index, t_us, pose, len(dets), "pose", reset)
+        self._accepted.append((t_us, pose))
+        return FrameResult(frame.index, t_us, pose, tags, "pose", reset, method, partner)

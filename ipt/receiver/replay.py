@@ -16,7 +16,7 @@ from ipt.config.camera_info import load_camera_info
 from ipt.config.models import ArenaConfig, PipelineConfig
 from ipt.errors import IptError
 from ipt.fileio import atomic_path
-from ipt.receiver.pipeline import Pipeline
+from ipt.receiver.pipeline import FrameResult, Pipeline
 from ipt.tagmap import TagMap
 from ipt.tum import TUM_HEADER, format_tum_line
 from ipt.videoio import open_frames
@@ -77,13 +77,17 @@ def replay(
         start = last_report = time.monotonic()
         with atomic_path(output_path) as tmp, tmp.open("w", encoding="utf-8") as out:
             out.write(TUM_HEADER + "\n")
+
+            def write(results: list[FrameResult]) -> int:
+                for result in results:
+                    if result.pose is not None:
+                        t_s = result.capture_time_us * 1e-6
+                        out.write(format_tum_line(t_s, result.pose.position_m, result.pose.quat_wxyz))
+                return sum(r.pose is not None for r in results)
+
             for k, frame in enumerate(source):
-                t_us = round(k / rate * 1e6)
-                result = pipeline.process(k, frame, t_us)
+                poses += write(pipeline.process(k, frame, round(k / rate * 1e6)))
                 frames += 1
-                if result.pose is not None:
-                    poses += 1
-                    out.write(format_tum_line(t_us * 1e-6, result.pose.position_m, result.pose.quat_wxyz))
                 now = time.monotonic()
                 if progress is not None and now - last_report >= 1.0:
                     last_report = now
@@ -93,6 +97,7 @@ def replay(
                         f"{frames / (now - start):.0f} frames/s\n"
                     )
                     progress.flush()
+            poses += write(pipeline.flush())
         summary = ReplaySummary(frames, poses, time.monotonic() - start, dict(pipeline.reasons))
     if progress is not None:
         progress.write(summary.line() + "\n")
