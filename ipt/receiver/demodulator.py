@@ -213,7 +213,7 @@ CHANGE_FACTOR = 3.0
 DIFF_SIGMA_PX = 1.0
 
 
-@dataclass(frozen=True)
+@dataclass
 class PairDifference:
     """The signed difference of a pair in the later frame's geometry, and where it means something."""
 
@@ -225,6 +225,8 @@ class PairDifference:
     """The typical size of the tag step (the median absolute difference where valid)."""
     changed: float
     """Fraction of the pixels lit in both frames that changed more than the tags can (content, shadow)."""
+    noise: float | None = None
+    """The difference's typical slope where valid (see :func:`ipt.receiver.track.slope_noise`), once known."""
 
 
 def pair_difference(

@@ -60,6 +60,7 @@ from ipt.receiver.track import (
     coarse_shift,
     floor_points,
     shifted_pose,
+    slope_noise,
     track_pose,
 )
 from ipt.tagmap import TagMap, pixel_to_arena
@@ -516,8 +517,18 @@ class Pipeline:
 
     def _track_from(self, diff: PairDifference, init: tuple[F64, F64]) -> TrackResult | None:
         assert self.edges is not None
+        if diff.noise is None:
+            diff.noise = slope_noise(diff.diff, diff.valid)
         result = track_pose(
-            diff.diff, self.pinhole.camera_matrix, self.edges, init[0], init[1], self.track_settings, None, diff.valid
+            diff.diff,
+            self.pinhole.camera_matrix,
+            self.edges,
+            init[0],
+            init[1],
+            self.track_settings,
+            None,
+            diff.valid,
+            noise=diff.noise,
         )
         t = self.cfg.pose.track
         if result is None or result.inlier_fraction < t.min_inlier_fraction:

@@ -219,7 +219,7 @@ def _select(edges: MapEdges, camera_matrix: F64, r: F64, t: F64, size: tuple[int
     return chosen
 
 
-def _slope_noise(diff: F32, valid: npt.NDArray[np.uint8] | None) -> float:
+def slope_noise(diff: F32, valid: npt.NDArray[np.uint8] | None) -> float:
     """The median absolute slope of ``diff`` along rows (where valid): what a step must stand out from."""
     slopes = np.abs(np.diff(diff[::4, ::2], axis=1))
     if valid is not None:
@@ -239,13 +239,15 @@ def track_pose(
     sign: int | None = None,
     valid: npt.NDArray[np.uint8] | None = None,
     coarse_px: float = 0.0,
+    noise: float | None = None,
 ) -> TrackResult | None:
     """Refine the pose (``rvec``, ``tvec``: arena → camera) so that the map's edges sit on the steps of
     ``diff`` (the signed difference of an undistorted pair in this frame's geometry: this frame minus the
     other, smoothed; ``camera_matrix`` a pinhole). ``sign`` is the difference's polarity if known; without
     it each band of rows decides its own from the data. ``valid`` (0/255) marks the pixels that carry
     signal. With ``coarse_px`` > 0 a first pass searches that far on a blurred copy of ``diff`` (for a
-    guess that may be several pixels off). None if too few edges agree."""
+    guess that may be several pixels off). ``noise`` is :func:`slope_noise` of ``diff`` if known. None if
+    too few edges agree."""
     h, w = diff.shape
     rot, _ = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3, 1))
     r, t = np.asarray(rot, np.float64), np.asarray(tvec, np.float64).reshape(3)
@@ -257,12 +259,12 @@ def track_pose(
     radius = max(2, int(np.ceil(settings.search_px)))
     if coarse_px > 0:
         blurred = np.asarray(cv2.GaussianBlur(diff, (0, 0), max(1.0, coarse_px / 4)), np.float32)
-        noise = _slope_noise(blurred, valid)
+        noise = slope_noise(blurred, valid)
         for _ in range(2):
             if not fit.step(blurred, noise, max(radius, int(np.ceil(coarse_px))), r, t):
                 return None
             r, t = fit.r, fit.t
-    noise = _slope_noise(diff, valid)
+    noise = slope_noise(diff, valid) if noise is None else noise
     for it in range(settings.iterations):
         radius_now = radius if it == 0 else max(2, (radius + 1) // 2)
         if not fit.step(diff, noise, radius_now, r, t):
@@ -365,7 +367,10 @@ class _Fit:
         rotated = self.obj[idx] @ r.T
         a_rows = np.empty((len(idx), 6))
         a_rows[:, 3:] = normal_du
-        a_rows[:, :3] = np.cross(rotated, normal_du)  # nᵀ·(−[RP]×) = (RP × n)ᵀ
+        # nᵀ·(−[RP]×) = (RP × n)ᵀ, written out (np.cross costs more than the arithmetic here)
+        a_rows[:, 0] = rotated[:, 1] * normal_du[:, 2] - rotated[:, 2] * normal_du[:, 1]
+        a_rows[:, 1] = rotated[:, 2] * normal_du[:, 0] - rotated[:, 0] * normal_du[:, 2]
+        a_rows[:, 2] = rotated[:, 0] * normal_du[:, 1] - rotated[:, 1] * normal_du[:, 0]
         keep = strong.copy()
         sol = np.zeros(6)
         for _ in range(2):  # robust: drop samples far from the fit (from the median absolute deviation)
