@@ -45,7 +45,8 @@ from collections import Counter, deque
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from typing import Any, Final
+from pathlib import Path
+from typing import Any, Final, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -57,6 +58,7 @@ from ipt.protocol import ACCEPTED, PacketFilter
 from ipt.sender.content import GeneratedScene, Scene
 from ipt.sender.display import Sink
 from ipt.sender.modulator import FrameTiming, Modulator, make_modulator, phase_sign, resize_to
+from ipt.sender.pairs import default_cache_dir
 from ipt.sender.scene import ArScene
 from ipt.tagmap import grid_tag_map
 
@@ -162,6 +164,9 @@ class SenderStats:
     """Datagram outcomes: ``accepted`` and each rejection reason (and ``error``)."""
     vehicles: int = 0
     """Vehicles on the overlay when the statistics were taken."""
+    startup_s: float = math.nan
+    """From the start of the run to the first frame shown: the colour table, warming memory, the first
+    frame's work (the modulator was made before)."""
 
     @property
     def frames_per_s(self) -> float:
@@ -223,6 +228,7 @@ class SenderStats:
             "content_cpu_p50_ms": round(self.content_cpu_ms.percentile(50), 3),
             "content_cpu_p99_ms": round(self.content_cpu_ms.percentile(99), 3),
             "content_cpu_mean_ms": round(self.content_cpu_ms.mean_ms, 3),
+            "startup_s": round(self.startup_s, 3),
             "missed_deadlines": self.missed,
             "late_frames": self.late,
             "repeated_phases": self.missed + self.late,
@@ -552,6 +558,7 @@ class Sender:
         on_listening: Callable[[tuple[str, int]], None] | None = None,
         input_rate_hz: float | None = None,
         modulator: Modulator | None = None,
+        pair_cache: Path | None = None,
     ) -> None:
         if frames is not None and frames < 0:
             raise SenderError(f"frames must be >= 0, got {frames}")
@@ -585,6 +592,7 @@ class Sender:
                 f"{arena.projector.width_px}x{arena.projector.height_px}"
             )
         self.modulator = modulator
+        self.pair_cache = pair_cache
         # Sinks that are done with a frame when show() returns let the phases be written into a ring of
         # reused arrays: the pair shown, those of the frames up to `lookahead` ahead, and one begun early.
         buffers = lookahead + 3 if getattr(sink, "borrows", False) else None
@@ -618,6 +626,7 @@ class Sender:
         self._content_failing = False  # the scene was failing at the last check
         self._content_errors_before = 0  # content errors counted before the current failure began
         self._started = False
+        self._run_start = math.nan
 
     # -- signals: they only set flags --
 
@@ -650,6 +659,7 @@ class Sender:
     # -- the run --
 
     async def run(self) -> SenderStats:
+        self._run_start = time.monotonic()
         loop = asyncio.get_running_loop()
         self._install_signal_handlers(loop)
         ok = False
@@ -667,6 +677,16 @@ class Sender:
     async def _startup(self, loop: asyncio.AbstractEventLoop) -> None:
         self._render = _Worker("ipt-render")
         self._content = self.renderer.content_worker = _Worker("ipt-content")
+        # Deadlines from the first frame: every colour's pair before the clock starts (read from the cache,
+        # or computed once), so that no frame has to work out the colours it is the first to show.
+        complete: Callable[..., str] | None = getattr(self.modulator, "complete_table", None)
+        if self.paced and complete is not None and not getattr(self.modulator, "table_complete", True):
+
+            def log(text: str) -> None:
+                self.log(f"ipt-sender: {text}")
+
+            said = await asyncio.wrap_future(self._render.submit(complete, self.pair_cache, log))
+            log(said)
         # Before the clock starts, fault in the memory the first frames will use (see ipt.memory): without
         # this the first second at 1920x2160 missed up to 8 deadlines, each frame paying tens of
         # milliseconds for fresh pages.
@@ -808,6 +828,7 @@ class Sender:
             shown_at = time.monotonic()
             if j == 0:
                 first = shown_at
+                stats.startup_s = shown_at - self._run_start
             await self._show(rendered.frame, j)
             self._report_content()
             j += 1
@@ -906,6 +927,7 @@ async def run_sender(
     on_listening: Callable[[tuple[str, int]], None] | None = None,
     input_rate_hz: float | None = None,
     modulator: Modulator | None = None,
+    pair_cache: Path | Literal["default"] | None = "default",
 ) -> SenderStats:
     """Run the sender until ``frames`` output frames are shown, a signal, ``stop`` or the sink says stop.
 
@@ -934,6 +956,9 @@ async def run_sender(
         input_rate_hz: the content's frame rate (default: the arena's ``modulation.input_rate_hz``); any
             ratio to the projector rate works (:class:`~ipt.sender.modulator.FrameTiming`).
         modulator: the modulator (default: the arena's ``modulation.profile`` for its tag map and ΔL).
+        pair_cache: folder of the ``ipt`` profile's colour table cache (default
+            :func:`~ipt.sender.pairs.default_cache_dir`; ``None``: none, the table is computed at every
+            start). A paced run completes the table before its first frame.
     """
     if not stats_every_s > 0:
         raise SenderError(f"stats_every_s must be > 0, got {stats_every_s}")
@@ -958,6 +983,7 @@ async def run_sender(
             on_listening=on_listening,
             input_rate_hz=input_rate_hz,
             modulator=modulator,
+            pair_cache=default_cache_dir() if pair_cache == "default" else pair_cache,
         )
     except BaseException:
         sink.abort()  # nothing was shown: leave nothing behind (a file sink may have started its file)
