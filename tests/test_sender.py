@@ -23,7 +23,7 @@ from ipt.geometry import R_BODY_CAM_DOWNWARD, quat_wxyz_from_matrix, rot_z
 from ipt.protocol import PosePacket, QualityFlags, encode_pose
 from ipt.sender.colour import CODE_TO_LINEAR, LUMINANCE_WEIGHTS, code_to_linear, lightness
 from ipt.sender.content import ContentError, GeneratedScene
-from ipt.sender.display import DisplayError, FileSink, NullSink, WindowSink, make_sink
+from ipt.sender.display import DisplayError, FileSink, NullSink, PresentClock, WindowSink, make_sink
 from ipt.sender.modulator import IptModulator
 from ipt.sender.scene import PALETTE, ArScene, heading_rad
 from ipt.sender.server import SenderError, parse_listen, run_sender
@@ -756,3 +756,54 @@ def test_window_sink_headless(monkeypatch: pytest.MonkeyPatch) -> None:
     with pytest.raises(DisplayError, match="does not exist"):
         WindowSink(display_index=7).show(frame, 0)
     assert os.environ["SDL_VIDEODRIVER"] == "dummy"
+
+
+def test_present_clock_counts_repeated_and_unseen_frames() -> None:
+    clock = PresentClock(1 / 60)
+    period = 1 / 60
+    for t in (0.0, period, 2 * period, 4 * period, 4 * period + 0.002, 5 * period, 8.1 * period):
+        clock.add(1000.0 + t)
+    summary = clock.summary()
+    assert summary["presents"] == 7
+    # 2 -> 4: the frame at 2 stayed up one refresh too long; 5 -> 8.1: two more.
+    assert summary["repeated_vsyncs"] == 3
+    # 4 -> 4 + 2 ms: both flips in one refresh, the first never shown.
+    assert summary["dropped_frames"] == 1
+    assert summary["present_interval_p50_ms"] == pytest.approx(16.65, abs=0.1)
+    assert summary["present_interval_max_ms"] == pytest.approx(3.1 * 1000 / 60, abs=0.01)
+    with pytest.raises(DisplayError, match="refresh period"):
+        PresentClock(0.0)
+
+
+def test_window_sink_times_its_flips(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    monkeypatch.setenv("SDL_AUDIODRIVER", "dummy")
+    times = iter([10.0, 10.0167, 10.0500, 10.0667])  # the third frame comes a refresh late
+    sink = WindowSink(display_index=0, fullscreen=False, rate_hz=60.0, clock=lambda: next(times))
+    try:
+        for j in range(4):
+            sink.show(_grey(), j)
+    finally:
+        sink.close()
+    pacing = sink.pacing()
+    assert pacing["presents"] == 4
+    assert pacing["repeated_vsyncs"] == 1
+    assert pacing["dropped_frames"] == 0
+
+
+@pytest.mark.asyncio
+async def test_the_statistics_line_reports_the_window_pacing(
+    arena: ArenaConfig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    monkeypatch.setenv("SDL_AUDIODRIVER", "dummy")
+    lines: list[str] = []
+    sink = WindowSink(display_index=0, fullscreen=False, rate_hz=arena.projector.rate_hz)
+    stats = await run_sender(
+        arena, sink, _FlatScene(), frames=12, listen=None, log=lines.append, install_signal_handlers=False
+    )
+    assert stats.pacing is not None
+    assert stats.pacing["presents"] == stats.frames == 12
+    last = lines[-1]
+    assert re.search(rf"repeated_vsyncs={stats.pacing['repeated_vsyncs']} dropped_frames=\d+ present_p99=", last)
+    assert stats.to_dict()["pacing"]["presents"] == 12

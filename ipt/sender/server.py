@@ -164,6 +164,9 @@ class SenderStats:
     """Datagram outcomes: ``accepted`` and each rejection reason (and ``error``)."""
     vehicles: int = 0
     """Vehicles on the overlay when the statistics were taken."""
+    pacing: dict[str, Any] | None = None
+    """What the sink saw of its frames reaching the screen, for a sink that times them (the window:
+    :meth:`~ipt.sender.display.WindowSink.pacing`): refreshes that repeated a frame, frames never shown."""
     startup_s: float = math.nan
     """From the start of the run to the first frame shown: the colour table, warming memory, the first
     frame's work (the modulator was made before)."""
@@ -202,6 +205,12 @@ class SenderStats:
             text += f" content_errors={self.content_errors}"
         if self.display_errors:
             text += f" display_errors={self.display_errors}"
+        if self.pacing is not None:
+            p = self.pacing
+            text += (
+                f" repeated_vsyncs={p['repeated_vsyncs']} dropped_frames={p['dropped_frames']} "
+                f"present_p99={p['present_interval_p99_ms']:.2f}ms"
+            )
         return text
 
     def to_dict(self) -> dict[str, Any]:
@@ -236,6 +245,7 @@ class SenderStats:
             "content_errors": self.content_errors,
             "display_errors": self.display_errors,
             "packets": dict(sorted(self.packets.items())),
+            "pacing": self.pacing,
         }
 
 
@@ -865,6 +875,9 @@ class Sender:
         if self._listener is not None and self._listener.errors:
             stats.packets[ERROR] = self._listener.errors
         stats.overlay_errors = self.renderer.overlay_errors
+        pacing: Callable[[], dict[str, Any]] | None = getattr(self.sink, "pacing", None)
+        if pacing is not None:
+            stats.pacing = pacing()
         if self.ar is not None:
             stats.vehicles = len(self.ar.vehicle_ids())
         if self.renderer.first_overlay_error is not None and not self._overlay_error_logged:
