@@ -807,3 +807,74 @@ async def test_the_statistics_line_reports_the_window_pacing(
     last = lines[-1]
     assert re.search(rf"repeated_vsyncs={stats.pacing['repeated_vsyncs']} dropped_frames=\d+ present_p99=", last)
     assert stats.to_dict()["pacing"]["presents"] == 12
+
+
+class _GrowingScene:
+    """Flat frames (value 60 + 20 i) whose size changes at input frame 3 and back at 5."""
+
+    def frame(self, index: int, rate_hz: float) -> U8:
+        w, h = (400, 300) if index in (3, 4) else (W, H)
+        return np.full((h, w, 3), 60 + 20 * index, np.uint8)
+
+
+@pytest.mark.asyncio
+async def test_a_frame_of_another_size_is_said_once_and_resized(arena: ArenaConfig) -> None:
+    mask = grid_tag_map(arena).render_mask()
+    sink = _RecordingSink()
+    lines: list[str] = []
+    stats = await run_sender(
+        arena, sink, _GrowingScene(), frames=12, listen=None, log=lines.append, install_signal_handlers=False
+    )
+    assert stats.frames == 12
+    assert stats.content_errors == 0
+    notes = [ln for ln in lines if "resized to" in ln]
+    assert notes == [f"ipt-sender: the scene's frames are 400x300 from input frame 3 on; resized to {W}x{H}"]
+    # Every input frame was shown, at the projector size, phases alternating.
+    assert [_input_shown(f, mask) + 10 for f in sink.frames[::2]] == [60 + 20 * k for k in range(6)]
+    white = mask > 0
+    for j in range(0, 12, 2):
+        assert _lightness(sink.frames[j])[white].mean() > _lightness(sink.frames[j + 1])[white].mean() + DELTA_L / 2
+
+
+def _mpeg_ts(path: Path, width: int, height: int, frames: int, first: int) -> bytes:
+    import av
+
+    with av.open(str(path), "w", format="mpegts") as container:
+        stream = container.add_stream("mpeg2video", rate=30)
+        stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
+        for k in range(frames):
+            image = np.full((height, width, 3), first + 20 * k, np.uint8)
+            for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    return path.read_bytes()
+
+
+@pytest.mark.asyncio
+async def test_a_video_that_changes_size_mid_stream_keeps_the_projection_going(
+    tmp_path: Path, arena: ArenaConfig
+) -> None:
+    # Two MPEG transport streams back to back: the picture size changes at the join, as a broadcast or a
+    # re-encoded clip can. The reader refuses frames of another size than the first; the sender says so in
+    # one line and shows the last good frame, modulated, phases alternating.
+    from ipt.sender.content import VideoScene
+
+    video = tmp_path / "joined.ts"
+    video.write_bytes(_mpeg_ts(tmp_path / "a.ts", 64, 48, 4, 60) + _mpeg_ts(tmp_path / "b.ts", 96, 64, 4, 140))
+    mask = grid_tag_map(arena).render_mask()
+    sink = _RecordingSink()
+    lines: list[str] = []
+    with VideoScene(video, W, H, fps=30.0) as scene:
+        stats = await run_sender(
+            arena, sink, scene, frames=16, listen=None, log=lines.append, install_signal_handlers=False
+        )
+    assert stats.frames == 16
+    assert stats.content_errors > 0
+    failed = [ln for ln in lines if "the video source failed" in ln]
+    assert len(failed) == 1, lines
+    assert "is 96x64, the first frame is 64x48" in failed[0]
+    assert "showing the last good frame, phases still alternating" in failed[0]
+    white = mask > 0
+    for j in range(0, 16, 2):
+        assert _lightness(sink.frames[j])[white].mean() > _lightness(sink.frames[j + 1])[white].mean() + DELTA_L / 2

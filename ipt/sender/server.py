@@ -314,6 +314,11 @@ EARLY_ROWS: Final = 0.4
 the two output frames of an input frame carry about the same work."""
 
 
+MAX_CONTENT_NOTES: Final = 20
+"""Notes from the scene (frames of another size) logged in one run at most: a file that changes size at
+every frame does not fill the log."""
+
+
 WARM_FRAMES: Final = 6
 """Frame-sized buffers each worker thread faults in before the clock starts (content frame, resized copy,
 overlay and phases in flight; more than any one thread holds at once)."""
@@ -364,6 +369,8 @@ class _Renderer:
         self.content_errors = 0
         self.content_failing = False
         self.last_content_error: str | None = None
+        self.notes: list[str] = []  # lines for the user from the scene (a frame of another size), said once
+        self._scene_shape: tuple[int, int] | None = None  # (H, W) of the scene's newest frame
         self._phases: tuple[U8, U8] | None = None
         self._input = -1
         self._next: tuple[int, Future[_Content]] | None = None
@@ -383,11 +390,14 @@ class _Renderer:
                 raise  # a file must not fill up with a frozen frame: the run ends, the file is not kept
             failed = f"{type(exc).__name__}: {exc}"
             rgb = self._last_good(w, h)
+        take_notes: Callable[[], list[str]] | None = getattr(self.scene, "take_notes", None)
+        notes = take_notes() if take_notes is not None and failed is None else []
         with self._fault_lock:
             self.content_failing = failed is not None
             if failed is not None:
                 self.content_errors += 1
                 self.last_content_error = failed
+            self.notes.extend(notes)
         return _Content(i, rgb, time.perf_counter() - t0, time.thread_time() - cpu0)
 
     def content_state(self) -> tuple[bool, int, str | None]:
@@ -395,12 +405,25 @@ class _Renderer:
         with self._fault_lock:
             return self.content_failing, self.content_errors, self.last_content_error
 
+    def take_notes(self) -> list[str]:
+        """The scene's notes since the last call."""
+        with self._fault_lock:
+            notes, self.notes = self.notes, []
+        return notes
+
     def _scene_frame(self, i: int, w: int, h: int) -> U8:
         rgb = self.scene.frame(i, self.input_rate_hz)
         if not (isinstance(rgb, np.ndarray) and rgb.dtype == np.uint8 and rgb.ndim == 3 and rgb.shape[2] == 3):
             got = f"{getattr(rgb, 'shape', '?')} {getattr(rgb, 'dtype', type(rgb).__name__)}"
             raise TypeError(f"the scene gave {got}, not an H×W×3 uint8 image")
-        if rgb.shape[:2] != (h, w):
+        shape = (int(rgb.shape[0]), int(rgb.shape[1]))
+        if shape != self._scene_shape:
+            if shape != (h, w):  # resized from now on: say so once
+                with self._fault_lock:
+                    self.notes.append(f"the scene's frames are {shape[1]}x{shape[0]} from input frame {i} on; "
+                                      f"resized to {w}x{h}")  # fmt: skip
+            self._scene_shape = shape
+        if shape != (h, w):
             rgb = resize_to(rgb, w, h)
         return np.ascontiguousarray(rgb)
 
@@ -635,6 +658,7 @@ class Sender:
         self._display_failed = 0  # consecutive output frames the sink failed to show
         self._content_failing = False  # the scene was failing at the last check
         self._content_errors_before = 0  # content errors counted before the current failure began
+        self._notes_said = 0  # the scene's notes logged so far
         self._started = False
         self._run_start = math.nan
 
@@ -802,6 +826,11 @@ class Sender:
             self._content_errors_before = errors
         self._content_failing = failing
         self.stats.content_errors = errors
+        for note in self.renderer.take_notes():
+            self._notes_said += 1
+            if self._notes_said <= MAX_CONTENT_NOTES:
+                last = self._notes_said == MAX_CONTENT_NOTES
+                self.log(f"ipt-sender: {note}" + (" (no more such notes)" if last else ""))
 
     async def _main_loop(self) -> None:
         period = 1.0 / self.rate_hz
