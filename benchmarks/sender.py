@@ -128,7 +128,8 @@ async def bench(
     if content == "map":
         scene = GeneratedScene(width, height)
     else:
-        scene = VideoScene(photo_video() if content == "photos" else content, width, height)
+        # As ipt-sender plays a video: no cache of the first pass (see ipt/sender/cli.py).
+        scene = VideoScene(photo_video() if content == "photos" else content, width, height, cache_bytes=0)
     input_rate_hz = getattr(scene, "fps", None) or arena.modulation.input_rate_hz
     mod = arena.modulation
     modulator = make_modulator(

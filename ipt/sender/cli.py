@@ -132,7 +132,10 @@ def _scene(args: argparse.Namespace, arena: ArenaConfig) -> tuple[Any, float]:
             if abs(fps - rate_hz) > 1e-3:
                 _note(f"input video is {fps:g} fps, not the arena's input_rate_hz {rate_hz:g}: played at its own rate")
             rate_hz = fps
-        return VideoScene(args.video, w, h), rate_hz
+        # No cache of the first pass: each cached frame (12 MB at 1920x2160) is fresh memory, and faulting it
+        # in cost the content thread 40 ms a frame here, more than a frame's time; re-decoding each lap
+        # costs 6 ms a frame and a re-open at the loop.
+        return VideoScene(args.video, w, h, cache_bytes=0), rate_hz
     if args.image is not None:
         size = _image_size(Path(args.image))
         if size != (w, h):
