@@ -34,6 +34,7 @@ import asyncio
 import json
 import math
 import os
+import resource
 import sys
 import time
 from pathlib import Path
@@ -192,6 +193,7 @@ async def bench(
             "no_missed_deadline": result["missed_deadlines"] == 0,
             "startup_le_5s": first_frame_age_s <= 5.0,
         },
+        "max_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
         "cpu_count": os.cpu_count(),
         "load_avg_1min_before": round(load_before[0], 2),
         "load_avg_1min_after": round(os.getloadavg()[0], 2),
