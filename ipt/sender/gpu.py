@@ -125,7 +125,7 @@ class GpuModulator:
         """Every colour's pair is in the table (the shader needs them all)."""
         return self.pairs.complete
 
-    def complete_table(self, cache_dir: Any, log: Callable[[str], None]) -> str:
+    def complete_table(self, cache_dir: os.PathLike[str] | None, log: Callable[[str], None]) -> str:
         """See :meth:`ipt.sender.modulator.IptModulator.complete_table`."""
         return self.pairs.complete_with_cache(cache_dir, log)
 

@@ -42,10 +42,10 @@ from __future__ import annotations
 
 import itertools
 import math
+import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from fractions import Fraction
-from pathlib import Path
 from typing import Any, Final, Protocol
 
 import cv2
@@ -339,7 +339,7 @@ class IptModulator:
         """Every colour's pair is in the table: no frame will compute one."""
         return self._pairs.complete
 
-    def complete_table(self, cache_dir: Path | None, log: Callable[[str], None]) -> str:
+    def complete_table(self, cache_dir: os.PathLike[str] | None, log: Callable[[str], None]) -> str:
         """Fill the pairs of all colours before frames are due: read from the cache file in ``cache_dir`` or
         computed (progress through ``log``) and kept there (see :meth:`PairTable.complete_with_cache`).
         Returns a sentence saying which."""

@@ -798,7 +798,7 @@ class PairTable:
         _compute_codes_c(codes, fresh, *self.args()[1:])
         return int(np.count_nonzero(fresh != entries[index]))
 
-    def complete_with_cache(self, cache_dir: Path | None, log: Callable[[str], None]) -> str:
+    def complete_with_cache(self, cache_dir: os.PathLike[str] | None, log: Callable[[str], None]) -> str:
         """Make the table complete: from the cache file in ``cache_dir`` if it holds this table, else by
         computing it (progress through ``log``) and then writing the cache (``None``: no cache). Returns a
         sentence saying which, and how long it took."""
@@ -806,7 +806,7 @@ class PairTable:
             if self.complete:
                 return "colour table: already complete"
             t0 = time.perf_counter()
-            path = None if cache_dir is None else cache_path(cache_dir, self.delta_l, self.clip_allowance_l8)
+            path = None if cache_dir is None else cache_path(Path(cache_dir), self.delta_l, self.clip_allowance_l8)
             problem = None
             if path is not None and path.exists():
                 problem = read_cache(path, self)

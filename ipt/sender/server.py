@@ -35,6 +35,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
+import os
 import queue
 import signal
 import socket
@@ -45,7 +46,6 @@ from collections import Counter, deque
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Final, Literal
 
 import numpy as np
@@ -591,7 +591,7 @@ class Sender:
         on_listening: Callable[[tuple[str, int]], None] | None = None,
         input_rate_hz: float | None = None,
         modulator: Modulator | None = None,
-        pair_cache: Path | None = None,
+        pair_cache: os.PathLike[str] | None = None,
     ) -> None:
         if frames is not None and frames < 0:
             raise SenderError(f"frames must be >= 0, got {frames}")
@@ -969,7 +969,7 @@ async def run_sender(
     on_listening: Callable[[tuple[str, int]], None] | None = None,
     input_rate_hz: float | None = None,
     modulator: Modulator | None = None,
-    pair_cache: Path | Literal["default"] | None = "default",
+    pair_cache: os.PathLike[str] | Literal["default"] | None = "default",
 ) -> SenderStats:
     """Run the sender until ``frames`` output frames are shown, a signal, ``stop`` or the sink says stop.
 
