@@ -369,7 +369,7 @@ class _Renderer:
         self.content_errors = 0
         self.content_failing = False
         self.last_content_error: str | None = None
-        self.notes: list[str] = []  # lines for the user from the scene (a frame of another size), said once
+        self.notes: list[str] = []  # lines for the user about the scene (a frame of another size), said once
         self._scene_shape: tuple[int, int] | None = None  # (H, W) of the scene's newest frame
         self._phases: tuple[U8, U8] | None = None
         self._input = -1
@@ -390,14 +390,11 @@ class _Renderer:
                 raise  # a file must not fill up with a frozen frame: the run ends, the file is not kept
             failed = f"{type(exc).__name__}: {exc}"
             rgb = self._last_good(w, h)
-        take_notes: Callable[[], list[str]] | None = getattr(self.scene, "take_notes", None)
-        notes = take_notes() if take_notes is not None and failed is None else []
         with self._fault_lock:
             self.content_failing = failed is not None
             if failed is not None:
                 self.content_errors += 1
                 self.last_content_error = failed
-            self.notes.extend(notes)
         return _Content(i, rgb, time.perf_counter() - t0, time.thread_time() - cpu0)
 
     def content_state(self) -> tuple[bool, int, str | None]:
@@ -406,7 +403,7 @@ class _Renderer:
             return self.content_failing, self.content_errors, self.last_content_error
 
     def take_notes(self) -> list[str]:
-        """The scene's notes since the last call."""
+        """The notes about the scene since the last call."""
         with self._fault_lock:
             notes, self.notes = self.notes, []
         return notes
