@@ -109,6 +109,7 @@ def _cmd_invisibility(args: argparse.Namespace) -> int:
 
     from ipt.invisibility import frame_indices, measure_scene
     from ipt.sender.modulator import PROFILES, ModulationError, delta_l_warning
+    from ipt.sender.photos import SHOTS, PanningPhotoScene
 
     arena = _arena(args.config)
     if args.pairs < 1:
@@ -121,33 +122,42 @@ def _cmd_invisibility(args: argparse.Namespace) -> int:
         raise ModulationError(f"--clip-allowance values must be in [0, 8] 8-bit L units, got {args.clip_allowance}")
     if args.delta_l is not None and not 0 < args.delta_l <= 50:
         raise ModulationError(f"--delta-l must be in (0, 50] 8-bit L units, got {args.delta_l:g}")
+    if not 0 <= args.saccade_px < arena.projector.width_px:
+        raise ModulationError(f"--saccade-px must be 0..{arena.projector.width_px - 1}, got {args.saccade_px}")
     delta_l = arena.modulation.delta_l if args.delta_l is None else args.delta_l
     if (warning := delta_l_warning(delta_l)) is not None:
         print(f"ipt invisibility: warning: {warning}", file=sys.stderr)
     w, h = arena.projector.width_px, arena.projector.height_px
-    rate_hz, length = arena.modulation.input_rate_hz, None
-    content = "generated"
-    if args.video is not None:
-        from ipt.videoio import open_frames
+    contents = [*args.content, *([] if args.video is None else [args.video])] or ["map"]
+    results = []
+    for content in contents:
+        rate_hz, length = arena.modulation.input_rate_hz, None
+        if content not in ("map", "generated", "photos"):
+            from ipt.videoio import open_frames
 
-        with open_frames(args.video) as source:
-            size, fps, length = (source.width, source.height), source.fps, getattr(source, "frame_count", None)
-            if length is None:  # not in the container: count the frames
-                length = sum(1 for _ in source)
-        if size != (w, h):
-            print(f"ipt invisibility: input video is {size[0]}x{size[1]}; resized to {w}x{h}", file=sys.stderr)
-        rate_hz = fps if fps is not None and fps > 0 else rate_hz
-        content = str(args.video)
-    scene = _scene(content, arena, args.seed)
-    try:
-        indices = frame_indices(args.pairs, length, max(1, round(rate_hz)))
-        result = measure_scene(arena, scene, indices, rate_hz, profiles, delta_l, args.clip_allowance)
-    finally:
-        close = getattr(scene, "close", None)
-        if close is not None:
-            close()
-    result = {"command": "ipt invisibility", "content": content, "input_frames": indices, **result}
-    print(json.dumps(result, indent=1))
+            with open_frames(content) as source:
+                size, fps, length = (source.width, source.height), source.fps, getattr(source, "frame_count", None)
+                if length is None:  # not in the container: count the frames
+                    length = sum(1 for _ in source)
+            if size != (w, h):
+                print(f"ipt invisibility: {content} is {size[0]}x{size[1]}; resized to {w}x{h}", file=sys.stderr)
+            rate_hz = fps if fps is not None and fps > 0 else rate_hz
+        scene = _scene(content, arena, args.seed)
+        if isinstance(scene, PanningPhotoScene):  # spread over one round of its shots: every kind is measured
+            length = round(len(SHOTS) * scene.cut_every_s * rate_hz)
+        try:
+            indices = frame_indices(args.pairs, length, max(1, round(rate_hz)))
+            print(f"ipt invisibility: {content}: {len(indices)} input frames", file=sys.stderr)
+            result = measure_scene(
+                arena, scene, indices, rate_hz, profiles, delta_l, args.clip_allowance, args.saccade_px
+            )
+        finally:
+            close = getattr(scene, "close", None)
+            if close is not None:
+                close()
+        label = "generated" if content in ("map", "generated") else content
+        results.append({"content": label, "input_frames": indices, **result})
+    print(json.dumps({"command": "ipt invisibility", "contents": results}, indent=1))
     return 0
 
 
@@ -259,10 +269,19 @@ def build_parser() -> argparse.ArgumentParser:
         "mean of the two phases (what the eye fuses at 60 Hz) over tag pixels and over the other pixels (mean, "
         "p99, max), the share of non-tag pixels left bit-identical, and the camera-side signal: the mean L* "
         "difference of the phases times the tag mask, in 8-bit L units, also as a fraction of the paper "
-        "profile's.",
+        "profile's; and the saccade figure: the two phases seen --saccade-px apart, as a moving eye sees them, "
+        "against the input seen the same way. One block of figures per content.",
     )
     v.add_argument("--config", metavar="ARENA.yaml", help=cfg_help)
-    v.add_argument("--video", metavar="CONTENT", help="a video file or image folder (default: the generated map app)")
+    v.add_argument(
+        "--content",
+        nargs="+",
+        default=[],
+        metavar="CONTENT",
+        help="what to measure on, each on its own: map (the generated map app), photos (photographs that pan and "
+        "cut, colour bars and grey ramps), or a video file / image folder (default: map)",
+    )
+    v.add_argument("--video", metavar="CONTENT", help="a video file or image folder (the same as --content CONTENT)")
     v.add_argument("--pairs", type=int, default=10, help="input frames to measure, spread over the video (default 10)")
     v.add_argument("--profiles", default="ipt,paper", help="comma-separated profiles (default ipt,paper)")
     v.add_argument("--delta-l", type=float, metavar="DL", help="ΔL in 8-bit L units (default: the arena's)")
@@ -274,7 +293,15 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="A",
         help="also measure the ipt profile with these clip allowances (8-bit L units; reported as ipt@A)",
     )
-    v.add_argument("--seed", type=int, default=0, help="seed of the generated content (default 0)")
+    v.add_argument(
+        "--saccade-px",
+        type=int,
+        default=4,
+        metavar="D",
+        help="how far apart (projector pixels) a moving eye sees the two phases for the saccade figure (default 4; "
+        "0: none)",
+    )
+    v.add_argument("--seed", type=int, default=0, help="seed of the generated and the photographic content (default 0)")
     v.set_defaults(func=_cmd_invisibility)
 
     add_calibrate_parser(sub)

@@ -8,10 +8,16 @@ frames of opposite phase are made by the sender's own modulator, and:
   difference from the input frame (:func:`ciede2000`, CIELAB under D65) is reported over the tag pixels
   (mask ±1) and over the other pixels: mean, 99th percentile, maximum. ``identical_fraction`` of the
   non-tag pixels is the share where both phases equal the input bit for bit.
+- **saccade error**: during an eye movement the two phases land on the retina a few pixels apart, so
+  the flicker no longer cancels pixel by pixel (the "phantom array" along tag edges). What is seen at a
+  retinal point is then the linear mean of the ``+`` phase at x and the ``-`` phase at x + d
+  (``saccade_px``, horizontal); it is compared, by CIEDE2000, with what the same eye movement makes of the
+  unmodulated input (the mean of the input at x and at x + d), over the points where x or x + d is a tag
+  pixel. No modulation can make this 0: it shows how visible the tags' edges are to a moving eye.
 - **camera-side signal**: the mean over tag pixels of ``(L*(+) - L*(-)) · T_mask``, the lightness
   difference between the two phases a camera subtracts, in 8-bit L units (L* · 255/100). The paper's
   modulator aims at ``2ΔL``. ``flat_fraction`` is the share of tag pixels where the phases are equal
-  (no signal at all, e.g. pure white or black content under the ``ipt`` profile).
+  (no signal at all, e.g. pure white or black content under the ``ipt`` profile with no clip allowance).
 
 Percentiles come from a histogram with 0.001 bins up to 20 (bounded memory over long videos).
 """
@@ -36,6 +42,9 @@ F64 = npt.NDArray[np.float64]
 U8 = npt.NDArray[np.uint8]
 
 _CHUNK: Final = 1 << 18  # pixels per CIEDE2000 batch (bounded temporary memory)
+SACCADE_PX: Final = 4
+"""Default distance (projector pixels) between where the two phases land on the retina for the saccade
+figure: "a few pixels", as an eye moving across the picture makes of two frames 1/60 s apart."""
 
 
 def ciede2000(lab1: npt.ArrayLike, lab2: npt.ArrayLike) -> F64:
@@ -133,14 +142,21 @@ def _lstar(codes: U8) -> F64:
     return lightness(lin @ LUMINANCE_WEIGHTS)
 
 
+def _mean_error(ref_a: U8, ref_b: U8, a: U8, b: U8) -> F64:
+    """CIEDE2000 between the linear-light mean of ``ref_a`` and ``ref_b`` and that of ``a`` and ``b`` (N×3
+    codes each)."""
+    out = np.empty(len(a), dtype=np.float64)
+    for s in range(0, len(a), _CHUNK):
+        sl = slice(s, s + _CHUNK)
+        ref = (CODE_TO_LINEAR[ref_a[sl]] + CODE_TO_LINEAR[ref_b[sl]]) / 2
+        seen = (CODE_TO_LINEAR[a[sl]] + CODE_TO_LINEAR[b[sl]]) / 2
+        out[sl] = ciede2000(linear_to_lab(ref), linear_to_lab(seen))
+    return out
+
+
 def _fused_error(inputs: U8, plus: U8, minus: U8) -> F64:
     """CIEDE2000 between the input colours and the linear-light mean of the two phases (N×3 each)."""
-    out = np.empty(len(inputs), dtype=np.float64)
-    for s in range(0, len(inputs), _CHUNK):
-        sl = slice(s, s + _CHUNK)
-        fused = (CODE_TO_LINEAR[plus[sl]] + CODE_TO_LINEAR[minus[sl]]) / 2
-        out[sl] = ciede2000(linear_to_lab(CODE_TO_LINEAR[inputs[sl]]), linear_to_lab(fused))
-    return out
+    return _mean_error(inputs, inputs, plus, minus)
 
 
 @dataclass
@@ -150,7 +166,10 @@ class ProfileFigures:
     profile: str
     delta_l: float
     clip_allowance_l8: float | None = None
+    saccade_px: int = SACCADE_PX
     tag: Distribution = field(default_factory=Distribution)
+    saccade: Distribution = field(default_factory=Distribution)
+    """The saccade error over points where either phase lands on a tag pixel."""
     non_tag: Distribution = field(default_factory=Distribution)
     non_tag_pixels: int = 0
     non_tag_identical: int = 0
@@ -181,14 +200,33 @@ class ProfileFigures:
         self.tag_pixels += diff_l8.size
         self.flat_pixels += int(np.count_nonzero(np.all(p[tag_flat] == m[tag_flat], axis=1)))
         self.signal_sum_l8 += float(diff_l8.sum())
+        saccade = self._add_saccade(frame_rgb, plus, minus, mask)
         self.pairs.append(
             {
                 "input_frame": index,
                 "tag_mean": round(pair_tag.mean, 4),
                 "tag_p99": round(pair_tag.percentile(99), 4),
+                "saccade_p99": round(saccade.percentile(99), 4),
                 "signal_l8": round(float(diff_l8.mean()) if diff_l8.size else math.nan, 4),
             }
         )
+
+    def _add_saccade(self, frame_rgb: U8, plus: U8, minus: U8, mask: npt.NDArray[np.int8]) -> Distribution:
+        """Take in the saccade error of one pair (see the module doc); returns this pair's own figures."""
+        pair = Distribution()
+        d = self.saccade_px
+        if not 0 < d < mask.shape[1]:
+            return pair
+        ref_a, ref_b = frame_rgb[:, :-d].reshape(-1, 3), frame_rgb[:, d:].reshape(-1, 3)
+        a, b = plus[:, :-d].reshape(-1, 3), minus[:, d:].reshape(-1, 3)
+        where = ((mask[:, :-d] != 0) | (mask[:, d:] != 0)).reshape(-1)
+        changed = np.any((a != ref_a) | (b != ref_b), axis=1)
+        sel = where & changed
+        errors = _mean_error(ref_a[sel], ref_b[sel], a[sel], b[sel])
+        unchanged = int(np.count_nonzero(where)) - errors.size
+        for dist in (self.saccade, pair):
+            dist.add(errors, unchanged)
+        return pair
 
     @property
     def signal_l8(self) -> float:
@@ -203,6 +241,8 @@ class ProfileFigures:
             "pairs_measured": len(self.pairs),
             "fused_ciede2000_tag": self.tag.to_dict(),
             "fused_ciede2000_non_tag": self.non_tag.to_dict(),
+            "saccade_px": self.saccade_px,
+            "saccade_ciede2000_tag": self.saccade.to_dict(),
             "non_tag_identical_fraction": round(self.non_tag_identical / self.non_tag_pixels, 6)
             if self.non_tag_pixels
             else None,
@@ -216,10 +256,11 @@ def measure(
     frames: Iterable[tuple[int, U8]],
     mask: npt.NDArray[np.int8],
     modulators: Mapping[str, Modulator],
+    saccade_px: int = SACCADE_PX,
 ) -> dict[str, ProfileFigures]:
     """Figures for each modulator over ``frames``: (input index, H×W×3 RGB at projector size) pairs."""
     figures = {
-        name: ProfileFigures(mod.profile, mod.delta_l, getattr(mod, "clip_allowance_l8", None))
+        name: ProfileFigures(mod.profile, mod.delta_l, getattr(mod, "clip_allowance_l8", None), saccade_px)
         for name, mod in modulators.items()
     }
     for index, frame in frames:
@@ -259,12 +300,13 @@ def measure_scene(
     profiles: Iterable[str] = PROFILES,
     delta_l: float | None = None,
     clip_allowances_l8: Iterable[float] = (),
+    saccade_px: int = SACCADE_PX,
 ) -> dict[str, Any]:
     """The report (:func:`report`) of every profile in ``profiles`` on input frames ``indices`` of ``scene``.
 
     Frames are resized to the projector size (``cv2.INTER_AREA``) as the sender does; ``delta_l`` replaces
     the arena's ΔL. The ``ipt`` profile is measured with the arena's clip allowance, and also with each of
-    ``clip_allowances_l8`` (as ``ipt@A``, A in 8-bit L units).
+    ``clip_allowances_l8`` (as ``ipt@A``, A in 8-bit L units). ``saccade_px``: see the module doc.
     """
     mod = arena.modulation
     dl = mod.delta_l if delta_l is None else delta_l
@@ -278,7 +320,7 @@ def measure_scene(
                 if allowance != mod.clip_allowance_l8:
                     modulators[f"ipt@{allowance:g}"] = make_modulator(name, mask, dl, clip_allowance_l8=allowance)
     frames = ((i, resize_to(scene.frame(i, rate_hz), w, h)) for i in indices)
-    figures = measure(frames, mask, modulators)
+    figures = measure(frames, mask, modulators, saccade_px)
     return {
         "projector": f"{w}x{h}",
         "tag_pixels_fraction": round(float(np.count_nonzero(mask)) / mask.size, 4),

@@ -13,7 +13,7 @@ import pytest
 
 from ipt.config.models import ArenaConfig
 from ipt.invisibility import Distribution, ProfileFigures, ciede2000, frame_indices, measure, measure_scene, report
-from ipt.sender.colour import code_to_lab, linear_to_lab, srgb_to_linear
+from ipt.sender.colour import CODE_TO_LINEAR, code_to_lab, linear_to_lab, srgb_to_linear
 from ipt.sender.content import GeneratedScene
 from ipt.sender.modulator import IptModulator, PaperModulator
 from ipt.tagmap import grid_tag_map
@@ -113,7 +113,8 @@ def test_measure_tells_the_profiles_apart() -> None:
     scene = GeneratedScene(320, 288)
     rng = np.random.default_rng(0)
     frames = [(0, scene.frame(0, 30.0)), (1, rng.integers(20, 236, (288, 320, 3), dtype=np.uint8))]
-    figures = measure(frames, mask, {"ipt": IptModulator(mask, 4.0), "paper": PaperModulator(mask, 4.0)})
+    ipt_mod = IptModulator(mask, 4.0, clip_allowance_l8=2.2)
+    figures = measure(frames, mask, {"ipt": ipt_mod, "paper": PaperModulator(mask, 4.0)})
     r = report(figures)
     ipt, paper = r["ipt"], r["paper"]
     assert ipt["pairs_measured"] == paper["pairs_measured"] == 2
@@ -129,7 +130,12 @@ def test_measure_tells_the_profiles_apart() -> None:
     assert ipt["pairs"][1]["signal_l8"] == pytest.approx(8.0, abs=0.3)
     assert paper["pairs"][1]["signal_l8"] == pytest.approx(8.0, abs=0.3)
     assert r["ipt"]["signal_vs_paper"] == pytest.approx(ipt["signal_l8"] / paper["signal_l8"], abs=1e-3)
-    assert ipt["flat_tag_fraction"] > 0  # the generated frame has pure white and black on tags
+    assert ipt["flat_tag_fraction"] == 0  # the allowance gives pure white and black on tags a signal too
+    # A moving eye sees the tags' edges (the phases no longer cancel pixel by pixel): well above the fused
+    # error, for either profile.
+    for prof in (ipt, paper):
+        assert prof["saccade_px"] == 4
+        assert prof["saccade_ciede2000_tag"]["p99"] > prof["fused_ciede2000_tag"]["p99"]
     json.dumps(r)
 
 
@@ -152,6 +158,31 @@ def test_signal_counts_the_mask_sign() -> None:
     assert fig.non_tag_identical == 1
 
 
+def test_saccade_of_a_known_pair() -> None:
+    # One row: a white tag pixel then a black one, then content. The eye moves one pixel between the
+    # phases: at x it sees (+ phase at x, - phase at x + 1).
+    fig = ProfileFigures("x", 4.0, saccade_px=1)
+    mask = np.array([[1, -1, 0, 0]], np.int8)
+    frame = np.full((1, 4, 3), 100, np.uint8)
+    plus = np.array([[[110] * 3, [90] * 3, [100] * 3, [100] * 3]], np.uint8)
+    minus = np.array([[[90] * 3, [110] * 3, [100] * 3, [100] * 3]], np.uint8)
+    fig.add_pair(0, frame, plus, minus, mask)
+    # Points 0, 1 (tag at x) and 2 (nothing at x, nor at x + 1 = 3) ... only 0 and 1 touch a tag.
+    assert fig.saccade.n == 2
+    lin = CODE_TO_LINEAR
+    seen0 = (lin[110] + lin[110]) / 2  # + at 0 (white: up), - at 1 (black: up)
+    seen1 = (lin[90] + lin[100]) / 2  # + at 1 (black: down), - at 2 (untouched)
+    ref = linear_to_lab(np.full(3, lin[100]))
+    want = ciede2000(np.stack([ref, ref]), linear_to_lab(np.array([[seen0] * 3, [seen1] * 3])))
+    assert fig.saccade.max == pytest.approx(float(want.max()))
+    assert fig.saccade.mean == pytest.approx(float(want.mean()))
+    assert fig.to_dict()["saccade_ciede2000_tag"]["max"] == pytest.approx(float(want.max()), abs=1e-4)
+    # No eye movement, no saccade figure.
+    still = ProfileFigures("x", 4.0, saccade_px=0)
+    still.add_pair(0, frame, plus, minus, mask)
+    assert still.saccade.n == 0
+
+
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, "-m", "ipt.cli", *args], capture_output=True, text=True, timeout=300)
 
@@ -169,16 +200,25 @@ def test_invisibility_cli_on_a_video_of_another_size(tmp_path: Path) -> None:
     with FfvWriter(video, 200, 150, 25) as writer:
         for _ in range(6):
             writer.write(rng.integers(0, 256, (150, 200, 3), dtype=np.uint8))
-    run = _cli("invisibility", "--config", str(arena), "--video", str(video), "--pairs", "3")
+    run = _cli(
+        "invisibility", "--config", str(arena), "--content", "photos", str(video), "--pairs", "3", "--saccade-px", "6"
+    )
     assert run.returncode == 0, run.stderr
     assert "resized to 320x288" in run.stderr
     out = json.loads(run.stdout)
-    assert out["input_frames"] == [0, 2, 4]
-    assert set(out["profiles"]) == {"ipt", "paper"}
-    ipt = out["profiles"]["ipt"]
-    assert ipt["non_tag_identical_fraction"] == 1.0
-    assert ipt["fused_ciede2000_tag"]["p99"] <= 0.5
-    assert 0.5 < ipt["signal_vs_paper"] < 1.5
+    photos, clip = out["contents"]
+    assert photos["content"] == "photos"
+    assert photos["input_frames"] == [0, 150, 300]  # spread over one round of its six 2.5 s shots at 30 fps
+    assert clip["content"] == str(video)
+    assert clip["input_frames"] == [0, 2, 4]
+    for block in (photos, clip):
+        assert set(block["profiles"]) == {"ipt", "paper"}
+        ipt = block["profiles"]["ipt"]
+        assert ipt["non_tag_identical_fraction"] == 1.0
+        assert ipt["fused_ciede2000_tag"]["p99"] <= 0.5
+        assert ipt["saccade_px"] == 6
+        assert ipt["saccade_ciede2000_tag"]["max"] > 0
+        assert 0.5 < ipt["signal_vs_paper"] < 1.5
 
 
 def test_invisibility_cli_bad_input(tmp_path: Path) -> None:

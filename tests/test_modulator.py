@@ -547,15 +547,15 @@ def test_clip_allowance_buys_signal_near_white_and_black(mask: npt.NDArray[np.in
     from ipt.invisibility import ciede2000
 
     exact = IptModulator(mask, DELTA_L)
-    allowed = IptModulator(mask, DELTA_L, clip_allowance_l8=2.0)
-    assert ArenaConfig().modulation.clip_allowance_l8 == 2.0
+    allowed = IptModulator(mask, DELTA_L, clip_allowance_l8=2.2)
+    assert ArenaConfig().modulation.clip_allowance_l8 == 2.2
     ends = np.array([(255, 255, 255), (0, 0, 0), (254, 254, 253), (2, 2, 2)], np.uint8)
     up, down = allowed.pair_codes(ends)
     step = _lstar8(up) - _lstar8(down)
-    assert np.all(step > 3.5)  # about the paper's 4 on white and black (0 with the exact default)
+    assert np.all(step > 4.1)  # the paper gets 4.4 on white, 4.2 on black (0 with the exact default)
     fused = (code_to_linear(up) + code_to_linear(down)) / 2
     de = ciede2000(linear_to_lab(fused), code_to_lab(ends))
-    assert np.all(de < 0.6)
+    assert np.all(de <= 0.4937)  # what a lightness change of 2.2 costs at white
     assert float(de[0]) > 0.2  # the price: white is no longer exactly white on average
     # Colours with room for the full step are not touched by the allowance.
     rng = np.random.default_rng(6)

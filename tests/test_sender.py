@@ -23,7 +23,7 @@ from ipt.geometry import R_BODY_CAM_DOWNWARD, quat_wxyz_from_matrix, rot_z
 from ipt.protocol import PosePacket, QualityFlags, encode_pose
 from ipt.sender.colour import CODE_TO_LINEAR, LUMINANCE_WEIGHTS, code_to_linear, lightness
 from ipt.sender.content import ContentError, GeneratedScene
-from ipt.sender.display import DisplayError, FileSink, NullSink, WindowSink, make_sink
+from ipt.sender.display import DisplayError, FileSink, NullSink, PresentClock, WindowSink, make_sink
 from ipt.sender.modulator import IptModulator
 from ipt.sender.scene import PALETTE, ArScene, heading_rad
 from ipt.sender.server import SenderError, parse_listen, run_sender
@@ -756,3 +756,125 @@ def test_window_sink_headless(monkeypatch: pytest.MonkeyPatch) -> None:
     with pytest.raises(DisplayError, match="does not exist"):
         WindowSink(display_index=7).show(frame, 0)
     assert os.environ["SDL_VIDEODRIVER"] == "dummy"
+
+
+def test_present_clock_counts_repeated_and_unseen_frames() -> None:
+    clock = PresentClock(1 / 60)
+    period = 1 / 60
+    for t in (0.0, period, 2 * period, 4 * period, 4 * period + 0.002, 5 * period, 8.1 * period):
+        clock.add(1000.0 + t)
+    summary = clock.summary()
+    assert summary["presents"] == 7
+    # 2 -> 4: the frame at 2 stayed up one refresh too long; 5 -> 8.1: two more.
+    assert summary["repeated_vsyncs"] == 3
+    # 4 -> 4 + 2 ms: both flips in one refresh, the first never shown.
+    assert summary["dropped_frames"] == 1
+    assert summary["present_interval_p50_ms"] == pytest.approx(16.65, abs=0.1)
+    assert summary["present_interval_max_ms"] == pytest.approx(3.1 * 1000 / 60, abs=0.01)
+    with pytest.raises(DisplayError, match="refresh period"):
+        PresentClock(0.0)
+
+
+def test_window_sink_times_its_flips(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    monkeypatch.setenv("SDL_AUDIODRIVER", "dummy")
+    times = iter([10.0, 10.0167, 10.0500, 10.0667])  # the third frame comes a refresh late
+    sink = WindowSink(display_index=0, fullscreen=False, rate_hz=60.0, clock=lambda: next(times))
+    try:
+        for j in range(4):
+            sink.show(_grey(), j)
+    finally:
+        sink.close()
+    pacing = sink.pacing()
+    assert pacing["presents"] == 4
+    assert pacing["repeated_vsyncs"] == 1
+    assert pacing["dropped_frames"] == 0
+
+
+@pytest.mark.asyncio
+async def test_the_statistics_line_reports_the_window_pacing(
+    arena: ArenaConfig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("SDL_VIDEODRIVER", "dummy")
+    monkeypatch.setenv("SDL_AUDIODRIVER", "dummy")
+    lines: list[str] = []
+    sink = WindowSink(display_index=0, fullscreen=False, rate_hz=arena.projector.rate_hz)
+    stats = await run_sender(
+        arena, sink, _FlatScene(), frames=12, listen=None, log=lines.append, install_signal_handlers=False
+    )
+    assert stats.pacing is not None
+    assert stats.pacing["presents"] == stats.frames == 12
+    last = lines[-1]
+    assert re.search(rf"repeated_vsyncs={stats.pacing['repeated_vsyncs']} dropped_frames=\d+ present_p99=", last)
+    assert stats.to_dict()["pacing"]["presents"] == 12
+
+
+class _GrowingScene:
+    """Flat frames (value 60 + 20 i) whose size changes at input frame 3 and back at 5."""
+
+    def frame(self, index: int, rate_hz: float) -> U8:
+        w, h = (400, 300) if index in (3, 4) else (W, H)
+        return np.full((h, w, 3), 60 + 20 * index, np.uint8)
+
+
+@pytest.mark.asyncio
+async def test_a_frame_of_another_size_is_said_once_and_resized(arena: ArenaConfig) -> None:
+    mask = grid_tag_map(arena).render_mask()
+    sink = _RecordingSink()
+    lines: list[str] = []
+    stats = await run_sender(
+        arena, sink, _GrowingScene(), frames=12, listen=None, log=lines.append, install_signal_handlers=False
+    )
+    assert stats.frames == 12
+    assert stats.content_errors == 0
+    notes = [ln for ln in lines if "resized to" in ln]
+    assert notes == [f"ipt-sender: the scene's frames are 400x300 from input frame 3 on; resized to {W}x{H}"]
+    # Every input frame was shown, at the projector size, phases alternating.
+    assert [_input_shown(f, mask) + 10 for f in sink.frames[::2]] == [60 + 20 * k for k in range(6)]
+    white = mask > 0
+    for j in range(0, 12, 2):
+        assert _lightness(sink.frames[j])[white].mean() > _lightness(sink.frames[j + 1])[white].mean() + DELTA_L / 2
+
+
+def _mpeg_ts(path: Path, width: int, height: int, frames: int, first: int) -> bytes:
+    import av
+
+    with av.open(str(path), "w", format="mpegts") as container:
+        stream = container.add_stream("mpeg2video", rate=30)
+        stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
+        for k in range(frames):
+            image = np.full((height, width, 3), first + 20 * k, np.uint8)
+            for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    return path.read_bytes()
+
+
+@pytest.mark.asyncio
+async def test_a_video_that_changes_size_mid_stream_keeps_the_projection_going(
+    tmp_path: Path, arena: ArenaConfig
+) -> None:
+    # Two MPEG transport streams back to back: the picture size changes at the join, as a broadcast or a
+    # re-encoded clip can. The reader refuses frames of another size than the first; the sender says so in
+    # one line and shows the last good frame, modulated, phases alternating.
+    from ipt.sender.content import VideoScene
+
+    video = tmp_path / "joined.ts"
+    video.write_bytes(_mpeg_ts(tmp_path / "a.ts", 64, 48, 4, 60) + _mpeg_ts(tmp_path / "b.ts", 96, 64, 4, 140))
+    mask = grid_tag_map(arena).render_mask()
+    sink = _RecordingSink()
+    lines: list[str] = []
+    with VideoScene(video, W, H, fps=30.0) as scene:
+        stats = await run_sender(
+            arena, sink, scene, frames=16, listen=None, log=lines.append, install_signal_handlers=False
+        )
+    assert stats.frames == 16
+    assert stats.content_errors > 0
+    failed = [ln for ln in lines if "the video source failed" in ln]
+    assert len(failed) == 1, lines
+    assert "is 96x64, the first frame is 64x48" in failed[0]
+    assert "showing the last good frame, phases still alternating" in failed[0]
+    white = mask > 0
+    for j in range(0, 16, 2):
+        assert _lightness(sink.frames[j])[white].mean() > _lightness(sink.frames[j + 1])[white].mean() + DELTA_L / 2

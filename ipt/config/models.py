@@ -77,14 +77,16 @@ class ModulationConfig(StrictModel):
     )
     delta_l: float = Field(4.0, gt=0, le=50, description="Lightness change ΔL in 8-bit CIELAB L units (0..255 scale).")
     clip_allowance_l8: float = Field(
-        2.0,
+        2.2,
         ge=0,
         le=8,
-        description="Profile 'ipt' only: where the content is too close to white or black for a balanced pair "
-        "(pure white and black carry no signal otherwise), the average of the two phases may move towards "
-        "mid-grey by up to this much lightness (8-bit L units) so that the camera still sees the tags there. "
-        "0: the average is exact everywhere; 2 (the default) gives about the paper's signal on white and black "
-        "at a fused CIEDE2000 of about 0.5 there (the paper's own imbalance).",
+        description="Profile 'ipt' only: where the content leaves no room for a balanced pair of the full step "
+        "(pure white and black, pure primaries, colours next to them), the centre of the pair may move so that "
+        "the camera still sees the tags there, by as little as gives the full step, in the direction that costs "
+        "least, and never so far that the average of the two phases differs from the input by more than a "
+        "lightness change of this many 8-bit L units costs at white or black (CIEDE2000 0.49 for 2.2, the "
+        "paper's own imbalance on white). 0: the average is exact everywhere (and pure white, black and "
+        "primaries carry no tags).",
     )
     input_rate_hz: float = Field(30.0, gt=0, le=1000, description="Frame rate f_i of the input video in Hz.")
 

@@ -82,6 +82,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--vehicles", type=_vehicle_id, nargs="+", metavar="ID", help="accept packets from these vehicle ids only"
     )
+    p.add_argument(
+        "--gpu",
+        action="store_true",
+        help="--sink window, ipt profile: make the phases on the GPU (OpenGL 3.3; needs moderngl: pip install "
+        "'ipt[gpu]'), leaving the CPU only the content and the overlay. If the GPU path cannot start, one line "
+        "says why and the CPU makes the phases",
+    )
     p.add_argument("--display", type=int, default=0, metavar="N", help="display index of --sink window (default 0)")
     p.add_argument("--windowed", action="store_true", help="--sink window in a window rather than full screen")
     p.add_argument("--stats-every", type=float, default=5.0, metavar="S", help="statistics interval (default 5 s)")
@@ -125,7 +132,10 @@ def _scene(args: argparse.Namespace, arena: ArenaConfig) -> tuple[Any, float]:
             if abs(fps - rate_hz) > 1e-3:
                 _note(f"input video is {fps:g} fps, not the arena's input_rate_hz {rate_hz:g}: played at its own rate")
             rate_hz = fps
-        return VideoScene(args.video, w, h), rate_hz
+        # No cache of the first pass: each cached frame (12 MB at 1920x2160) is fresh memory, and faulting it
+        # in cost the content thread 40 ms a frame here, more than a frame's time; re-decoding each lap
+        # costs 6 ms a frame and a re-open at the loop.
+        return VideoScene(args.video, w, h, cache_bytes=0), rate_hz
     if args.image is not None:
         size = _image_size(Path(args.image))
         if size != (w, h):
@@ -136,6 +146,26 @@ def _scene(args: argparse.Namespace, arena: ArenaConfig) -> tuple[Any, float]:
 
 def _note(text: str) -> None:
     print(f"ipt-sender: {text}", file=sys.stderr)
+
+
+def _gpu_path(args: argparse.Namespace, arena: ArenaConfig, mask: Any) -> tuple[Any, Any]:
+    """The GPU window and its modulator, ready (colour table complete, textures up); or, when the GPU path
+    cannot start, one line saying why and (None, None): the CPU makes the phases instead."""
+    from ipt.sender.gpu import GlWindowSink, GpuError, GpuModulator
+    from ipt.sender.pairs import default_cache_dir
+
+    mod = arena.modulation
+    gpu = GpuModulator(mask, mod.delta_l, mod.clip_allowance_l8)
+    _note(gpu.complete_table(default_cache_dir(), _note))  # the shader needs every colour's pair up front
+    sink = GlWindowSink(gpu, args.display, not args.windowed, rate_hz=arena.projector.rate_hz)
+    try:
+        renderer = sink.open()
+    except GpuError as exc:
+        sink.close()
+        _note(f"the GPU path cannot start ({exc}); the CPU makes the phases")
+        return None, None
+    _note(f"the GPU makes the phases ({renderer})")
+    return sink, gpu
 
 
 def _run(make: Callable[[], Coroutine[Any, Any, T]]) -> T:
@@ -161,10 +191,12 @@ def _main(argv: Sequence[str] | None) -> int:
         parser.error(f"--stats-every must be positive, got {args.stats_every}")
     if not 1 <= args.threads <= 64:
         parser.error(f"--threads must be 1..64, got {args.threads}")
+    if args.gpu and args.sink != "window":
+        parser.error("--gpu is for --sink window (the GPU draws straight into the window)")
 
     from ipt.protocol import PacketFilter
-    from ipt.sender.display import make_sink
-    from ipt.sender.modulator import FrameTiming, delta_l_warning, make_modulator
+    from ipt.sender.display import Sink, make_sink
+    from ipt.sender.modulator import FrameTiming, Modulator, delta_l_warning, make_modulator
     from ipt.sender.scene import ArScene
     from ipt.sender.server import DEFAULT_LISTEN, parse_listen, run_sender
     from ipt.tagmap import grid_tag_map
@@ -182,29 +214,37 @@ def _main(argv: Sequence[str] | None) -> int:
         listen = None if args.sink == "file" else DEFAULT_LISTEN
     key = _read_key(args.auth_key_file) if args.auth_key_file is not None else None
     packet_filter = PacketFilter(key=key, vehicle_ids=args.vehicles, resync_after_s=10.0)
-    modulator = make_modulator(
-        mod.profile, grid_tag_map(arena).render_mask(), mod.delta_l, args.threads, mod.clip_allowance_l8
-    )
+    if args.gpu and mod.profile != "ipt":
+        parser.error(f"--gpu makes the ipt profile's phases; the arena's modulation.profile is {mod.profile!r}")
+    mask = grid_tag_map(arena).render_mask()
+    modulator: Modulator = make_modulator(mod.profile, mask, mod.delta_l, args.threads, mod.clip_allowance_l8)
     scene, input_rate_hz = _scene(args, arena)
     timing = FrameTiming(input_rate_hz, pr.rate_hz)
     if (note := timing.note()) is not None:
         _note(note)
-    sink = make_sink(
-        args.sink,
-        output=args.output,
-        fps=pr.rate_hz,
-        width=pr.width_px,
-        height=pr.height_px,
-        display_index=args.display,
-        fullscreen=not args.windowed,
-    )
+    sink: Sink | None = None
+    on_gpu = False
+    if args.gpu:
+        sink, gpu_modulator = _gpu_path(args, arena, mask)
+        if gpu_modulator is not None:
+            modulator, on_gpu = gpu_modulator, True
+    if sink is None:
+        sink = make_sink(
+            args.sink,
+            output=args.output,
+            fps=pr.rate_hz,
+            width=pr.width_px,
+            height=pr.height_px,
+            display_index=args.display,
+            fullscreen=not args.windowed,
+        )
     ratio = float(timing.ratio)
     per_input = f"N={int(timing.ratio)}" if timing.whole else f"{ratio:.3g} output frames per input frame"
     print(
         f"ipt-sender: {pr.width_px}x{pr.height_px} at {pr.rate_hz:g} Hz, input {input_rate_hz:g} Hz "
         f"({per_input}), modulation {mod.profile}"
         + (f" (clip allowance {mod.clip_allowance_l8:g})" if mod.profile == "ipt" else "")
-        + f", ΔL {mod.delta_l:g}, sink {args.sink} "
+        + f", ΔL {mod.delta_l:g}, sink {args.sink}{' (phases on the GPU)' if on_gpu else ''} "
         f"({'paced' if sink.paced else 'as fast as possible'})"
         + ("" if key is None else ", authenticated packets only"),
         file=sys.stderr,

@@ -19,27 +19,30 @@ Profiles (``modulation.profile`` in the arena file):
   black, which cannot be balanced. The codes: ``+`` is one of the two 8-bit codes around ``c_i + v_i``,
   ``-`` the code nearest to ``2 c_i - lin(+)``, so the linear mean misses ``c_i`` by less than half a
   code step; of those choices the one whose L* step is nearest to 2ΔL is taken. Pure white and black
-  (and pure primaries) would carry no signal at all, so a *clip allowance*
-  (``modulation.clip_allowance_l8``, 2 by default, 0 for exact) lets the centre of the pair move towards
-  mid-grey where the full step does not fit, by as little lightness as gives it and at most the
-  allowance. Those are the only pixels where the fused image is not the input (about 0.5 CIEDE2000 on
-  pure white or black at 2, as the paper's profile has it there too).
+  and pure primaries would carry no signal at all, so a *clip allowance* (``modulation.clip_allowance_l8``,
+  2.2 by default, 0 for exact) lets the centre of the pair move where the full step does not fit: by as
+  little as gives it, in the direction that costs the least CIEDE2000 (darker for white, a little green and
+  less red for pure red), and never so far that the fused colour differs from the input by more than a
+  lightness change of the allowance costs at white (CIEDE2000 0.49 for 2.2, what the paper's profile
+  leaves on white). Those are the only pixels where the fused image is not the input
+  (:mod:`ipt.sender.pairs` has the details).
 - ``paper`` (:class:`PaperModulator`): Algorithm 1 as published, in 8-bit CIELAB (OpenCV's 8-bit Lab: L
   scaled to 0..255). The round trip changes every pixel a little, and clipped phases do not average to
   the original.
 
 Speed (``ipt``): each pixel's pair depends only on its 8-bit colour (and the mask sign), so pairs are
-kept in a table over all 2^24 colours (128 MB per ΔL and allowance, shared in a process), filled lazily
-(a colour is worked out, in about a microsecond, the first time it is seen, in the same pass), and one
-compiled pass (numba) writes both output frames of an input frame. numba compiles it when the first
-modulator is made (cached on disk where the package folder is writable).
+kept in a table over all 2^24 colours (128 MB per ΔL and allowance, shared in a process), and one
+compiled pass (numba) writes both output frames of an input frame (:mod:`ipt.sender.pairs`). The table
+fills lazily (a colour the first time a frame has it) unless :meth:`IptModulator.complete_table` filled
+it first, as the sender does before its clock starts (read from a cache file, or computed once). numba
+compiles the pass when the first modulator is made (cached on disk where it can write).
 """
 
 from __future__ import annotations
 
 import itertools
 import math
-import threading
+import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from fractions import Fraction
@@ -50,7 +53,9 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.errors import IptError
-from ipt.sender.colour import CODE_TO_LINEAR, L8_PER_LSTAR, LUMINANCE_WEIGHTS, lightness
+from ipt.sender.pairs import JIT_UNAVAILABLE, _modulate_rows_c, amplitude_grid, pair_table
+
+__all__ = ["JIT_UNAVAILABLE", "amplitude_grid"]  # re-exported: the simulator and the tests take them from here
 
 U8 = npt.NDArray[np.uint8]
 F64 = npt.NDArray[np.float64]
@@ -269,376 +274,9 @@ class PaperModulator:
         return [self.phase_frame(lab, phase_sign(first_output_index + i)) for i in range(count)]
 
 
-# --- the ipt profile: the colour maths of one pixel ------------------------------------------------------
-
-AMPLITUDE_STEPS: Final = 1 << 16
-"""Intervals of the luminance grid on which the amplitude a(Y) is solved (then interpolated linearly)."""
-
-
-def amplitude_grid(delta_l: float, steps: int = AMPLITUDE_STEPS) -> F64:
-    """``a(Y)`` at ``Y = k / steps``: the half-difference of luminance whose L* differ by 2ΔL around Y.
-
-    Solves ``L*(Y + a) - L*(Y - a) = 2·ΔL·100/255`` for ``0 <= a <= Y`` by bisection to float64
-    precision (``a = Y`` where even that is not enough: the darkest greys). ``a`` is not limited by
-    ``Y + a <= 1``: that bound is the per-channel one applied later.
-    """
-    _check_delta_l(delta_l)
-    target = 2.0 * delta_l / L8_PER_LSTAR
-    y = np.linspace(0.0, 1.0, steps + 1)
-    lo, hi = np.zeros_like(y), y.copy()
-    for _ in range(64):
-        a = (lo + hi) / 2
-        above = lightness(y + a) - lightness(y - a) > target
-        hi = np.where(above, a, hi)
-        lo = np.where(above, lo, a)
-    out: F64 = (lo + hi) / 2
-    return out
-
-
-_VALID: Final = np.uint64(1 << 63)
-_LOW24: Final = np.uint64(0xFFFFFF)
-_SHIFT_DOWN: Final = np.uint64(24)
-_MIDS: Final = (CODE_TO_LINEAR[:-1] + CODE_TO_LINEAR[1:]) / 2
-"""Linear light half way between consecutive codes: the nearest code to x is the number of mids below x."""
-
-
-def _nearest(x: float, mids: F64) -> int:
-    """The 8-bit code nearest to linear ``x`` (``np.searchsorted(mids, x)``)."""
-    lo, hi = 0, mids.shape[0]
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if mids[mid] < x:
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
-
-
-def _floor_code(x: float, lin: F64) -> int:
-    """The largest 8-bit code whose linear light is at most ``x`` (0 if none)."""
-    lo, hi = 0, lin.shape[0]
-    while lo < hi:
-        mid = (lo + hi) // 2
-        if lin[mid] <= x:
-            lo = mid + 1
-        else:
-            hi = mid
-    return max(lo - 1, 0)
-
-
-def _lstar(y: float) -> float:
-    """CIE L* of relative luminance ``y`` (as :func:`ipt.sender.colour.lightness`)."""
-    if y > 0.008856451679035631:  # (6/29)^3
-        return 116.0 * float(y ** (1.0 / 3.0)) - 16.0
-    return 116.0 * (y / 0.12841854934601665 + 4.0 / 29.0) - 16.0  # 3 (6/29)^2
-
-
-def _balanced(k: int, c: float, p: int, lin: F64, mids: F64) -> int:
-    """The ``-`` code that balances ``+`` code ``p`` around code ``k`` (linear ``c``): nearest to 2c - lin(p);
-    -1 if the mean of the two would miss ``c`` by more than 8-bit quantisation (half a code step at ``k``)."""
-    q = min(int(_nearest_c(2.0 * c - lin[p], mids)), k)
-    tol = max(lin[min(k + 1, 255)] - c, c - lin[max(k - 1, 0)]) / 2.0
-    if abs(lin[p] + lin[q] - 2.0 * c) > 2.0 * tol:
-        return -1
-    return q
-
-
-def _luminance_of_lstar(lstar: float) -> float:
-    """Relative luminance of CIE L* (the inverse of :func:`_lstar`)."""
-    f = (lstar + 16.0) / 116.0
-    if f > 6.0 / 29.0:
-        return f * f * f
-    return 0.12841854934601665 * (f - 4.0 / 29.0)
-
-
-def _amplitude(y: float, agrid: F64) -> float:
-    """a(Y), linearly interpolated in :func:`amplitude_grid`."""
-    n = agrid.shape[0] - 1
-    x = y * n
-    k = min(max(int(x), 0), n - 1)
-    return float(agrid[k] + (agrid[k + 1] - agrid[k]) * (x - k))
-
-
-def _fill(c0: float, c1: float, c2: float, a: float, w: F64) -> tuple[float, float, float]:
-    """The half-difference v (linear RGB) whose luminance is ``a``, within the room of each channel.
-
-    Water-filling: v_i = min(t·c_i, m_i) with m_i = min(c_i, 1 - c_i), t such that w·v = a. Channels that
-    reach their bound are held there and the others raised; t = a / Y (chromaticity held) when none does.
-    With no t enough, v = m.
-    """
-    w0, w1, w2 = w[0], w[1], w[2]
-    m0, m1, m2 = min(c0, 1.0 - c0), min(c1, 1.0 - c1), min(c2, 1.0 - c2)
-    s0 = s1 = s2 = False
-    t = 0.0
-    for _ in range(4):
-        need, slope = a, 0.0
-        if s0:
-            need -= w0 * m0
-        elif c0 > 0.0:
-            slope += w0 * c0
-        if s1:
-            need -= w1 * m1
-        elif c1 > 0.0:
-            slope += w1 * c1
-        if s2:
-            need -= w2 * m2
-        elif c2 > 0.0:
-            slope += w2 * c2
-        t = need / slope if slope > 0.0 else 0.0
-        changed = False
-        if not s0 and c0 > 0.0 and t * c0 > m0:
-            s0 = changed = True
-        if not s1 and c1 > 0.0 and t * c1 > m1:
-            s1 = changed = True
-        if not s2 and c2 > 0.0 and t * c2 > m2:
-            s2 = changed = True
-        if not changed:
-            break
-    v0 = m0 if s0 else max(0.0, min(t * c0, m0))
-    v1 = m1 if s1 else max(0.0, min(t * c1, m1))
-    v2 = m2 if s2 else max(0.0, min(t * c2, m2))
-    return v0, v1, v2
-
-
-def _recentre(c0: float, c1: float, c2: float, y: float, y_f: float, bright: bool) -> tuple[float, float, float]:
-    """The linear colour ``c`` (luminance ``y``) moved to luminance ``y_f``: scaled if ``bright`` (keeps the
-    chromaticity), else shifted by the same amount in every channel (grey added)."""
-    if bright:
-        scale = y_f / y
-        return c0 * scale, c1 * scale, c2 * scale
-    return c0 + (y_f - y), c1 + (y_f - y), c2 + (y_f - y)
-
-
-def _ipt_pair(
-    r: int, g: int, b: int, lin: F64, mids: F64, agrid: F64, w: F64, target: float, allowance: float
-) -> np.uint64:
-    """The pair of one colour: ``valid | up | down << 24`` with up/down packed as ``r << 16 | g << 8 | b``.
-
-    ``target`` is 2ΔL and ``allowance`` the clip allowance, both in L* units.
-    """
-    c0, c1, c2 = lin[r], lin[g], lin[b]
-    w0, w1, w2 = w[0], w[1], w[2]
-    y = w0 * c0 + w1 * c1 + w2 * c2
-    a = _amplitude_c(y, agrid)
-    v0, v1, v2 = _fill_c(c0, c1, c2, a, w)
-    k0, k1, k2 = r, g, b  # the codes the pair is balanced around
-    reach = w0 * v0 + w1 * v1 + w2 * v2
-    if allowance > 0.0 and _lstar_c(y + reach) - _lstar_c(y - reach) < target * (1.0 - 1e-4):
-        # Too close to white or black for the full step: move the centre of the pair towards the middle
-        # by as little lightness as gives the full step, at most `allowance` (scaling down keeps the
-        # chromaticity of bright colours; dark ones get grey added).
-        lstar = _lstar_c(y)
-        bright = lstar >= 50.0
-        if bright:
-            y_far = _luminance_of_lstar_c(max(lstar - allowance, 0.0))
-        else:
-            y_far = _luminance_of_lstar_c(min(lstar + allowance, 100.0))
-        lo, hi = 0.0, 1.0
-        for it in range(26):
-            f = hi if it == 0 else (lo + hi) / 2.0
-            y_f = y + f * (y_far - y)
-            d0, d1, d2 = _recentre_c(c0, c1, c2, y, y_f, bright)
-            u0, u1, u2 = _fill_c(d0, d1, d2, _amplitude_c(y_f, agrid), w)
-            reach = w0 * u0 + w1 * u1 + w2 * u2
-            enough = _lstar_c(y_f + reach) - _lstar_c(y_f - reach) >= target * (1.0 - 1e-4)
-            if it == 0 and not enough:  # even the whole allowance falls short: use it all
-                lo = hi
-                break
-            if enough:
-                hi = f
-            else:
-                lo = f
-        f = hi
-        y_f = y + f * (y_far - y)
-        c0, c1, c2 = _recentre_c(c0, c1, c2, y, y_f, bright)
-        v0, v1, v2 = _fill_c(c0, c1, c2, _amplitude_c(y_f, agrid), w)
-        k0, k1, k2 = _nearest_c(c0, mids), _nearest_c(c1, mids), _nearest_c(c2, mids)
-    # Codes: for each channel the + code is one of the two around c_i + v_i and the - code balances it
-    # (nearest to 2 c_i - lin(+); a + code that cannot be balanced within half a code step is skipped, the
-    # lower one always can); of those (up to 8) combinations, the one whose L* difference is nearest to 2ΔL
-    # wins, so that the quantisation of a few dominant colours does not bias the signal.
-    lo0 = min(max(_floor_code_c(c0 + v0, lin), k0), 255) if v0 > 0.0 else k0
-    lo1 = min(max(_floor_code_c(c1 + v1, lin), k1), 255) if v1 > 0.0 else k1
-    lo2 = min(max(_floor_code_c(c2 + v2, lin), k2), 255) if v2 > 0.0 else k2
-    n0 = 2 if (v0 > 0.0 and lo0 < 255) else 1
-    n1 = 2 if (v1 > 0.0 and lo1 < 255) else 1
-    n2 = 2 if (v2 > 0.0 and lo2 < 255) else 1
-    best = 1e300
-    p0, q0, p1, q1, p2, q2 = k0, k0, k1, k1, k2, k2
-    for i0 in range(n0):
-        e0 = lo0 + i0
-        f0 = _balanced_c(k0, c0, e0, lin, mids)
-        if f0 < 0:
-            continue
-        for i1 in range(n1):
-            e1 = lo1 + i1
-            f1 = _balanced_c(k1, c1, e1, lin, mids)
-            if f1 < 0:
-                continue
-            for i2 in range(n2):
-                e2 = lo2 + i2
-                f2 = _balanced_c(k2, c2, e2, lin, mids)
-                if f2 < 0:
-                    continue
-                y_up = w0 * lin[e0] + w1 * lin[e1] + w2 * lin[e2]
-                y_down = w0 * lin[f0] + w1 * lin[f1] + w2 * lin[f2]
-                miss = abs(_lstar_c(y_up) - _lstar_c(y_down) - target)
-                if miss < best:
-                    best = miss
-                    p0, q0, p1, q1, p2, q2 = e0, f0, e1, f1, e2, f2
-    up = (np.uint64(p0) << np.uint64(16)) | (np.uint64(p1) << np.uint64(8)) | np.uint64(p2)
-    down = (np.uint64(q0) << np.uint64(16)) | (np.uint64(q1) << np.uint64(8)) | np.uint64(q2)
-    return _VALID | up | (down << _SHIFT_DOWN)
-
-
-def _ipt_rows(
-    rgb: U8,
-    mask: npt.NDArray[np.int8],
-    table: npt.NDArray[np.uint64],
-    lin: F64,
-    mids: F64,
-    agrid: F64,
-    w: F64,
-    target: float,
-    allowance: float,
-    out_plus: U8,
-    out_minus: U8,
-    want_plus: bool,
-    want_minus: bool,
-    row0: int,
-    row1: int,
-) -> None:
-    """Rows ``row0..row1`` of both phases (those wanted); fills the table entries it needs."""
-    width = rgb.shape[1]
-    for yy in range(row0, row1):
-        for xx in range(width):
-            m = mask[yy, xx]
-            r, g, b = rgb[yy, xx, 0], rgb[yy, xx, 1], rgb[yy, xx, 2]
-            if m == 0:
-                if want_plus:
-                    out_plus[yy, xx, 0], out_plus[yy, xx, 1], out_plus[yy, xx, 2] = r, g, b
-                if want_minus:
-                    out_minus[yy, xx, 0], out_minus[yy, xx, 1], out_minus[yy, xx, 2] = r, g, b
-                continue
-            i = (np.int64(r) << 16) | (np.int64(g) << 8) | np.int64(b)
-            e = table[i]
-            if e == 0:
-                e = _ipt_pair_c(r, g, b, lin, mids, agrid, w, target, allowance)
-                table[i] = e
-            up = e & _LOW24
-            down = (e >> _SHIFT_DOWN) & _LOW24
-            if m < 0:
-                up, down = down, up
-            if want_plus:
-                out_plus[yy, xx, 0] = (up >> np.uint64(16)) & np.uint64(255)
-                out_plus[yy, xx, 1] = (up >> np.uint64(8)) & np.uint64(255)
-                out_plus[yy, xx, 2] = up & np.uint64(255)
-            if want_minus:
-                out_minus[yy, xx, 0] = (down >> np.uint64(16)) & np.uint64(255)
-                out_minus[yy, xx, 1] = (down >> np.uint64(8)) & np.uint64(255)
-                out_minus[yy, xx, 2] = down & np.uint64(255)
-
-
-def _ipt_colours(
-    codes: U8,
-    table: npt.NDArray[np.uint64],
-    lin: F64,
-    mids: F64,
-    agrid: F64,
-    w: F64,
-    target: float,
-    allowance: float,
-) -> None:
-    """Fill the table entries of the colours ``codes`` (N×3)."""
-    for j in range(codes.shape[0]):
-        r, g, b = codes[j, 0], codes[j, 1], codes[j, 2]
-        i = (np.int64(r) << 16) | (np.int64(g) << 8) | np.int64(b)
-        if table[i] == 0:
-            table[i] = _ipt_pair_c(r, g, b, lin, mids, agrid, w, target, allowance)
-
-
-JIT_UNAVAILABLE: str | None = None
-"""Why numba cannot compile here (e.g. memory that is both writable and executable is forbidden, as
-under systemd's MemoryDenyWriteExecute), or None if it can. The ``ipt`` profile needs it."""
-
-
-def _jit(fn: Callable[..., Any]) -> Any:
-    """``fn`` compiled by numba (nogil, so worker threads run in parallel); cached on disk if possible.
-
-    Where numba cannot run, a stand-in that raises :class:`ModulationError` when called, so that the
-    module (and the ``paper`` profile) still imports.
-    """
-    global JIT_UNAVAILABLE
-    try:
-        import numba
-    except (ImportError, OSError) as exc:  # OSError: llvmlite refused executable memory
-        JIT_UNAVAILABLE = f"numba cannot compile here ({type(exc).__name__}: {exc})"
-
-        def unavailable(*_args: Any) -> Any:
-            raise ModulationError(f"the ipt modulation profile needs numba, but {JIT_UNAVAILABLE}")
-
-        return unavailable
-    try:
-        return numba.njit(nogil=True, cache=True)(fn)
-    except RuntimeError:  # no writable cache location: compile in every process
-        return numba.njit(nogil=True)(fn)
-
-
-# The compiled versions. Each function calls the compiled version of the ones above it, looked up as a
-# global when it is compiled (at its first call).
-_nearest_c: Any = _jit(_nearest)
-_floor_code_c: Any = _jit(_floor_code)
-_lstar_c: Any = _jit(_lstar)
-_luminance_of_lstar_c: Any = _jit(_luminance_of_lstar)
-_amplitude_c: Any = _jit(_amplitude)
-_fill_c: Any = _jit(_fill)
-_balanced_c: Any = _jit(_balanced)
-_recentre_c: Any = _jit(_recentre)
-_ipt_pair_c: Any = _jit(_ipt_pair)
-_ipt_rows_c: Any = _jit(_ipt_rows)
-_ipt_colours_c: Any = _jit(_ipt_colours)
-
-
-class _PairTable:
-    """The lazily filled pairs of every 8-bit colour for one ΔL and clip allowance; shared by all
-    modulators in a process."""
-
-    def __init__(self, delta_l: float, clip_allowance_l8: float) -> None:
-        self.delta_l = delta_l
-        self.allowance = clip_allowance_l8 / L8_PER_LSTAR
-        self.agrid = amplitude_grid(delta_l)
-        # Written through once (128 MB) rather than np.zeros' untouched pages: faulting pages in one at a
-        # time, at random, as new colours come (a page per colour at first) costs far more per page.
-        self.table = np.empty(1 << 24, dtype=np.uint64)
-        self.table.fill(0)
-        self.lin = np.ascontiguousarray(CODE_TO_LINEAR)
-        self.mids = np.ascontiguousarray(_MIDS)
-        self.w = np.ascontiguousarray(LUMINANCE_WEIGHTS)
-        self.target = 2.0 * delta_l / L8_PER_LSTAR
-
-    def args(self) -> tuple[Any, ...]:
-        return self.table, self.lin, self.mids, self.agrid, self.w, self.target, self.allowance
-
-
-_TABLES: dict[tuple[float, float], _PairTable] = {}
-_TABLES_LOCK = threading.Lock()
-
-
-def _pair_table(delta_l: float, clip_allowance_l8: float) -> _PairTable:
-    with _TABLES_LOCK:
-        key = (delta_l, clip_allowance_l8)
-        table = _TABLES.get(key)
-        if table is None:
-            table = _TABLES[key] = _PairTable(delta_l, clip_allowance_l8)
-        return table
-
-
-def _unpack(entries: npt.NDArray[np.uint64]) -> tuple[U8, U8]:
-    shifts = np.array([16, 8, 0], dtype=np.uint64)
-    up = ((entries[:, None] >> shifts) & np.uint64(255)).astype(np.uint8)
-    down = (((entries[:, None] >> _SHIFT_DOWN) >> shifts) & np.uint64(255)).astype(np.uint8)
-    return up, down
-
+# --- the ipt profile ----------------------------------------------------------------------------------
+# The colour maths of one pixel, the table of all colours and the compiled frame pass are in
+# ipt.sender.pairs; what the profile does with them is here.
 
 class IptModulator:
     """The ``ipt`` profile (see the module doc): colour-exact, Talbot-balanced, fast.
@@ -646,11 +284,15 @@ class IptModulator:
     ``mask`` is T_mask (+1 white tag pixel, -1 black, 0 untouched) at the output resolution. ``threads``
     worker threads share each frame (by rows); 1 keeps all the work on the calling thread.
 
-    ``clip_allowance_l8`` (8-bit L units, default 0): where the content is too close to white or black for
-    a balanced pair of the full step (pure white, pure black, and next to them), the centre of the pair may
-    move towards mid-grey by up to this much lightness, so that the camera still gets a signal there. The
-    average the eye sees then differs from the input by that much at those pixels (about 0.22 CIEDE2000
-    per unit near white and black). 0 keeps the average exact everywhere.
+    ``clip_allowance_l8`` (8-bit L units, default 0): where the content leaves no room for a balanced pair
+    of the full step (pure white and black, pure primaries, and colours next to them), the centre of the
+    pair may move, so that the camera still gets a signal there, by as little as gives the full step and in
+    the direction that costs least; the average the eye sees then differs from the input at those pixels
+    by at most what a lightness change of ``clip_allowance_l8`` costs at white (CIEDE2000 0.45 for 2; see
+    :mod:`ipt.sender.pairs`). 0 keeps the average exact everywhere.
+
+    The pairs come from the process's table for ΔL and the allowance, filled as colours appear;
+    :meth:`complete_table` fills all of them first (the sender does, before its clock starts).
     """
 
     profile = "ipt"
@@ -672,10 +314,13 @@ class IptModulator:
         self.mask = np.ascontiguousarray(mask)
         self.threads = threads
         self.clip_allowance_l8 = float(clip_allowance_l8)
-        self._pairs = _pair_table(self.delta_l, self.clip_allowance_l8)
+        if JIT_UNAVAILABLE is not None:
+            raise ModulationError(f"the ipt modulation profile needs numba, but {JIT_UNAVAILABLE}")
+        self._pairs = pair_table(self.delta_l, self.clip_allowance_l8)
         # Compile (or load from the disk cache) the kernel now rather than in the first frame.
         tiny = np.zeros((1, 1, 3), np.uint8)
-        _ipt_rows_c(tiny, np.ones((1, 1), np.int8), *self._pairs.args(), tiny.copy(), tiny.copy(), True, True, 0, 1)
+        one = np.ones((1, 1), np.int8)
+        _modulate_rows_c(tiny, one, *self._pairs.args(), tiny.copy(), tiny.copy(), True, True, 0, 1)
         self._pool = ThreadPoolExecutor(threads - 1, thread_name_prefix="ipt-modulate") if threads > 1 else None
 
     def close(self) -> None:
@@ -687,10 +332,18 @@ class IptModulator:
 
     def pair_codes(self, codes: U8) -> tuple[U8, U8]:
         """The (+, -) codes of N colours (N×3 uint8): what a white tag pixel (mask +1) of that colour shows."""
-        codes = np.ascontiguousarray(codes, dtype=np.uint8).reshape(-1, 3)
-        _ipt_colours_c(codes, *self._pairs.args())
-        idx = (codes[:, 0].astype(np.int64) << 16) | (codes[:, 1].astype(np.int64) << 8) | codes[:, 2]
-        return _unpack(self._pairs.table[idx])
+        return self._pairs.pairs(codes)
+
+    @property
+    def table_complete(self) -> bool:
+        """Every colour's pair is in the table: no frame will compute one."""
+        return self._pairs.complete
+
+    def complete_table(self, cache_dir: os.PathLike[str] | None, log: Callable[[str], None]) -> str:
+        """Fill the pairs of all colours before frames are due: read from the cache file in ``cache_dir`` or
+        computed (progress through ``log``) and kept there (see :meth:`PairTable.complete_with_cache`).
+        Returns a sentence saying which."""
+        return self._pairs.complete_with_cache(cache_dir, log)
 
     # -- frames --
 
@@ -716,12 +369,12 @@ class IptModulator:
             minus is not None,
         )
         if self._pool is None or row1 - row0 < 64:
-            _ipt_rows_c(*args, row0, row1)
+            _modulate_rows_c(*args, row0, row1)
             return
         bounds = [row0 + (row1 - row0) * k // self.threads for k in range(self.threads + 1)]
         calls: list[tuple[Any, ...]] = [(*args, r0, r1) for r0, r1 in itertools.pairwise(bounds[1:])]
-        futures = [self._pool.submit(_ipt_rows_c, *call) for call in calls]
-        _ipt_rows_c(*args, bounds[0], bounds[1])
+        futures = [self._pool.submit(_modulate_rows_c, *call) for call in calls]
+        _modulate_rows_c(*args, bounds[0], bounds[1])
         for f in futures:
             f.result()
 
@@ -779,7 +432,7 @@ class IptModulator:
         rgb = np.ascontiguousarray(frame_rgb)
         mask = np.ascontiguousarray(self.mask[y0:y1, x0:x1])
         out = np.empty_like(rgb)
-        _ipt_rows_c(rgb, mask, *self._pairs.args(), out, out, sign > 0, sign <= 0, 0, rgb.shape[0])
+        _modulate_rows_c(rgb, mask, *self._pairs.args(), out, out, sign > 0, sign <= 0, 0, rgb.shape[0])
         return out
 
     def modulate(self, frame_rgb: U8, first_output_index: int, count: int) -> list[U8]:

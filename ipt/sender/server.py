@@ -35,6 +35,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
+import os
 import queue
 import signal
 import socket
@@ -45,7 +46,7 @@ from collections import Counter, deque
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from typing import Any, Final
+from typing import Any, Final, Literal
 
 import numpy as np
 import numpy.typing as npt
@@ -57,6 +58,7 @@ from ipt.protocol import ACCEPTED, PacketFilter
 from ipt.sender.content import GeneratedScene, Scene
 from ipt.sender.display import Sink
 from ipt.sender.modulator import FrameTiming, Modulator, make_modulator, phase_sign, resize_to
+from ipt.sender.pairs import default_cache_dir
 from ipt.sender.scene import ArScene
 from ipt.tagmap import grid_tag_map
 
@@ -162,6 +164,12 @@ class SenderStats:
     """Datagram outcomes: ``accepted`` and each rejection reason (and ``error``)."""
     vehicles: int = 0
     """Vehicles on the overlay when the statistics were taken."""
+    pacing: dict[str, Any] | None = None
+    """What the sink saw of its frames reaching the screen, for a sink that times them (the window:
+    :meth:`~ipt.sender.display.WindowSink.pacing`): refreshes that repeated a frame, frames never shown."""
+    startup_s: float = math.nan
+    """From the start of the run to the first frame shown: the colour table, warming memory, the first
+    frame's work (the modulator was made before)."""
 
     @property
     def frames_per_s(self) -> float:
@@ -197,6 +205,12 @@ class SenderStats:
             text += f" content_errors={self.content_errors}"
         if self.display_errors:
             text += f" display_errors={self.display_errors}"
+        if self.pacing is not None:
+            p = self.pacing
+            text += (
+                f" repeated_vsyncs={p['repeated_vsyncs']} dropped_frames={p['dropped_frames']} "
+                f"present_p99={p['present_interval_p99_ms']:.2f}ms"
+            )
         return text
 
     def to_dict(self) -> dict[str, Any]:
@@ -223,6 +237,7 @@ class SenderStats:
             "content_cpu_p50_ms": round(self.content_cpu_ms.percentile(50), 3),
             "content_cpu_p99_ms": round(self.content_cpu_ms.percentile(99), 3),
             "content_cpu_mean_ms": round(self.content_cpu_ms.mean_ms, 3),
+            "startup_s": round(self.startup_s, 3),
             "missed_deadlines": self.missed,
             "late_frames": self.late,
             "repeated_phases": self.missed + self.late,
@@ -230,6 +245,7 @@ class SenderStats:
             "content_errors": self.content_errors,
             "display_errors": self.display_errors,
             "packets": dict(sorted(self.packets.items())),
+            "pacing": self.pacing,
         }
 
 
@@ -298,6 +314,11 @@ EARLY_ROWS: Final = 0.4
 the two output frames of an input frame carry about the same work."""
 
 
+MAX_CONTENT_NOTES: Final = 20
+"""Notes from the scene (frames of another size) logged in one run at most: a file that changes size at
+every frame does not fill the log."""
+
+
 WARM_FRAMES: Final = 6
 """Frame-sized buffers each worker thread faults in before the clock starts (content frame, resized copy,
 overlay and phases in flight; more than any one thread holds at once)."""
@@ -348,6 +369,8 @@ class _Renderer:
         self.content_errors = 0
         self.content_failing = False
         self.last_content_error: str | None = None
+        self.notes: list[str] = []  # lines for the user about the scene (a frame of another size), said once
+        self._scene_shape: tuple[int, int] | None = None  # (H, W) of the scene's newest frame
         self._phases: tuple[U8, U8] | None = None
         self._input = -1
         self._next: tuple[int, Future[_Content]] | None = None
@@ -379,12 +402,25 @@ class _Renderer:
         with self._fault_lock:
             return self.content_failing, self.content_errors, self.last_content_error
 
+    def take_notes(self) -> list[str]:
+        """The notes about the scene since the last call."""
+        with self._fault_lock:
+            notes, self.notes = self.notes, []
+        return notes
+
     def _scene_frame(self, i: int, w: int, h: int) -> U8:
         rgb = self.scene.frame(i, self.input_rate_hz)
         if not (isinstance(rgb, np.ndarray) and rgb.dtype == np.uint8 and rgb.ndim == 3 and rgb.shape[2] == 3):
             got = f"{getattr(rgb, 'shape', '?')} {getattr(rgb, 'dtype', type(rgb).__name__)}"
             raise TypeError(f"the scene gave {got}, not an H×W×3 uint8 image")
-        if rgb.shape[:2] != (h, w):
+        shape = (int(rgb.shape[0]), int(rgb.shape[1]))
+        if shape != self._scene_shape:
+            if shape != (h, w):  # resized from now on: say so once
+                with self._fault_lock:
+                    self.notes.append(f"the scene's frames are {shape[1]}x{shape[0]} from input frame {i} on; "
+                                      f"resized to {w}x{h}")  # fmt: skip
+            self._scene_shape = shape
+        if shape != (h, w):
             rgb = resize_to(rgb, w, h)
         return np.ascontiguousarray(rgb)
 
@@ -552,6 +588,7 @@ class Sender:
         on_listening: Callable[[tuple[str, int]], None] | None = None,
         input_rate_hz: float | None = None,
         modulator: Modulator | None = None,
+        pair_cache: os.PathLike[str] | None = None,
     ) -> None:
         if frames is not None and frames < 0:
             raise SenderError(f"frames must be >= 0, got {frames}")
@@ -585,6 +622,7 @@ class Sender:
                 f"{arena.projector.width_px}x{arena.projector.height_px}"
             )
         self.modulator = modulator
+        self.pair_cache = pair_cache
         # Sinks that are done with a frame when show() returns let the phases be written into a ring of
         # reused arrays: the pair shown, those of the frames up to `lookahead` ahead, and one begun early.
         buffers = lookahead + 3 if getattr(sink, "borrows", False) else None
@@ -617,7 +655,9 @@ class Sender:
         self._display_failed = 0  # consecutive output frames the sink failed to show
         self._content_failing = False  # the scene was failing at the last check
         self._content_errors_before = 0  # content errors counted before the current failure began
+        self._notes_said = 0  # the scene's notes logged so far
         self._started = False
+        self._run_start = math.nan
 
     # -- signals: they only set flags --
 
@@ -650,6 +690,7 @@ class Sender:
     # -- the run --
 
     async def run(self) -> SenderStats:
+        self._run_start = time.monotonic()
         loop = asyncio.get_running_loop()
         self._install_signal_handlers(loop)
         ok = False
@@ -667,6 +708,16 @@ class Sender:
     async def _startup(self, loop: asyncio.AbstractEventLoop) -> None:
         self._render = _Worker("ipt-render")
         self._content = self.renderer.content_worker = _Worker("ipt-content")
+        # Deadlines from the first frame: every colour's pair before the clock starts (read from the cache,
+        # or computed once), so that no frame has to work out the colours it is the first to show.
+        complete: Callable[..., str] | None = getattr(self.modulator, "complete_table", None)
+        if self.paced and complete is not None and not getattr(self.modulator, "table_complete", True):
+
+            def log(text: str) -> None:
+                self.log(f"ipt-sender: {text}")
+
+            said = await asyncio.wrap_future(self._render.submit(complete, self.pair_cache, log))
+            log(said)
         # Before the clock starts, fault in the memory the first frames will use (see ipt.memory): without
         # this the first second at 1920x2160 missed up to 8 deadlines, each frame paying tens of
         # milliseconds for fresh pages.
@@ -772,6 +823,11 @@ class Sender:
             self._content_errors_before = errors
         self._content_failing = failing
         self.stats.content_errors = errors
+        for note in self.renderer.take_notes():
+            self._notes_said += 1
+            if self._notes_said <= MAX_CONTENT_NOTES:
+                last = self._notes_said == MAX_CONTENT_NOTES
+                self.log(f"ipt-sender: {note}" + (" (no more such notes)" if last else ""))
 
     async def _main_loop(self) -> None:
         period = 1.0 / self.rate_hz
@@ -808,6 +864,7 @@ class Sender:
             shown_at = time.monotonic()
             if j == 0:
                 first = shown_at
+                stats.startup_s = shown_at - self._run_start
             await self._show(rendered.frame, j)
             self._report_content()
             j += 1
@@ -844,6 +901,9 @@ class Sender:
         if self._listener is not None and self._listener.errors:
             stats.packets[ERROR] = self._listener.errors
         stats.overlay_errors = self.renderer.overlay_errors
+        pacing: Callable[[], dict[str, Any]] | None = getattr(self.sink, "pacing", None)
+        if pacing is not None:
+            stats.pacing = pacing()
         if self.ar is not None:
             stats.vehicles = len(self.ar.vehicle_ids())
         if self.renderer.first_overlay_error is not None and not self._overlay_error_logged:
@@ -906,6 +966,7 @@ async def run_sender(
     on_listening: Callable[[tuple[str, int]], None] | None = None,
     input_rate_hz: float | None = None,
     modulator: Modulator | None = None,
+    pair_cache: os.PathLike[str] | Literal["default"] | None = "default",
 ) -> SenderStats:
     """Run the sender until ``frames`` output frames are shown, a signal, ``stop`` or the sink says stop.
 
@@ -934,6 +995,9 @@ async def run_sender(
         input_rate_hz: the content's frame rate (default: the arena's ``modulation.input_rate_hz``); any
             ratio to the projector rate works (:class:`~ipt.sender.modulator.FrameTiming`).
         modulator: the modulator (default: the arena's ``modulation.profile`` for its tag map and ΔL).
+        pair_cache: folder of the ``ipt`` profile's colour table cache (default
+            :func:`~ipt.sender.pairs.default_cache_dir`; ``None``: none, the table is computed at every
+            start). A paced run completes the table before its first frame.
     """
     if not stats_every_s > 0:
         raise SenderError(f"stats_every_s must be > 0, got {stats_every_s}")
@@ -958,6 +1022,7 @@ async def run_sender(
             on_listening=on_listening,
             input_rate_hz=input_rate_hz,
             modulator=modulator,
+            pair_cache=default_cache_dir() if pair_cache == "default" else pair_cache,
         )
     except BaseException:
         sink.abort()  # nothing was shown: leave nothing behind (a file sink may have started its file)
