@@ -367,7 +367,7 @@ class ReceiverConfig(StrictModel):
     )
     fps: float | None = Field(
         None,
-        gt=0,
+        ge=1,  # ipt.config.models.MIN_CAMERA_RATE_HZ: a pacing wait of 1/fps must stay a sane number
         le=1000,
         description="Camera frame rate in Hz. Default: the video file's rate; 120 for the simulator; the "
         "device's own setting for a camera.",
