@@ -175,7 +175,7 @@ CASES = [
     _c("run-source-bogus", f"{RUN} --source camera0", "source", "source must be sim, video:PATH"),
     _c("run-send-port-0", f"{RUN} --send 127.0.0.1:0", "send", "port 0"),
     _c("run-vehicle-too-big", f"{RUN} --vehicle-id 70000", "vehicle_id", "65535"),
-    _c("run-fps-negative", f"{RUN} --fps -1", "--fps", "above 0"),
+    _c("run-fps-negative", f"{RUN} --fps -1", "--fps", "frame rate of 1 to 1000 Hz"),
     _c("run-max-frames-zero", "ipt-receiver run --max-frames 0", "--max-frames", "positive integer"),
     _c("run-bogus-flag", "ipt-receiver run --frobnicate", "--frobnicate"),
     _c("receiver-no-command", "ipt-receiver", "COMMAND"),
