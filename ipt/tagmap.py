@@ -29,7 +29,7 @@ import numpy.typing as npt
 
 from ipt.config.models import ArenaConfig, finite_float
 from ipt.errors import IptError
-from ipt.fileio import output_group, read_text_file, write_text_atomic
+from ipt.fileio import WriteError, output_group, read_text_file, write_text_atomic
 from ipt.imageio import write_image
 
 TAG36H11_CELLS = 10
@@ -230,13 +230,16 @@ def grid_tag_map(arena: ArenaConfig) -> TagMap:
 def export_map(tag_map: TagMap, image_path: str | Path, layout_path: str | Path) -> None:
     """Write the map image (8-bit grey PNG at projector resolution) and the layout JSON, atomically.
 
-    Both appear together or neither does. A file that cannot be written (no such folder, a folder in the
-    way, no permission, a full or read-only disk) is a :class:`~ipt.fileio.WriteError` naming it.
+    Both appear together or neither does. Raises :class:`TagMapError` naming the path when one cannot be
+    written (no such folder, a folder in the way, no permission, a full or read-only disk).
     """
     img = tag_map.render_image()
-    with output_group():  # both files, or neither
-        write_image(image_path, img, TagMapError, suffix=".png")  # lossless, whatever the name says
-        write_text_atomic(layout_path, json.dumps(tag_map.layout_dict(), indent=1) + "\n")
+    try:
+        with output_group():  # both files, or neither
+            write_image(image_path, img, TagMapError, suffix=".png")  # lossless, whatever the name says
+            write_text_atomic(layout_path, json.dumps(tag_map.layout_dict(), indent=1) + "\n")
+    except WriteError as exc:
+        raise TagMapError(str(exc)) from None
 
 
 def _float_list(path: Path, where: str, value: Any, n: int) -> tuple[float, ...]:
