@@ -8,7 +8,6 @@ the final statistics line and exit status 0.
 from __future__ import annotations
 
 import argparse
-import asyncio
 import contextlib
 import gc
 import math
@@ -188,6 +187,8 @@ def _note(text: str) -> None:
 
 def _run(make: Callable[[], Coroutine[Any, Any, T]]) -> T:
     """Run a coroutine on uvloop where it is available, else on asyncio's own loop."""
+    import asyncio  # here, not at the top: asyncio alone takes longer to import than everything else up to main()
+
     try:
         import uvloop
     except ImportError:
