@@ -363,6 +363,8 @@ def _cases(z: Path, f: dict[str, Path]) -> dict[str, Callable[[], Run]]:
         "read-big": lambda: run("ipt-receiver", "run", "--config", z / "big.yaml", cwd=z, timeout=30),
         "read-key-dev-zero": lambda: run("ipt-sender", *sender, "--frames", "2", "--auth-key-file", "/dev/zero", cwd=z,
                                          timeout=30),
+        "read-receiver-key-fifo": lambda: run("ipt-receiver", "run", *run_args, "--auth-key-file", z / "fifo.yaml",
+                                              cwd=z, timeout=30),
         # --- where a send target that cannot be used came from
         "send-target-config": lambda: run("ipt-receiver", "run", "--config", z / "link-local.yaml", "--source",
                                           f"images:{frames}", "--fps", "120", cwd=z),
@@ -620,6 +622,7 @@ def test_a_video_cut_in_half_ends_the_run_and_says_so(case: str, results: Result
         ("read-fifo", "ipt", ("fifo.yaml", "named pipe", "not a regular file")),
         ("read-big", "ipt-receiver", ("big.yaml", "larger than 1 MiB")),
         ("read-key-dev-zero", "ipt-sender", ("/dev/zero", "character device", "key file")),
+        ("read-receiver-key-fifo", "ipt-receiver", ("fifo.yaml", "named pipe", "key file")),
         ("send-target-config", "ipt-receiver", ("link-local.yaml (send:)", "[fe80::1]:9")),
     ],
 )  # fmt: skip
