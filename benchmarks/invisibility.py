@@ -43,6 +43,7 @@ import numpy.typing as npt
 from sender import PHOTO_SEED, photo_video  # the sender benchmark's content (this folder is on sys.path)
 
 from ipt.config.models import load_arena_config, shipped_config_path
+from ipt.imageio import read_image
 from ipt.invisibility import SACCADE_PX, frame_indices, measure_scene
 from ipt.sender.content import GeneratedScene, VideoScene
 from ipt.videoio import FfvWriter
@@ -69,7 +70,7 @@ def make_independent_video(
     path: Path, seconds: float = 4.0, width: int = 1280, height: int = 720, fps: int = 25
 ) -> Path:
     """A natural-looking content video unlike the map app (see the module doc)."""
-    photo = cv2.cvtColor(cv2.imread(str(_sample("grace_hopper.jpg")), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    photo = read_image(_sample("grace_hopper.jpg"), "rgb")
     terrain = _terrain_rgb()
     half = height // 2
     with FfvWriter(path, width, height, fps) as writer:

@@ -4,7 +4,9 @@ receiver keeps its capture→send latency bounded with a CPU hog on every core.
 **Sender.** A real ``ipt-sender`` subprocess (null sink, paced at the projector rate, listening on
 127.0.0.1) at ``--width``×``--height`` (default 960×1080, where it meets its deadlines on a quiet
 2-core machine), with ``--auth-key-file`` and ``--vehicles 1..16`` (the recommended deployment: every
-datagram costs an HMAC). Three phases of ``--seconds`` each, in one process:
+datagram costs an HMAC) and ``--source-rate-limit 0``: all the traffic comes from 127.0.0.1 here, and
+this benchmark measures what the filter does with every datagram (``benchmarks/flood.py`` measures the
+limits). Three phases of ``--seconds`` each, in one process:
 
 - ``baseline``: no packets;
 - ``spread``: ``--vehicles`` vehicles each sending ``--rate`` authenticated poses per second, plus
@@ -285,7 +287,8 @@ def sender_load(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     log = work / "sender.log"
     vehicles = [str(v) for v in range(1, args.vehicles + 1)]
     cmd = [sys.executable, "-m", "ipt.sender.cli", "--config", str(arena_path), "--sink", "null", "--listen",
-           "127.0.0.1:0", "--stats-every", "1", "--auth-key-file", str(key_file), "--vehicles", *vehicles]  # fmt: skip
+           "127.0.0.1:0", "--stats-every", "1", "--auth-key-file", str(key_file), "--vehicles", *vehicles,
+           "--source-rate-limit", "0"]  # fmt: skip
     rate_hz = float(arena["projector"]["rate_hz"])
     phases: dict[str, Any] = {}
     with process(cmd, log) as proc:

@@ -1,4 +1,8 @@
-"""``ipt``: the arena tools — tag map export, simulator, evaluation and the end-to-end demo."""
+"""``ipt``: the arena tools — tag map export, simulator, evaluation and the end-to-end demo.
+
+Only the standard library and :mod:`ipt.cliutil` load with this module; everything else loads when a
+command runs, so that the stop signals are handled from the first moment (:mod:`ipt.signals`).
+"""
 
 from __future__ import annotations
 
@@ -12,20 +16,30 @@ from typing import TYPE_CHECKING
 from ipt import __version__
 from ipt.calib.cli import add_calibrate_parser
 from ipt.cliutil import Parser, positive_float, run_main
-from ipt.config.models import ArenaConfig, load_arena_config, load_yaml_model, shipped_config_path
 from ipt.errors import IptError
 
-if TYPE_CHECKING:  # the content module is imported only by the commands that render
+if TYPE_CHECKING:  # loaded only by the commands that use them
+    from ipt.config.models import ArenaConfig
     from ipt.sender.content import Scene
 
-DEFAULT_ARENA = shipped_config_path("arena.yaml")
+DEFAULT_ARENA_NAME = "arena.yaml"
+"""The arena shipped in ``ipt/config``, used when ``--config`` is not given."""
+
+
+def _default_arena() -> Path:
+    from ipt.config.models import shipped_config_path
+
+    return shipped_config_path(DEFAULT_ARENA_NAME)
 
 
 def _arena(path: str | None) -> ArenaConfig:
-    return load_arena_config(path if path is not None else DEFAULT_ARENA)
+    from ipt.config.models import load_arena_config
+
+    return load_arena_config(path if path is not None else _default_arena())
 
 
 def _scene(spec: str, arena: ArenaConfig, seed: int) -> Scene:
+    from ipt.imageio import IMAGE_SUFFIXES
     from ipt.sender.content import GeneratedScene, StillImageScene, VideoScene
     from ipt.sender.photos import PanningPhotoScene
 
@@ -35,7 +49,7 @@ def _scene(spec: str, arena: ArenaConfig, seed: int) -> Scene:
     if spec == "photos":
         return PanningPhotoScene(w, h, seed=seed)
     p = Path(spec)
-    if p.suffix.lower() in {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"}:
+    if p.suffix.lower() in IMAGE_SUFFIXES:
         return StillImageScene.from_file(p, w, h)
     return VideoScene(p, w, h)
 
@@ -50,18 +64,16 @@ def _cmd_map_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_map_check(args: argparse.Namespace) -> int:
-    import cv2
     import numpy as np
 
+    from ipt.imageio import read_image
     from ipt.tagmap import TagMapError, load_layout
 
     tm = load_layout(args.layout)
     print(f"ipt map check: {args.layout}: {len(tm.tags)} tags, ids unique, projector {tm.width_px}x{tm.height_px}")
     if args.image is None:
         return 0
-    img = cv2.imread(str(args.image), cv2.IMREAD_GRAYSCALE)
-    if img is None:
-        raise TagMapError(f"{args.image}: not an image file")
+    img = read_image(args.image, "grey", TagMapError)
     from ipt.config.models import DetectorConfig
     from ipt.receiver.detector import APRILTAG_TO_OPENCV_PX, TagDetector
 
@@ -79,6 +91,7 @@ def _cmd_map_check(args: argparse.Namespace) -> int:
 
 
 def _cmd_sim(args: argparse.Namespace) -> int:
+    from ipt.config.models import load_yaml_model
     from ipt.sim.arena import scene_for
     from ipt.sim.config import SimConfig, apply_arena_changes
     from ipt.sim.run import simulate_to_folder
@@ -94,10 +107,11 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
+    from ipt.config.models import load_yaml_model
     from ipt.demo import run_demo
     from ipt.sim.config import SimConfig
 
-    arena_path = Path(args.config) if args.config is not None else DEFAULT_ARENA
+    arena_path = Path(args.config) if args.config is not None else _default_arena()
     _arena(str(arena_path))  # a bad arena file is one line before anything starts
     sim = load_yaml_model(args.sim_config, SimConfig) if args.sim_config else None
     out = Path(args.out) if args.out else Path("results") / time.strftime("demo-%Y%m%d-%H%M%S")
@@ -173,7 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
     sub.required = True
 
-    cfg_help = f"arena YAML (default: the shipped paper arena, {DEFAULT_ARENA.name})"
+    cfg_help = f"arena YAML (default: the shipped paper arena, {DEFAULT_ARENA_NAME})"
 
     m = sub.add_parser("map", help="export or check the tag map")
     msub = m.add_subparsers(dest="map_command", metavar="ACTION", parser_class=Parser)
@@ -241,8 +255,8 @@ def build_parser() -> argparse.ArgumentParser:
         "everything, frame by frame, so the run is deterministic for a seed but slower than real time "
         "(about 0.1x on a 2-core machine: the default 15 s takes about 2.5 minutes). A status line on stderr "
         "shows progress; at the end the paper's error table goes to stdout and the results (summary.txt, "
-        "errors.png, report.json, poses.tum, groundtruth.tum, logs) to a folder. Ctrl-C stops early and "
-        "still scores what was flown (exit status 130).",
+        "errors.png, report.json, poses.tum, groundtruth.tum, logs) to a folder. Ctrl-C (or SIGTERM) stops "
+        "early and still scores what was flown (exit status 130, or 143 for SIGTERM).",
     )
     d.add_argument("--config", metavar="ARENA.yaml", help=cfg_help)
     d.add_argument(

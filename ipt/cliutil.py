@@ -1,15 +1,23 @@
-"""Shared plumbing of the command-line tools: one-line errors, exit codes, progress."""
+"""Shared plumbing of the command-line tools: one-line errors, exit codes, stop signals, progress.
+
+Kept light (standard library only): the tools import it before anything slow, so that the stop
+signals are handled from the first moment (:mod:`ipt.signals`).
+"""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import sys
+import threading
 from collections.abc import Callable, Sequence
 from typing import NoReturn
 
+from ipt import signals
 from ipt.errors import IptError
+from ipt.signals import Interrupted
 
 EXIT_USAGE = 2
 
@@ -48,15 +56,49 @@ def quiet_native_logs() -> None:
     os.environ.setdefault("OPENCV_LOG_LEVEL", "OFF")
 
 
-def run_main(prog: str, body: Callable[[Sequence[str] | None], int], argv: Sequence[str] | None) -> int:
-    """Run ``body``; a user mistake (:class:`IptError`) becomes one line on stderr and exit code 2."""
-    quiet_native_logs()
+def _file_names_print_as_given() -> None:
+    """Let stdout print any file name the user gave, also one that is not valid UTF-8.
+
+    Python decodes such a name with surrogate escapes; written back with ``surrogateescape`` it shows
+    the user's own bytes instead of ending the tool with a ``UnicodeEncodeError``. (stderr already
+    escapes them with backslashes, and error lines go through :func:`one_line`.)
+    """
+    with contextlib.suppress(AttributeError, ValueError, OSError):
+        sys.stdout.reconfigure(errors="surrogateescape")  # type: ignore[union-attr]
+
+
+def run_main(
+    prog: str,
+    body: Callable[[Sequence[str] | None], int],
+    argv: Sequence[str] | None,
+    *,
+    on_interrupt: Callable[[Interrupted], int] | None = None,
+) -> int:
+    """Run ``body``; a user mistake (:class:`IptError`) becomes one line on stderr and exit code 2.
+
+    The stop signals are handled from here on (:mod:`ipt.signals`): one arriving while ``body`` works
+    unwinds it (temporary files are removed on the way), then ``on_interrupt`` decides what is said and
+    the exit status; by default one line ``PROG: interrupted by SIGTERM; ...`` and 128 + the signal's
+    number. The previous signal handlers are put back when ``body`` returns.
+    """
+    main_thread = threading.current_thread() is threading.main_thread()
+    restore = signals.install() if main_thread else (lambda: None)
     try:
-        return body(argv)
-    except IptError as exc:
-        # One line, whatever a file name or key in the message contains.
-        print(f"{prog}: error: {one_line(str(exc))}", file=sys.stderr)
-        return EXIT_USAGE
+        quiet_native_logs()
+        _file_names_print_as_given()
+        try:
+            return body(argv)
+        except IptError as exc:
+            # One line, whatever a file name or key in the message contains.
+            print(f"{prog}: error: {one_line(str(exc))}", file=sys.stderr)
+            return EXIT_USAGE
+    except Interrupted as exc:
+        if on_interrupt is not None:
+            return on_interrupt(exc)
+        print(f"{prog}: interrupted by {exc.name}; nothing was left half-written", file=sys.stderr)
+        return exc.exit_status
     except KeyboardInterrupt:
         print(f"{prog}: interrupted; nothing was left half-written", file=sys.stderr)
         return 130
+    finally:
+        restore()

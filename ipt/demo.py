@@ -35,12 +35,11 @@ import asyncio
 import contextlib
 import json
 import math
-import signal
 import sys
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Coroutine
+from collections.abc import Callable, Coroutine, Hashable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final, TextIO, TypeVar
@@ -49,6 +48,7 @@ import numpy as np
 import numpy.typing as npt
 import yaml
 
+from ipt import signals
 from ipt.config.camera_info import save_camera_info
 from ipt.config.models import ArenaConfig, load_arena_config
 from ipt.config.receiver import ReceiverConfig
@@ -316,9 +316,9 @@ class _CountingFilter(PacketFilter):
         super().__init__(resync_after_s=10.0)
         self._lockstep = lockstep
 
-    def accept(self, data: bytes, now: float | None = None) -> PosePacket | None:
+    def accept(self, data: bytes, now: float | None = None, source: Hashable | None = None) -> PosePacket | None:
         try:
-            return super().accept(data, now)
+            return super().accept(data, now, source)
         finally:
             self._lockstep.packet_seen()
 
@@ -591,11 +591,8 @@ async def closed_loop(
     listening: asyncio.Future[tuple[str, int]] = loop.create_future()
     shower = _Status(status, count / cam.fps, cam.fps) if status is not None else None
 
-    def on_sigint() -> None:
-        interrupt.set()
-        # A second Ctrl-C is Python's own KeyboardInterrupt again (the shutdown is bounded anyway).
-        with contextlib.suppress(Exception):
-            loop.remove_signal_handler(signal.SIGINT)
+    def on_stop_signal(signum: int) -> None:
+        interrupt.set()  # Ctrl-C, SIGTERM or SIGHUP: stop flying and score what was flown (a second one waits)
 
     def on_listening(address: tuple[str, int]) -> None:
         if not listening.done():
@@ -627,12 +624,8 @@ async def closed_loop(
             name="ipt-demo-sender",
         )
         tasks: list[asyncio.Task[Any]] = []
-        handled = False
+        unroute = signals.route_to_loop(loop, on_stop_signal)
         try:
-            if threading.current_thread() is threading.main_thread():
-                with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-                    loop.add_signal_handler(signal.SIGINT, on_sigint)
-                    handled = True
             first: set[asyncio.Future[Any]] = {listening, sender_task}
             await asyncio.wait(first, return_when=asyncio.FIRST_COMPLETED)
             if not listening.done():
@@ -683,9 +676,7 @@ async def closed_loop(
                 if failure is None:
                     raise DemoError(f"the sender failed: {type(exc).__name__}: {exc}") from exc
             finally:
-                if handled:
-                    with contextlib.suppress(Exception):
-                        loop.remove_signal_handler(signal.SIGINT)
+                unroute()
                 if shower is not None:
                     shower.show(shower.line(flight, max(loop_end - loop_start, 1e-9)))
                     shower.end()
@@ -818,7 +809,8 @@ def _run_loop(make: Callable[[], Coroutine[Any, Any, T]]) -> T:
 def run_demo(arena_path: Path, seconds: float, out: Path, seed: int = 0, sim: SimConfig | None = None) -> int:
     """``ipt demo``: the closed loop, then the paper's table on stdout and the results in ``out``.
 
-    Exit status: 0, or 130 when interrupted (Ctrl-C), or 1 when the flight gave no pose at all.
+    Exit status: 0, or 128 + the signal's number when interrupted (130 for Ctrl-C, 143 for SIGTERM), or 1
+    when the flight gave no pose at all.
     """
     if not seconds > 0 or not math.isfinite(seconds):
         raise DemoError(f"--seconds must be a positive number, got {seconds:g}")
@@ -846,5 +838,5 @@ def run_demo(arena_path: Path, seconds: float, out: Path, seed: int = 0, sim: Si
     names = (*RESULT_NAMES, "sender.log", "receiver.log")
     print(f"ipt demo: results in {out}/ ({', '.join(n for n in names if (out / n).is_file())})")
     if run.interrupted:
-        return 130
+        return 128 + (signals.received() or 2)  # SIGINT unless a signal was noted
     return 0 if table is not None else 1

@@ -1,15 +1,40 @@
-"""Writing files so that a reader never sees half of one: write beside the target, then rename."""
+"""Files in and out for every tool: bounded reads of small files, and writes that a reader never sees half of.
+
+Reading (:func:`read_bytes_file`, :func:`read_text_file`): a configuration, a layout, a key or an image
+is read whole, so the read is bounded (a ``--config /dev/zero`` would otherwise grow to gigabytes) and
+only regular files are read. The file is opened with ``O_NONBLOCK`` and checked with ``fstat`` before
+a byte is read, so a named pipe with no writer is refused at once instead of blocking for ever.
+
+Writing (:func:`atomic_path`): write beside the target, then rename. Inside :func:`output_group`, the
+renames wait until the whole group succeeded, so the outputs of one run appear together or not at all.
+A disk that cannot take a file (full, over quota, read-only, file too large) is reported as one
+:class:`WriteError` naming the target, wherever the error surfaced (:func:`disk_write_error`); the
+temporary file is removed on any error and on the stop signals (:mod:`ipt.signals` turns those into an
+exception that unwinds through here).
+"""
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import errno
 import os
+import stat
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
 from ipt.errors import IptError
+
+MAX_CONFIG_BYTES = 1 << 20
+"""Largest configuration, camera_info, layout or key file read (1 MiB; the shipped ones are a few kB)."""
+
+DISK_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG})
+"""The ``errno`` values that mean the file system cannot take the file, whatever was being written."""
+
+_PARTIAL = ".partial"
+_RANDOM_CHARS = 8  # what tempfile adds to a name
+_MAX_TEMP_SUFFIX_BYTES = 16  # a longer "suffix" is not a file type: left out of the temporary name
 
 
 def _default_file_mode() -> int:
@@ -23,7 +48,8 @@ _FILE_MODE = _default_file_mode()
 
 
 class WriteError(IptError, OSError):
-    """An output file cannot be created or put in place: no such folder, a folder in the way, no permission.
+    """An output file cannot be created or put in place: no such folder, a folder in the way, no permission,
+    a full or read-only disk.
 
     Both an :class:`OSError` (``errno`` and ``strerror`` are the system's, ``filename`` is the target), so
     code that catches ``OSError`` still does, and an :class:`IptError`, so that the command-line tools
@@ -34,58 +60,232 @@ class WriteError(IptError, OSError):
         return f"{self.filename}: cannot write ({self.strerror})"
 
 
-def _write_error(target: Path, exc: OSError) -> WriteError:
-    return WriteError(exc.errno, exc.strerror or str(exc), str(target))
+class ReadError(IptError):
+    """A file cannot be read (the default error of :func:`read_bytes_file`)."""
+
+
+def _write_error(target: Path | str, exc: OSError) -> WriteError:
+    return WriteError(exc.errno, exc.strerror or os.strerror(exc.errno or 0) or str(exc), str(target))
+
+
+def disk_write_error(target: Path | str, exc: BaseException) -> WriteError | None:
+    """The :class:`WriteError` naming ``target`` if ``exc`` says the disk cannot take it, else ``None``.
+
+    Looks at ``exc`` and the exceptions it was raised from (a library may wrap the ``OSError``): any
+    ``errno`` in :data:`DISK_ERRNOS` (no space, quota, read-only file system, file too large) counts.
+    """
+    seen: set[int] = set()
+    current: BaseException | None = exc
+    while current is not None and id(current) not in seen:
+        seen.add(id(current))
+        code = getattr(current, "errno", None)
+        if isinstance(code, int) and code in DISK_ERRNOS:
+            return WriteError(code, os.strerror(code), str(target))
+        current = current.__cause__ or current.__context__
+    return None
+
+
+def _name_max(folder: Path) -> int:
+    try:
+        return int(os.pathconf(folder, "PC_NAME_MAX"))
+    except (OSError, ValueError, AttributeError):
+        return 255
+
+
+def _temp_affixes(target: Path, folder: Path) -> tuple[str, str]:
+    """Prefix and suffix of the temporary file beside ``target``: ``.NAME.<random>.partial.EXT``, with NAME
+    cut so that the whole name fits the file system's limit (NAME_MAX bytes) whenever ``target``'s does."""
+    suffix = target.suffix if len(os.fsencode(target.suffix)) <= _MAX_TEMP_SUFFIX_BYTES else ""
+    tail = _PARTIAL + suffix
+    room = _name_max(folder) - len(os.fsencode("." + "." + tail)) - _RANDOM_CHARS
+    name = os.fsencode(target.name)[: max(1, room)]
+    return "." + os.fsdecode(name) + ".", tail
+
+
+class _Group:
+    """The temporary files of one :func:`output_group`, in the order they were finished."""
+
+    def __init__(self) -> None:
+        self.done: list[tuple[Path, Path]] = []
+
+
+_GROUP: contextvars.ContextVar[_Group | None] = contextvars.ContextVar("ipt_output_group", default=None)
+
+
+@contextlib.contextmanager
+def output_group() -> Iterator[None]:
+    """Every :func:`atomic_path` finished inside the block is put in place only when the block ends without
+    an error, all at once; if it raises (or a file cannot be put in place), every one is removed.
+
+    So the outputs of a run appear together or not at all: a full disk while writing the last file
+    leaves none of them, rather than a folder of files that look complete. A group inside a group joins
+    the outer one. The group belongs to the thread (context) that opened it.
+    """
+    if _GROUP.get() is not None:
+        yield
+        return
+    group = _Group()
+    token = _GROUP.set(group)
+    try:
+        yield
+    except BaseException:
+        _GROUP.reset(token)
+        for tmp, _ in group.done:
+            tmp.unlink(missing_ok=True)
+        raise
+    _GROUP.reset(token)
+    placed: list[Path] = []
+    try:
+        for tmp, target in group.done:
+            try:
+                os.replace(tmp, target)
+            except OSError as exc:
+                raise _write_error(target, exc) from None
+            placed.append(target)
+    except BaseException:
+        # Half a set looks like a whole one: take back what was already put in place.
+        for target in placed:
+            target.unlink(missing_ok=True)
+        for tmp, _ in group.done:
+            tmp.unlink(missing_ok=True)
+        raise
 
 
 @contextlib.contextmanager
 def atomic_path(target: str | Path) -> Iterator[Path]:
     """Yield a temporary path beside ``target``; on success it is renamed onto ``target``.
 
-    If the body raises, the temporary file is removed and ``target`` is left as it was. If the temporary
-    file cannot be made beside ``target`` or cannot be renamed onto it, :class:`WriteError` is raised.
+    If the body raises, the temporary file is removed and ``target`` is left as it was; an ``OSError``
+    saying the disk is full or read-only (:func:`disk_write_error`) becomes a :class:`WriteError` naming
+    ``target``. If the temporary file cannot be made beside ``target`` or cannot be renamed onto it,
+    :class:`WriteError` is raised. Inside :func:`output_group` the rename waits for the group.
     """
     t = Path(target)
     parent = t.parent if str(t.parent) else Path(".")
     try:
-        fd, tmp = tempfile.mkstemp(dir=parent, prefix=f".{t.name}.", suffix=".partial" + t.suffix)
+        prefix, suffix = _temp_affixes(t, parent)
+        fd, tmp = tempfile.mkstemp(dir=parent, prefix=prefix, suffix=suffix)
     except OSError as exc:
         raise _write_error(t, exc) from None
     except ValueError:  # a NUL character in the name
         raise WriteError(errno.EINVAL, "the name contains a NUL character", str(t)) from None
-    os.close(fd)
-    os.chmod(tmp, _FILE_MODE)  # mkstemp makes 0600 files; results should be as readable as any other
     tmp_path = Path(tmp)
+    group = _GROUP.get()
+    kept = False
     try:
-        yield tmp_path
+        os.close(fd)
+        os.chmod(tmp, _FILE_MODE)  # mkstemp makes 0600 files; results should be as readable as any other
         try:
-            os.replace(tmp_path, t)
+            yield tmp_path
         except OSError as exc:
-            raise _write_error(t, exc) from None
+            disk = disk_write_error(t, exc)
+            if disk is None:
+                raise
+            raise disk from None
+        if group is not None:
+            group.done.append((tmp_path, t))
+            kept = True
+        else:
+            try:
+                os.replace(tmp_path, t)
+            except OSError as exc:
+                raise _write_error(t, exc) from None
     finally:
-        tmp_path.unlink(missing_ok=True)
+        if not kept:
+            tmp_path.unlink(missing_ok=True)
 
 
-def read_text_file(path: Path, error: type[Exception], expected: str) -> str:
-    """The UTF-8 text of ``path``; any problem becomes ``error`` with one line naming the file.
+def _file_kind(mode: int) -> str:
+    for test, name in (
+        (stat.S_ISFIFO, "a named pipe"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISSOCK, "a socket"),
+    ):
+        if test(mode):
+            return name
+    return "not a regular file"
 
-    ``expected`` says what the file should be, for the message about a directory (e.g. "a YAML file").
+
+def _size_text(n: int) -> str:
+    return f"{n / 2**20:g} MiB" if n >= 2**20 else f"{n / 2**10:g} KiB" if n >= 2**10 else f"{n} bytes"
+
+
+def read_bytes_file(
+    path: Path | str,
+    error: type[Exception] = ReadError,
+    expected: str = "a file",
+    *,
+    max_bytes: int = MAX_CONFIG_BYTES,
+    missing: str = "no such file",
+) -> bytes:
+    """The bytes of ``path``, at most ``max_bytes`` of them; any problem is ``error`` with one line naming it.
+
+    Only a regular file is read: a folder, a named pipe, a device (``/dev/zero``) or a socket is
+    refused before anything is read, and opening does not block (``O_NONBLOCK``, then ``fstat``). A file
+    larger than ``max_bytes`` is refused, also one that grows past it while being read. ``expected`` says
+    what the file should be (e.g. "a YAML file"); ``missing`` is the message for a path that does not exist.
     """
+    p = Path(path)
+    flags = os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0) | getattr(os, "O_CLOEXEC", 0)
     try:
-        return path.read_text(encoding="utf-8")
+        fd = os.open(p, flags)
     except FileNotFoundError:
-        raise error(f"{path}: no such file") from None
+        raise error(f"{p}: {missing}") from None
     except IsADirectoryError:
-        raise error(f"{path}: is a directory, expected {expected}") from None
+        raise error(f"{p}: is a directory, expected {expected}") from None
+    except OSError as exc:
+        raise error(f"{p}: cannot read ({exc.strerror or exc})") from None
+    except ValueError:  # a NUL character in the name (from a config file, say): no file can be called that
+        raise error(f"{p}: not a usable file name (it contains a NUL character)") from None
+    try:
+        info = os.fstat(fd)
+        if stat.S_ISDIR(info.st_mode):
+            raise error(f"{p}: is a directory, expected {expected}")
+        if not stat.S_ISREG(info.st_mode):
+            raise error(f"{p}: {_file_kind(info.st_mode)}, not a regular file; expected {expected}")
+        too_big = f"{p}: larger than {_size_text(max_bytes)}, too large for {expected}"
+        if info.st_size > max_bytes:
+            raise error(too_big)
+        chunks: list[bytes] = []
+        total = 0
+        while True:
+            chunk = os.read(fd, min(1 << 20, max_bytes + 1 - total))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            total += len(chunk)
+            if total > max_bytes:
+                raise error(too_big)
+        return b"".join(chunks)
+    except OSError as exc:
+        raise error(f"{p}: cannot read ({exc.strerror or exc})") from None
+    finally:
+        os.close(fd)
+
+
+def read_text_file(
+    path: Path, error: type[Exception], expected: str, *, max_bytes: int = MAX_CONFIG_BYTES
+) -> str:
+    """The UTF-8 text of ``path`` (a regular file of at most ``max_bytes``); any problem becomes ``error``
+    with one line naming the file (see :func:`read_bytes_file`).
+
+    ``expected`` says what the file should be, for the messages (e.g. "a YAML file").
+    """
+    data = read_bytes_file(path, error, expected, max_bytes=max_bytes)
+    try:
+        return data.decode("utf-8")
     except UnicodeDecodeError:
         raise error(f"{path}: not a text file (expected {expected})") from None
-    except OSError as exc:
-        raise error(f"{path}: cannot read ({exc.strerror or exc})") from None
-    except ValueError:  # a NUL character in the name (from a config file, say): no file can be called that
-        raise error(f"{path}: not a usable file name (it contains a NUL character)") from None
 
 
 def write_text_atomic(target: str | Path, text: str) -> None:
     """Write ``text`` (UTF-8) to ``target`` atomically."""
     with atomic_path(target) as tmp:
         tmp.write_text(text, encoding="utf-8")
+
+
+def write_bytes_atomic(target: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``target`` atomically."""
+    with atomic_path(target) as tmp:
+        tmp.write_bytes(data)

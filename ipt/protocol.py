@@ -29,10 +29,11 @@ import numbers
 import struct
 import zlib
 from collections import Counter
-from collections.abc import Iterable
+from collections.abc import Hashable, Iterable
 from dataclasses import dataclass
 
 from ipt.errors import IptError
+from ipt.ratelimit import SourceRateLimit
 
 MAGIC = b"IPTL"
 """The first four bytes of every IPT packet, in every version ("IPT Localisation")."""
@@ -120,6 +121,11 @@ class Rejection(enum.StrEnum):
     """A well-formed packet from a vehicle id that :class:`PacketFilter` was not told to accept."""
     REPLAYED = "replayed"
     """A well-formed packet whose sequence number is not newer than the last one accepted."""
+    VEHICLE_LIMIT = "vehicle_limit"
+    """A vehicle not yet tracked while :class:`PacketFilter` tracks ``max_vehicles`` others that are not
+    silent; when no slot can be free the packet is refused before it is decoded."""
+    RATE_LIMITED = "rate_limited"
+    """More datagrams from one source address than its rate limit allows; refused before decoding."""
 
 
 class ProtocolError(IptError):
@@ -340,6 +346,19 @@ def decode_pose(data: bytes, key: bytes | None = None) -> PosePacket:
     )
 
 
+_VEHICLE_OFFSET = 8  # magic (4), version, type, flags (2): the vehicle id follows, a little-endian uint16
+
+
+def peek_vehicle_id(data: bytes) -> int | None:
+    """The vehicle id a datagram claims, read without decoding it (``None`` if it is not an IPT packet).
+
+    Nothing is checked but the magic and the length: use it only to refuse cheaply, never to accept.
+    """
+    if len(data) < _VEHICLE_OFFSET + 2 or data[:4] != MAGIC:
+        return None
+    return int.from_bytes(data[_VEHICLE_OFFSET : _VEHICLE_OFFSET + 2], "little")
+
+
 def seq_newer(seq: int, last: int, window: int = _MAX_WINDOW) -> bool:
     """Whether ``seq`` comes after ``last`` in uint32 serial-number arithmetic (RFC 1982 style).
 
@@ -369,12 +388,27 @@ class PacketFilter:
     :meth:`accept`). The price: after that much silence an attacker could replay an old, validly
     authenticated packet once.
 
+    Protection against floods, both counted like any other refusal:
+
+    - ``max_vehicles``: at most this many vehicles are tracked. A new vehicle gets a slot only if one is
+      free; a vehicle silent for longer than ``resync_after_s`` gives its slot up (its baseline is worth
+      nothing any more). While every slot is taken and none can free up, a packet of another vehicle is
+      refused (``vehicle_limit``), without a ``vehicle_ids`` list before it is even decoded, so a flood of
+      made-up vehicle ids costs little.
+      Without a key the first vehicles heard take the slots: authenticate, or list ``vehicle_ids``, to
+      keep them for your own drones.
+    - ``source_rate_hz``: datagrams from one source address (the ``source`` given to :meth:`accept`)
+      beyond this rate (``source_burst`` at once) are refused (``rate_limited``) before anything else.
+
     Args:
         key: shared authentication key; when set, only correctly tagged packets are accepted.
         vehicle_ids: vehicle ids to accept; ``None`` accepts any.
         window: how far ahead of the last accepted sequence number a new one may be, 1..2**31-1.
         resync_after_s: silence after which a vehicle's sequence baseline is dropped; ``None`` (the
             default) never drops it.
+        max_vehicles: most vehicles tracked at once; ``None`` (the default) is no limit.
+        source_rate_hz: datagrams per second allowed from one source; ``None`` (the default) is no limit.
+        source_burst: datagrams one source may send at once (default: one second's worth).
     """
 
     def __init__(
@@ -383,30 +417,50 @@ class PacketFilter:
         vehicle_ids: Iterable[int] | None = None,
         window: int = _MAX_WINDOW,
         resync_after_s: float | None = None,
+        *,
+        max_vehicles: int | None = None,
+        source_rate_hz: float | None = None,
+        source_burst: float | None = None,
     ) -> None:
         _check_key(key)
         if not 1 <= window <= _MAX_WINDOW:
             raise ValueError(f"window {window} is outside 1..2**31-1")
         if resync_after_s is not None and not resync_after_s > 0.0:
             raise ValueError(f"resync_after_s {resync_after_s} must be > 0")
+        if max_vehicles is not None and not 1 <= max_vehicles <= _UINT16_MAX + 1:
+            raise ValueError(f"max_vehicles {max_vehicles} is outside 1..65536")
         self.key = key
         self.vehicle_ids = None if vehicle_ids is None else frozenset(vehicle_ids)
         self.window = window
         self.resync_after_s = resync_after_s
+        self.max_vehicles = max_vehicles
+        self.rate_limit = None if source_rate_hz is None else SourceRateLimit(source_rate_hz, source_burst)
         self.counts: Counter[str] = Counter({ACCEPTED: 0, **{reason.value: 0 for reason in Rejection}})
         """Outcomes so far: ``"accepted"`` and each :class:`Rejection` value, one increment per call."""
         self.resyncs = 0
         """Packets accepted by re-baselining after ``resync_after_s`` (also counted as accepted)."""
         self._vehicles: dict[int, _VehicleState] = {}
+        self._no_slot_until = -math.inf  # while every slot is taken: no slot can free up before this time
 
-    def accept(self, data: bytes, now: float | None = None) -> PosePacket | None:
+    def accept(self, data: bytes, now: float | None = None, source: Hashable | None = None) -> PosePacket | None:
         """The packet in ``data`` if it passes every check, else ``None`` (the reason is counted).
 
         ``now`` is the caller's clock in seconds (any monotonic clock); it is only used, and then
-        required, when ``resync_after_s`` is set.
+        required, when ``resync_after_s``, ``max_vehicles`` or ``source_rate_hz`` is set. ``source`` is
+        where the datagram came from (e.g. the sender's IP address), for the rate limit.
         """
-        if self.resync_after_s is not None and now is None:
-            raise ValueError("accept() needs `now` when resync_after_s is set")
+        if now is None and (self.resync_after_s is not None or self.rate_limit is not None):
+            raise ValueError("accept() needs `now` when resync_after_s or source_rate_hz is set")
+        if self.rate_limit is not None and source is not None and not self.rate_limit.allow(source, now or 0.0):
+            self.counts[Rejection.RATE_LIMITED.value] += 1
+            return None
+        if self.vehicle_ids is None and self.max_vehicles is not None and len(self._vehicles) >= self.max_vehicles:
+            # (With a list of vehicles, a stranger is refused as unknown_vehicle after decoding instead, so
+            # that a forged packet is always counted as unauthenticated or bad_auth.)
+            claimed = peek_vehicle_id(data)
+            if claimed is not None and claimed not in self._vehicles and not self._slot_may_free(now):
+                self.counts[Rejection.VEHICLE_LIMIT.value] += 1
+                return None
         try:
             packet = decode_pose(data, self.key)
         except ProtocolError as error:
@@ -416,6 +470,9 @@ class PacketFilter:
             self.counts[Rejection.UNKNOWN_VEHICLE.value] += 1
             return None
         state = self._vehicles.get(packet.vehicle_id)
+        if state is None and not self._take_slot(now):
+            self.counts[Rejection.VEHICLE_LIMIT.value] += 1
+            return None
         if state is not None and not seq_newer(packet.seq, state.last_seq, self.window):
             if not self._silent_too_long(state, now):
                 self.counts[Rejection.REPLAYED.value] += 1
@@ -424,6 +481,35 @@ class PacketFilter:
         self._vehicles[packet.vehicle_id] = _VehicleState(packet.seq, now)
         self.counts[ACCEPTED] += 1
         return packet
+
+    def tracked(self) -> int:
+        """How many vehicles have a sequence baseline (a slot, with ``max_vehicles``)."""
+        return len(self._vehicles)
+
+    def _slot_may_free(self, now: float | None) -> bool:
+        """Whether a slot is free, or a silent vehicle's could be given up at ``now``."""
+        if self.max_vehicles is None or len(self._vehicles) < self.max_vehicles:
+            return True
+        return self.resync_after_s is not None and now is not None and now >= self._no_slot_until
+
+    def _take_slot(self, now: float | None) -> bool:
+        """Make room for a new vehicle if ``max_vehicles`` asks for it; whether there is room."""
+        if self.max_vehicles is None or len(self._vehicles) < self.max_vehicles:
+            return True
+        if not self._slot_may_free(now):
+            return False
+        assert self.resync_after_s is not None
+        assert now is not None
+        silent = [v for v, s in self._vehicles.items() if self._silent_too_long(s, now)]
+        for v in silent:
+            del self._vehicles[v]
+        if len(self._vehicles) < self.max_vehicles:
+            return True
+        # Every slot is held by a vehicle heard within resync_after_s: none frees up before the one heard
+        # longest ago falls silent for that long.
+        heard = [s.last_accept_time for s in self._vehicles.values() if s.last_accept_time is not None]
+        self._no_slot_until = (min(heard) if heard else now) + self.resync_after_s
+        return False
 
     def forget(self, vehicle_id: int) -> None:
         """Drop the baseline of ``vehicle_id``: its next valid packet is accepted whatever its number."""

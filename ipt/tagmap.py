@@ -29,7 +29,8 @@ import numpy.typing as npt
 
 from ipt.config.models import ArenaConfig, finite_float
 from ipt.errors import IptError
-from ipt.fileio import atomic_path, read_text_file, write_text_atomic
+from ipt.fileio import WriteError, output_group, read_text_file, write_text_atomic
+from ipt.imageio import write_image
 
 TAG36H11_CELLS = 10
 """Cells across a rendered tag36h11 tag: a one-cell white quiet zone around the 8-cell black border."""
@@ -240,21 +241,16 @@ def grid_tag_map(arena: ArenaConfig) -> TagMap:
 def export_map(tag_map: TagMap, image_path: str | Path, layout_path: str | Path) -> None:
     """Write the map image (8-bit grey PNG at projector resolution) and the layout JSON, atomically.
 
-    Raises :class:`TagMapError` naming the path when one cannot be written (no such folder, a folder
-    in the way, no permission).
+    Both appear together or neither does. Raises :class:`TagMapError` naming the path when one cannot be
+    written (no such folder, a folder in the way, no permission, a full or read-only disk).
     """
     img = tag_map.render_image()
     try:
-        with atomic_path(image_path) as tmp:
-            if not cv2.imwrite(str(tmp.with_suffix(".png")), img):
-                raise TagMapError(f"{image_path}: cannot write the PNG")
-            tmp.with_suffix(".png").replace(tmp)
-    except OSError as exc:
-        raise TagMapError(f"{image_path}: cannot write ({exc.strerror or exc})") from None
-    try:
-        write_text_atomic(layout_path, json.dumps(tag_map.layout_dict(), indent=1) + "\n")
-    except OSError as exc:
-        raise TagMapError(f"{layout_path}: cannot write ({exc.strerror or exc})") from None
+        with output_group():  # both files, or neither
+            write_image(image_path, img, TagMapError, suffix=".png")  # lossless, whatever the name says
+            write_text_atomic(layout_path, json.dumps(tag_map.layout_dict(), indent=1) + "\n")
+    except WriteError as exc:
+        raise TagMapError(str(exc)) from None
 
 
 def _float_list(path: Path, where: str, value: Any, n: int) -> tuple[float, ...]:

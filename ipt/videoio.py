@@ -9,8 +9,12 @@ offered only at 9 bits and up): going from RGB24 to ``bgr0`` and back only reord
 unused padding byte, so frames come back bit-identical. The YUV formats would round the colour
 conversion and so are not lossless for RGB input.
 
-Reading: :func:`open_frames` returns a streaming :class:`FrameSource`; a video is decoded one frame
-at a time, a folder of images is read one file at a time.
+Reading: :func:`open_frames` returns a streaming :class:`FrameSource`; a video is decoded one packet
+at a time, a folder of images is read one file at a time (through :mod:`ipt.imageio`, never handing
+OpenCV a path). A recording may be read with ``skip_bad``: a frame that cannot be decoded is then
+skipped and counted rather than ending the stream, and a file shorter than its header says is reported.
+
+A disk that cannot take the video (full, read-only) is a :class:`~ipt.fileio.WriteError` naming it.
 """
 
 from __future__ import annotations
@@ -26,15 +30,14 @@ from types import TracebackType
 from typing import Any, Self
 
 import av
-import cv2
 import numpy as np
 import numpy.typing as npt
 
 from ipt.errors import IptError
-from ipt.fileio import atomic_path
+from ipt.fileio import WriteError, atomic_path, disk_write_error
+from ipt.imageio import IMAGE_SUFFIXES, read_image
 
-IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"})
-"""File name endings (compared case-insensitively) that :func:`open_frames` reads from a folder."""
+__all__ = ["FFV1_PIX_FMT", "IMAGE_SUFFIXES", "FfvWriter", "FrameSource", "VideoError", "open_frames"]
 
 FFV1_PIX_FMT = "bgr0"
 """The pixel format :class:`FfvWriter` stores; see the module docstring for why."""
@@ -132,6 +135,8 @@ class FfvWriter:
                 self._container.mux(packet)
         except (av.FFmpegError, OSError) as e:
             self._fail()
+            if (disk := disk_write_error(self.path, e)) is not None:
+                raise disk from None
             raise VideoError(f"{self.path}: writing frame {self.frames_written} failed: {e}") from e
         self.frames_written += 1
 
@@ -147,10 +152,14 @@ class FfvWriter:
             self._container.close()
         except (av.FFmpegError, OSError) as e:
             self._fail()
+            if (disk := disk_write_error(self.path, e)) is not None:
+                raise disk from None
             raise VideoError(f"{self.path}: finishing the video failed: {e}") from e
         self._closed = True
         try:
-            self._stack.close()  # renames the temporary file onto self.path
+            self._stack.close()  # renames the temporary file onto self.path (or hands it to an output group)
+        except WriteError:
+            raise
         except OSError as e:
             raise VideoError(f"{self.path}: cannot move the finished video into place: {e}") from e
 
@@ -185,6 +194,13 @@ class FrameSource(abc.ABC):
     Attributes: ``path``; ``width`` and ``height`` in pixels (every frame has this size);
     ``frame_count`` (None when a video container does not say); ``fps`` (None when unknown, always
     for an image folder). Close it, or use it as a context manager, to release the file.
+
+    A recording read with ``skip_bad`` (:func:`open_frames`) keeps going past a frame that cannot be
+    decoded, or an image that cannot be read or differs in size from the first: such a frame is skipped
+    and counted in ``skipped`` (``last_skipped`` says why). ``index`` is the number of the frame last
+    returned, counting the skipped ones, so that frame k keeps its time k/fps. Without ``skip_bad`` such a
+    frame raises :class:`VideoError`. After the last frame, :meth:`shortfall` says whether the file held
+    fewer frames than its header announced (a truncated file).
     """
 
     path: Path
@@ -192,6 +208,10 @@ class FrameSource(abc.ABC):
     height: int
     frame_count: int | None
     fps: float | None
+    skip_bad: bool = False
+    skipped: int = 0
+    last_skipped: str | None = None
+    index: int = -1
 
     def __iter__(self) -> Self:
         return self
@@ -202,6 +222,17 @@ class FrameSource(abc.ABC):
     @abc.abstractmethod
     def close(self) -> None:
         """Release the file; iteration then ends."""
+
+    def shortfall(self) -> str | None:
+        """Once the frames ran out: a sentence if the file announced more than it held, else ``None``."""
+        return None
+
+    def _skip(self, why: str) -> None:
+        """Count a frame that cannot be used, or raise if bad frames are not skipped."""
+        if not self.skip_bad:
+            raise VideoError(why)
+        self.skipped += 1
+        self.last_skipped = why
 
     def __enter__(self) -> Self:
         return self
@@ -227,11 +258,15 @@ def _stream_fps(stream: Any) -> float | None:
     return None
 
 
-class _VideoSource(FrameSource):
-    """Frames decoded one at a time from a file PyAV can open."""
+_DECODE_ERRORS = (av.FFmpegError, OSError, ValueError)
 
-    def __init__(self, path: Path) -> None:
+
+class _VideoSource(FrameSource):
+    """Frames decoded one packet at a time from a file PyAV can open (a damaged packet costs one frame)."""
+
+    def __init__(self, path: Path, skip_bad: bool = False) -> None:
         self.path = path
+        self.skip_bad = skip_bad
         try:
             self._container: Any = av.open(str(path), mode="r")
         except av.EOFError as e:
@@ -246,47 +281,93 @@ class _VideoSource(FrameSource):
             stream.thread_type = "AUTO"
             self.fps = _stream_fps(stream)
             self.frame_count = int(stream.frames) if stream.frames and stream.frames > 0 else None
-            self._frames: Iterator[Any] = iter(self._container.decode(stream))
-            self._index = 0
+            self._announced = self.frame_count
+            duration = self._container.duration  # microseconds (AV_TIME_BASE), from the container's header
+            if self._announced is None and duration and self.fps:
+                self._announced = round(duration / 1e6 * self.fps)
+            self._items: Iterator[npt.NDArray[np.uint8] | Exception] = self._decoded(stream)
+            self._damaged: str | None = None  # why the container could not be read on, if it could not
+            self._position = 0  # frames taken from the file so far, bad ones included
             # Decode the first frame now, so that an empty or broken file fails here with one clear
             # line, and so that width and height are those of the frames actually decoded.
-            first = self._decode_next()
-            if first is None:
-                raise VideoError(f"{path}: contains no frames")
+            first = self._first()
             self.height, self.width = first.shape[:2]
             self._pending: npt.NDArray[np.uint8] | None = first
         except BaseException:
             self._container.close()
             raise
 
-    def _decode_next(self) -> npt.NDArray[np.uint8] | None:
-        try:
-            frame = next(self._frames)
-            rgb = frame.to_ndarray(format="rgb24")
-        except StopIteration:
-            return None
-        except (av.FFmpegError, OSError, ValueError) as e:
-            raise VideoError(f"{self.path}: decoding frame {self._index} failed: {e}") from e
-        return np.ascontiguousarray(rgb, dtype=np.uint8)
+    def _decoded(self, stream: Any) -> Iterator[npt.NDArray[np.uint8] | Exception]:
+        """Each frame of the file in order: its pixels, or the error that lost it."""
+        packets = self._container.demux(stream)
+        while True:
+            try:
+                packet = next(packets)
+            except StopIteration:
+                return
+            except _DECODE_ERRORS as e:  # the container itself is damaged: nothing after this can be found
+                self._damaged = str(e)
+                return
+            try:
+                frames = packet.decode()
+            except _DECODE_ERRORS as e:
+                yield e
+                continue
+            for frame in frames:
+                try:
+                    yield np.ascontiguousarray(frame.to_ndarray(format="rgb24"), dtype=np.uint8)
+                except _DECODE_ERRORS as e:
+                    yield e
+
+    def _take(self) -> npt.NDArray[np.uint8] | Exception | None:
+        item = next(self._items, None)
+        if item is not None:
+            self._position += 1
+        return item
+
+    def _first(self) -> npt.NDArray[np.uint8]:
+        while True:
+            item = self._take()
+            if item is None:
+                if self._position == 0:
+                    raise VideoError(f"{self.path}: contains no frames")
+                raise VideoError(f"{self.path}: none of its {self._position} frames can be decoded")
+            if not isinstance(item, Exception):
+                return item
+            self._skip(f"{self.path}: decoding frame {self._position - 1} failed: {item}")
 
     def __next__(self) -> npt.NDArray[np.uint8]:
         if self._pending is not None:
             rgb, self._pending = self._pending, None
-        else:
+            self.index = self._position - 1
+            return rgb
+        while True:
             if self._container is None:
                 raise StopIteration
-            decoded = self._decode_next()
-            if decoded is None:
+            item = self._take()
+            if item is None:
                 self.close()
                 raise StopIteration
-            rgb = decoded
-            if rgb.shape[:2] != (self.height, self.width):
-                h, w = rgb.shape[:2]
-                raise VideoError(
-                    f"{self.path}: frame {self._index} is {w}x{h}, the first frame is {self.width}x{self.height}"
-                )
-        self._index += 1
-        return rgb
+            k = self._position - 1
+            if isinstance(item, Exception):
+                self._skip(f"{self.path}: decoding frame {k} failed: {item}")
+                continue
+            if item.shape[:2] != (self.height, self.width):
+                h, w = item.shape[:2]
+                self._skip(f"{self.path}: frame {k} is {w}x{h}, the first frame is {self.width}x{self.height}")
+                continue
+            self.index = k
+            return item
+
+    def shortfall(self) -> str | None:
+        if self._damaged is not None:
+            return f"{self.path}: the file is damaged after frame {self._position} ({self._damaged}); it ends there"
+        if self._announced is not None and self._position + 1 < self._announced:
+            return (
+                f"{self.path}: ends after {self._position} frames, but its header announces {self._announced}: "
+                "the file is truncated"
+            )
+        return None
 
     def close(self) -> None:
         self._pending = None
@@ -301,18 +382,12 @@ def _natural_key(name: str) -> tuple[tuple[int | str, ...], str]:
     return tuple(int(p) if i % 2 else p.casefold() for i, p in enumerate(parts)), name
 
 
-def _read_image(file: Path) -> npt.NDArray[np.uint8]:
-    bgr = cv2.imread(str(file), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise VideoError(f"{file}: not an image OpenCV can read")
-    return np.ascontiguousarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), dtype=np.uint8)
-
-
 class _ImageFolderSource(FrameSource):
     """The images in a folder in natural name order, each read when it is needed."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, skip_bad: bool = False) -> None:
         self.path = path
+        self.skip_bad = skip_bad
         try:
             entries = list(path.iterdir())
         except OSError as e:
@@ -326,42 +401,62 @@ class _ImageFolderSource(FrameSource):
             raise VideoError(f"{path}: folder holds no images ({suffixes})")
         self.frame_count = len(self._files)
         self.fps = None
-        first = _read_image(self._files[0])
+        self._next = 0
+        first: npt.NDArray[np.uint8] | None = None
+        while first is None:
+            if self._next >= len(self._files):
+                raise VideoError(f"{path}: none of its {len(self._files)} images can be read")
+            try:
+                first = read_image(self._files[self._next], "rgb", VideoError)
+            except VideoError as e:
+                self._skip(str(e))
+            self._next += 1
+        self._first_name = self._files[self._next - 1].name
         self.height, self.width = first.shape[:2]
         self._pending: npt.NDArray[np.uint8] | None = first
-        self._index = 0
         self._closed = False
 
     def __next__(self) -> npt.NDArray[np.uint8]:
-        if self._closed or self._index >= len(self._files):
+        if self._closed:
             raise StopIteration
         if self._pending is not None:
             rgb, self._pending = self._pending, None
-        else:
-            file = self._files[self._index]
-            rgb = _read_image(file)
+            self.index = self._next - 1
+            return rgb
+        while self._next < len(self._files):
+            file = self._files[self._next]
+            self._next += 1
+            try:
+                rgb = read_image(file, "rgb", VideoError)
+            except VideoError as e:
+                self._skip(str(e))
+                continue
             if rgb.shape[:2] != (self.height, self.width):
                 h, w = rgb.shape[:2]
-                raise VideoError(
-                    f"{file}: image is {w}x{h}, but the first image {self._files[0].name} is {self.width}x{self.height}"
+                self._skip(
+                    f"{file}: image is {w}x{h}, but the first image {self._first_name} is {self.width}x{self.height}"
                 )
-        self._index += 1
-        return rgb
+                continue
+            self.index = self._next - 1
+            return rgb
+        raise StopIteration
 
     def close(self) -> None:
         self._closed = True
         self._pending = None
 
 
-def open_frames(path: str | Path) -> FrameSource:
+def open_frames(path: str | Path, *, skip_bad: bool = False) -> FrameSource:
     """Open a video file (anything PyAV reads) or a folder of PNG/JPG/BMP/TIFF images as RGB frames.
 
     Raises :class:`VideoError` with one line naming the file if it is missing, unreadable, has no
-    video stream or no frames, or (for a folder) if an image differs in size from the first.
+    video stream or no frames, or (for a folder) if an image differs in size from the first. With
+    ``skip_bad`` a frame that cannot be decoded or read, or has another size, is skipped and counted
+    instead (see :class:`FrameSource`); only a file with no usable frame at all is an error.
     """
     p = Path(path)
     if p.is_dir():
-        return _ImageFolderSource(p)
+        return _ImageFolderSource(p, skip_bad)
     if not p.exists():
         raise VideoError(f"{p}: no such file or folder")
-    return _VideoSource(p)
+    return _VideoSource(p, skip_bad)

@@ -300,16 +300,19 @@ def test_replay_camera_size_mismatch(tmp_path: Path, camera_file: Path) -> None:
     _no_output(out)
 
 
-def test_failed_replay_midway_leaves_no_output(tmp_path: Path, camera_file: Path) -> None:
-    # The third image has another size: the run fails after the output was opened.
-    folder = _frames_folder(tmp_path, [(64, 48), (64, 48), (32, 24)])
+def test_replay_skips_a_bad_frame_midway_and_counts_it(tmp_path: Path, camera_file: Path) -> None:
+    # The second image has another size and the fourth is not an image: a recording is read to its end,
+    # as the daemon reads it, each bad frame skipped, said (naming it) and counted; the others keep their times.
+    folder = _frames_folder(tmp_path, [(64, 48), (32, 24), (64, 48), (64, 48)])
+    (folder / "frame_003.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(100))
     out = tmp_path / "poses.tum"
     proc = _replay(tmp_path, camera_file, folder, out, "--fps", "120")
-    _assert_one_line_error(proc, "ipt-receiver", "frame_002.png")
-    _no_output(out)
-    # An earlier result at the output path is left as it was.
-    out.write_text("previous run\n", encoding="utf-8")
-    proc = _replay(tmp_path, camera_file, folder, out, "--fps", "120")
-    assert proc.returncode == 2
-    assert out.read_text(encoding="utf-8") == "previous run\n"
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert "0 poses from 2 frames" in proc.stdout
+    lines = proc.stderr.splitlines()
+    assert any("frame_001.png" in line and "32x24" in line and "skipped" in line for line in lines), lines
+    assert any("frame_003.png" in line and "not an image" in line and "skipped" in line for line in lines), lines
+    assert "2 unreadable frames skipped" in lines[-1]
+    assert out.is_file()
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".poses.tum")] == []

@@ -551,6 +551,8 @@ def test_filter_counts_each_rejection_reason_once_per_packet() -> None:
         "bad_auth": 1,
         "unknown_vehicle": 1,
         "replayed": 1,
+        "vehicle_limit": 0,
+        "rate_limited": 0,
     }
     assert sum(gate.counts.values()) == len(inputs)
 

@@ -27,7 +27,7 @@ LIVE_MIN_GAP_S = 0.7
 
 def _image_files(paths: list[str]) -> list[Path]:
     from ipt.calib.camera import CalibrationError
-    from ipt.videoio import IMAGE_SUFFIXES
+    from ipt.imageio import IMAGE_SUFFIXES
 
     files: list[Path] = []
     for text in paths:
@@ -45,16 +45,11 @@ def _image_files(paths: list[str]) -> list[Path]:
 
 
 def _grey_images(files: list[Path]) -> Iterator[tuple[str, U8]]:
-    import cv2
-    import numpy as np
-
     from ipt.calib.camera import CalibrationError
+    from ipt.imageio import read_image
 
     for f in files:
-        img = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
-        if img is None:
-            raise CalibrationError(f"{f}: not an image OpenCV can read")
-        yield str(f), np.asarray(img, dtype=np.uint8)
+        yield str(f), read_image(f, "grey", CalibrationError)
 
 
 def _live_views(device: int, size: tuple[int, int], wanted: int, finder_find: object) -> Iterator[tuple[str, U8]]:

@@ -22,6 +22,16 @@ class ConfigError(IptError):
     """A configuration file is missing, unreadable or invalid."""
 
 
+MIN_PROJECTOR_RATE_HZ = 1.0
+"""Slowest projector rate accepted: below it there is no flicker to speak of, and frame times grow absurd."""
+MIN_CONTENT_RATE_HZ = 0.01
+"""Slowest content (input video) rate accepted: one frame every 100 s."""
+MAX_RATE_HZ = 1000.0
+"""Fastest projector, content or camera rate accepted."""
+MIN_CAMERA_RATE_HZ = 1.0
+"""Slowest camera rate accepted (IPT needs twice the projector's rate; below 1 Hz a frame time is absurd)."""
+
+
 class StrictModel(BaseModel):
     """Base for every settings model: unknown keys are errors, instances are immutable."""
 
@@ -33,7 +43,12 @@ class ProjectorConfig(StrictModel):
 
     width_px: int = Field(1920, ge=64, le=16384, description="Output width in projector pixels.")
     height_px: int = Field(2160, ge=64, le=16384, description="Output height in projector pixels.")
-    rate_hz: float = Field(60.0, gt=0, le=1000, description="Output (display) frame rate f_o in Hz.")
+    rate_hz: float = Field(
+        60.0,
+        ge=MIN_PROJECTOR_RATE_HZ,
+        le=MAX_RATE_HZ,
+        description="Output (display) frame rate f_o in Hz, 1 to 1000.",
+    )
 
 
 class ScreenConfig(StrictModel):
@@ -88,7 +103,12 @@ class ModulationConfig(StrictModel):
         "paper's own imbalance on white). 0: the average is exact everywhere (and pure white, black and "
         "primaries carry no tags).",
     )
-    input_rate_hz: float = Field(30.0, gt=0, le=1000, description="Frame rate f_i of the input video in Hz.")
+    input_rate_hz: float = Field(
+        30.0,
+        ge=MIN_CONTENT_RATE_HZ,
+        le=MAX_RATE_HZ,
+        description="Frame rate f_i of the input video in Hz, 0.01 to 1000 (a video file's own rate wins).",
+    )
 
 
 class ArenaConfig(StrictModel):

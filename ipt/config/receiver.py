@@ -23,12 +23,15 @@ from ipt.config.models import (
     _describe_validation_error,
     load_yaml_model,
 )
+from ipt.fileio import read_bytes_file
 
 DEFAULT_SEND_TARGET = "127.0.0.1:9870"
 """Where poses go unless configured otherwise: a listener on this machine."""
 
 MIN_KEY_BYTES = 16
 """Shortest authentication key accepted (the protocol's minimum, 128 bits)."""
+MAX_KEY_FILE_BYTES = 4096
+"""Largest key file read (keys are 16 bytes and up; 32 random bytes is the usual)."""
 
 SourceKind = Literal["sim", "video", "images", "device", "picamera2"]
 
@@ -367,7 +370,7 @@ class ReceiverConfig(StrictModel):
     )
     fps: float | None = Field(
         None,
-        gt=0,
+        ge=1,  # ipt.config.models.MIN_CAMERA_RATE_HZ: a pacing wait of 1/fps must stay a sane number
         le=1000,
         description="Camera frame rate in Hz. Default: the video file's rate; 120 for the simulator; the "
         "device's own setting for a camera.",
@@ -479,14 +482,8 @@ def with_overrides(cfg: ReceiverConfig, **updates: Any) -> ReceiverConfig:
 
 def read_auth_key(path: Path) -> bytes:
     """The shared key in ``path``: its bytes, less one trailing newline; at least :data:`MIN_KEY_BYTES`."""
-    try:
-        key = path.read_bytes()
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such key file") from None
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the key file ({exc.strerror or exc})") from None
-    except ValueError:  # a NUL character in the name
-        raise ConfigError(f"{path}: not a usable key file name (it contains a NUL character)") from None
+    # Bounded, regular files only: a key file of /dev/zero (or a named pipe) is refused, not read for ever.
+    key = read_bytes_file(path, ConfigError, "a key file", max_bytes=MAX_KEY_FILE_BYTES, missing="no such key file")
     if key.endswith(b"\r\n"):
         key = key[:-2]
     elif key.endswith(b"\n"):

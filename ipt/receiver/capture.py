@@ -13,8 +13,12 @@ Two queue policies:
   wins. When the queue is full the *oldest* frame is dropped and counted; the camera never waits.
 - a recording read **as fast as possible** (no pacing): the reader waits for room, nothing is dropped.
 
-A source that fails (``read()`` raises, e.g. a camera unplugged) is reported on stderr, closed and
-opened again with exponential backoff; the daemon keeps running. The end of a recording ends the run.
+A camera that fails (``read()`` raises, e.g. unplugged) is reported on stderr, closed and opened again
+with exponential backoff; the daemon keeps running. A recording is a recording: it is read once, to its
+end, which ends the run. A frame of it that cannot be decoded (or an image that cannot be read or has
+another size) is skipped and counted, with a few lines on stderr (rate-limited) and the count in the
+final statistics; a file that ends before the frames its header announces is reported as truncated;
+any other read error ends the recording there, with one line.
 """
 
 from __future__ import annotations
@@ -38,11 +42,12 @@ import numpy.typing as npt
 from pydantic import ValidationError
 
 from ipt.config.camera_info import CameraInfo
-from ipt.config.models import ArenaConfig, ConfigError
+from ipt.config.models import MAX_RATE_HZ, MIN_CAMERA_RATE_HZ, ArenaConfig, ConfigError
 from ipt.config.receiver import CameraControls
 from ipt.errors import IptError
+from ipt.ratelimit import LogThrottle
 from ipt.sim.config import SimCameraConfig, SimConfig
-from ipt.videoio import FrameSource, VideoError, open_frames
+from ipt.videoio import FrameSource, open_frames
 
 if TYPE_CHECKING:  # the simulator plays the projector, so it uses sender code: import it only when used
     from ipt.sim.arena import SimulatedArena
@@ -211,11 +216,14 @@ class VideoCapture:
     """Frames of a recording (a video file or an image folder), frame ``k`` captured at ``k / fps``.
 
     With ``realtime`` the frames are paced to the frame rate and treated as live (newest wins);
-    without, they come as fast as the consumer takes them. After a read error the source is reopened
-    and resumes after the frame that failed.
+    without, they come as fast as the consumer takes them. A frame that cannot be decoded (an image that
+    cannot be read, or has another size) is skipped and counted in :attr:`skipped`; the frames after it
+    keep their numbers and times. :meth:`end_note` says, at the end, whether the file was truncated.
     """
 
     retry_open = False
+    recording = True
+    """Read once to its end (see :class:`CaptureThread`): not retried like a camera."""
 
     def __init__(
         self,
@@ -240,6 +248,9 @@ class VideoCapture:
         self._pacer: Pacer | None = None
         self._source: FrameSource | None = None
         self._next = 0
+        self._skipped = 0  # of sources closed already
+        self._last_skipped: str | None = None
+        self._ended: str | None = None
 
     @property
     def fps(self) -> float | None:
@@ -247,10 +258,10 @@ class VideoCapture:
         return self._fps
 
     def open(self) -> None:
-        """Open the recording (again), skipping the frames already delivered."""
+        """Open the recording (bad frames are skipped and counted, see the class doc)."""
         if self.images_only and not self.path.is_dir():
             raise CaptureError(f"{self.path}: not a folder (images:DIR reads the images in a folder)")
-        source = open_frames(self.path)
+        source = open_frames(self.path, skip_bad=True)
         try:
             if self.size is not None and (source.width, source.height) != self.size:
                 w, h = self.size
@@ -258,30 +269,45 @@ class VideoCapture:
             fps = self._fps if self._fps is not None else source.fps
             if fps is None or not fps > 0:
                 raise CaptureError(f"{self.path}: the frame rate is unknown; give it with --fps")
-            for _ in range(self._next):  # resume after a failure: skip what was delivered (and the bad frame)
-                try:
-                    if next(source, None) is None:
-                        break
-                except VideoError:  # cannot get past it: reading on ends the recording
-                    break
+            if not MIN_CAMERA_RATE_HZ <= fps <= MAX_RATE_HZ:
+                raise CaptureError(
+                    f"{self.path}: its frame rate {fps:.3g} fps is not a camera's ({MIN_CAMERA_RATE_HZ:g} to "
+                    f"{MAX_RATE_HZ:g}); give the rate with --fps"
+                )
         except BaseException:
             source.close()
             raise
         self._fps = fps
         self._source = source
+        self._ended = None
         if self.live and self._pacer is None:
             self._pacer = Pacer(fps, self._clock, self._sleep)
+
+    @property
+    def skipped(self) -> int:
+        """Frames skipped so far because they could not be decoded or read, or had another size."""
+        return self._skipped + (self._source.skipped if self._source is not None else 0)
+
+    @property
+    def last_skipped(self) -> str | None:
+        """Why the last skipped frame was skipped."""
+        return self._source.last_skipped if self._source is not None else self._last_skipped
+
+    def end_note(self) -> str | None:
+        """After the last frame: a sentence if the recording ended early (truncated, damaged), else None."""
+        return self._ended
 
     def read(self) -> CapturedFrame | None:
         """The next frame, paced if real time; ``None`` at the end of the recording."""
         if self._source is None or self._fps is None:
             raise CaptureError(f"{self.path}: read before open")
-        k = self._next
-        self._next += 1  # a frame that fails to decode is skipped when the source is reopened
         try:
             image = next(self._source)
         except StopIteration:
+            self._ended = self._source.shortfall()
             return None
+        k = self._source.index
+        self._next = k + 1
         if self._pacer is not None:
             self._pacer.wait(k)
         return CapturedFrame(k, capture_time_us(k, self._fps), image, self._clock())
@@ -289,6 +315,8 @@ class VideoCapture:
     def close(self) -> None:
         """Release the file."""
         if self._source is not None:
+            self._skipped += self._source.skipped
+            self._last_skipped = self._source.last_skipped
             self._source.close()
             self._source = None
 
@@ -691,6 +719,9 @@ class CaptureThread:
         """Frames delivered to the queue (dropped ones included)."""
         self.failures = 0
         """Failed opens and reads."""
+        self.skipped = 0
+        """Frames of a recording skipped because they could not be decoded or read (the source counts them)."""
+        self._throttle = LogThrottle()
         self.ready: concurrent.futures.Future[None] = concurrent.futures.Future()
         self._thread = threading.Thread(target=self._run, name=f"ipt-capture-{source.name}", daemon=True)
 
@@ -743,13 +774,20 @@ class CaptureThread:
                     frame = self.source.read()
                 except Exception as exc:
                     self.failures += 1
+                    if getattr(self.source, "recording", False):
+                        self._say(f"{self.source.name}: {_describe(exc)}; the recording ends here")
+                        break
                     self._say(f"{self.source.name}: {_describe(exc)}; reopening in {delay:.1f} s")
                     self._close_source()
                     opened = False
                     self.stop_event.wait(delay)
                     delay = min(2 * delay, BACKOFF_MAX_S)
                     continue
+                self._report_skipped()
                 if frame is None:
+                    end_note: Callable[[], str | None] | None = getattr(self.source, "end_note", None)
+                    if end_note is not None and (note := end_note()) is not None:
+                        self._say(note)
                     break  # the end of a recording
                 delay = BACKOFF_FIRST_S
                 if self.stop_event.is_set() or not self._deliver(frame):
@@ -761,6 +799,15 @@ class CaptureThread:
             self._close_source()
             self._resolve_ready()
             self._call(self.queue.finish)
+
+    def _report_skipped(self) -> None:
+        """Count the frames the source skipped since the last read, and say why (a few lines, then a count)."""
+        skipped = int(getattr(self.source, "skipped", 0))
+        if skipped > self.skipped:
+            self.skipped = skipped
+            why = getattr(self.source, "last_skipped", None) or "a frame cannot be read"
+            if (line := self._throttle.line("skipped", f"{why}; skipped", time.monotonic())) is not None:
+                self._say(line)
 
     def _resolve_ready(self, exc: BaseException | None = None) -> None:
         if self.ready.done():

@@ -1,25 +1,45 @@
-"""``ipt-receiver``: the drone side — replay a recorded flight, or run the receiver daemon."""
+"""``ipt-receiver``: the drone side — replay a recorded flight, or run the receiver daemon.
+
+Only the standard library and :mod:`ipt.cliutil` load with this module; the rest loads when a command
+runs, after the stop signals are handled (:mod:`ipt.signals`): ``run`` stopped by SIGTERM, SIGINT or
+SIGHUP at any moment, also while starting, prints its final statistics line and exits with status 0.
+"""
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 from ipt import __version__
-from ipt.cliutil import Parser, positive_float, run_main
-from ipt.config.models import PROFILES, PipelineConfig, load_arena_config, shipped_config_path
+from ipt.cliutil import Parser, run_main
+from ipt.signals import Interrupted
+
+PROFILES = ("ipt", "paper")
+"""The processing profiles of ``replay --profile`` (:meth:`ipt.config.models.PipelineConfig.profile`)."""
+MIN_FPS, MAX_FPS = 1.0, 1000.0  # ipt.config.models.MIN_CAMERA_RATE_HZ and MAX_RATE_HZ, without importing it
+
+
+def _camera_rate(text: str) -> float:
+    """An argparse ``type``: a camera frame rate, 1 to 1000 Hz (``nan``, ``inf``, ``1e-300`` are refused)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid float value: '{text}'") from None
+    if not (math.isfinite(value) and MIN_FPS <= value <= MAX_FPS):
+        raise argparse.ArgumentTypeError(f"must be a frame rate of {MIN_FPS:g} to {MAX_FPS:g} Hz, got '{text}'")
+    return value
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
-    from ipt.receiver.replay import ReplayError, replay
+    from ipt.config.models import PipelineConfig, load_arena_config, shipped_config_path
+    from ipt.receiver.replay import replay
     from ipt.tagmap import grid_tag_map
 
     arena = load_arena_config(args.config or shipped_config_path("arena.yaml"))
-    if args.fps is not None and args.fps <= 0:
-        raise ReplayError(f"--fps must be positive, got {args.fps}")
     summary = replay(
         arena,
         grid_tag_map(arena),
@@ -43,11 +63,37 @@ def _positive_int(text: str) -> int:
 _positive_int.__name__ = "positive integer"
 
 
+EMPTY_FINAL_LINE = (
+    "ipt-receiver: final: 0 frames (0 captured), 0 poses, 0 packets in 0.00 s: 0.0 frames/s, 0.0 poses/s, "
+    "yield 0.0 %, latency p50 - p99 -, drops 0, send errors 0, capture failures 0, detector helpers replaced 0 "
+    "for memory and 0 after failures ()"
+)
+"""The final statistics line of a run that never captured a frame (``DaemonStats.line()`` of nothing, spelt
+out: a stop signal may have cut an import short, so nothing more is imported to print it)."""
+
+
+def _stopped_while_starting(exc: Interrupted) -> int:
+    """A stop signal before the daemon's loop ran: a note, the final statistics line, and exit status 0."""
+    print(f"ipt-receiver: stopped by {exc.name} while starting", file=sys.stderr)
+    print(EMPTY_FINAL_LINE, file=sys.stderr)
+    return 0
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
+    try:
+        return _run_daemon(args)
+    except Interrupted as exc:
+        return _stopped_while_starting(exc)
+
+
+def _run_daemon(args: argparse.Namespace) -> int:
+    from ipt.config.models import shipped_config_path
     from ipt.config.receiver import load_receiver_config, with_overrides
     from ipt.receiver.daemon import run
+    from ipt.receiver.outputs import OutputError
 
-    cfg = load_receiver_config(args.config or shipped_config_path("receiver.yaml"))
+    config = Path(args.config) if args.config else shipped_config_path("receiver.yaml")
+    cfg = load_receiver_config(config)
     flags = {
         "arena": None if args.arena is None else Path(args.arena),
         "camera": None if args.camera is None else Path(args.camera),
@@ -56,6 +102,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         "send": args.send,
         "vehicle_id": args.vehicle_id,
         "realtime": True if args.realtime else None,
+        "auth_key_file": None if args.auth_key_file is None else Path(args.auth_key_file),
     }
     updates: dict[str, object] = {k: v for k, v in flags.items() if v is not None}
     if args.mavlink is not None:
@@ -66,7 +113,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
         updates["record"] = {**cfg.record.model_dump(), "path": Path(args.record)}
     if updates:
         cfg = with_overrides(cfg, **updates)
-    stats = run(cfg, max_frames=args.max_frames)
+    try:
+        stats = run(cfg, max_frames=args.max_frames)
+    except OutputError as exc:
+        # Say where the target came from, so that the fix is one look away.
+        where = "--send" if args.send else f"{config} (send:)"
+        raise OutputError(f"{where}: {exc}") from None
     if stats.capture_running:
         # A read still inside native code (camera driver, renderer) must neither hold up the exit nor
         # see the C++ runtime torn down under it: leave now, everything worth keeping is written.
@@ -114,7 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--config", metavar="ARENA.yaml", help="arena YAML (default: the shipped paper arena)")
     r.add_argument("--camera", required=True, metavar="CAMERA.yaml", help="ROS camera_info YAML of the camera")
     r.add_argument("--video", required=True, metavar="VIDEO|DIR", help="recording: video file or image folder")
-    r.add_argument("--fps", type=positive_float, help="camera frame rate (default: from the video file)")
+    r.add_argument("--fps", type=_camera_rate, help="camera frame rate, 1-1000 Hz (default: from the video file)")
     r.add_argument("--output", required=True, metavar="POSES.tum", help="where to write the poses")
     r.add_argument(
         "--profile",
@@ -131,8 +183,10 @@ def build_parser() -> argparse.ArgumentParser:
         "and send one UDP pose packet per pose to every target, and with --mavlink (or mavlink.link) ODOMETRY to "
         "the flight controller (docs/flight-controllers.md). Statistics go to stderr every stats_interval_s "
         "seconds and at exit. With --ros2 (or ros2.enabled) also /ipt/pose, /ipt/odom and /tf as ROS 2 topics over "
-        "DDS, and with --record an MCAP flight log (README \"ROS 2 and flight logs\"). Stops on SIGTERM/SIGINT "
-        "(exit code 0), at the end of a recording, or after --max-frames.",
+        "DDS, and with --record an MCAP flight log (README \"ROS 2 and flight logs\"). Stops on SIGTERM, SIGINT or "
+        "SIGHUP at any moment, also while starting (exit code 0, with the final statistics line), at the end of a "
+        "recording, or after --max-frames. A recording is read to its end once: a frame that cannot be decoded is "
+        "skipped and counted, and a file shorter than its header says is reported.",
     )
     d.add_argument("--config", metavar="RECEIVER.yaml", help="receiver YAML (default: the shipped receiver.yaml)")
     d.add_argument("--arena", metavar="ARENA.yaml", help="arena YAML (overrides the config)")
@@ -142,7 +196,9 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="SOURCE",
         help="sim, video:PATH, images:DIR, device:N or picamera2[:N] (overrides the config)",
     )
-    d.add_argument("--fps", type=positive_float, metavar="F", help="camera frame rate in Hz (overrides the config)")
+    d.add_argument(
+        "--fps", type=_camera_rate, metavar="F", help="camera frame rate in Hz, 1-1000 (overrides the config)"
+    )
     d.add_argument(
         "--send",
         action="append",
@@ -150,6 +206,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="UDP destination of the pose packets; repeat for several (replaces the config's list)",
     )
     d.add_argument("--vehicle-id", type=int, metavar="N", help="vehicle id in the packets, 0..65535")
+    d.add_argument(
+        "--auth-key-file",
+        metavar="F",
+        help="authenticate the pose packets with the key in this file (overrides the config's auth_key_file)",
+    )
     d.add_argument(
         "--mavlink",
         metavar="LINK",
@@ -182,7 +243,16 @@ def _main(argv: Sequence[str] | None) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``ipt-receiver``."""
-    return run_main("ipt-receiver", _main, argv)
+    words = list(sys.argv[1:] if argv is None else argv)
+
+    def on_interrupt(exc: Interrupted) -> int:
+        """A stop signal before a command took over (while the arguments were read)."""
+        if words[:1] == ["run"]:
+            return _stopped_while_starting(exc)
+        print(f"ipt-receiver: interrupted by {exc.name}; nothing was left half-written", file=sys.stderr)
+        return exc.exit_status
+
+    return run_main("ipt-receiver", _main, argv, on_interrupt=on_interrupt)
 
 
 if __name__ == "__main__":

@@ -25,18 +25,19 @@ Three stages, each on its own thread, joined by bounded queues::
   is set up before the first frame (a mistake there is an :class:`~ipt.errors.IptError`), and a failure
   later is counted in its own summary line while the others go on.
 
-Shutdown (SIGTERM, SIGINT, the end of a recording, or ``--max-frames``): the signal handlers only set
-the stop event; then, within :data:`SHUTDOWN_BUDGET_S`, capture stops, queued frames are dropped,
-frames already submitted get up to :data:`DRAIN_TIMEOUT_S` to finish and be sent, the sockets are
-closed, the read in progress on the capture thread is waited for, and a final statistics line is
-printed. A read that does not end in time (a hung camera driver) is left to its daemon thread and
-reported in :attr:`DaemonStats.capture_running`, on which the command line leaves with ``os._exit``.
+Shutdown (SIGTERM, SIGINT or SIGHUP, the end of a recording, or ``--max-frames``): the signal handlers
+only set the stop event, and they are in place from the first line of :func:`run_daemon` (a signal that
+came earlier, while the event loop started, is delivered then; see :mod:`ipt.signals`); then, within
+:data:`SHUTDOWN_BUDGET_S`, capture stops, queued frames are dropped, frames already submitted get up to
+:data:`DRAIN_TIMEOUT_S` to finish and be sent, the sockets are closed, the read in progress on the
+capture thread is waited for, and a final statistics line is printed. A read that does not end in time
+(a hung camera driver) is left to its daemon thread and reported in :attr:`DaemonStats.capture_running`,
+on which the command line leaves with ``os._exit``.
 """
 
 from __future__ import annotations
 
 import asyncio
-import signal
 import sys
 import threading
 import time
@@ -49,6 +50,7 @@ from typing import TYPE_CHECKING, Any, TextIO
 import numpy as np
 import numpy.typing as npt
 
+from ipt import signals
 from ipt.config.camera_info import CameraInfo, load_camera_info
 from ipt.config.models import ArenaConfig, load_arena_config
 from ipt.config.receiver import ReceiverConfig, read_auth_key
@@ -147,6 +149,8 @@ class DaemonStats:
     """Detector helper processes replaced because their memory grew (see :mod:`ipt.receiver.tagworker`)."""
     detector_restarts: int = 0
     """Detector helper processes replaced because they crashed, hung or did not start."""
+    frames_skipped: int = 0
+    """Frames of a recording that could not be decoded or read, or had another size: skipped, not captured."""
     capture_running: bool = False
     """The capture thread was still inside a read (stuck in a driver, say) when the daemon returned. It
     is a daemon thread; a process about to exit should then leave with ``os._exit`` rather than run
@@ -166,7 +170,9 @@ class DaemonStats:
             f"{self.packets_sent} packets in {self.seconds:.2f} s: {self.frames_processed / s:.1f} frames/s, "
             f"{self.poses / s:.1f} poses/s, yield {100 * self.yield_fraction:.1f} %, "
             f"latency p50 {_ms(self.latency_p50_ms)} p99 {_ms(self.latency_p99_ms)}, drops {self.drops}, "
-            f"send errors {self.send_errors}, capture failures {self.capture_failures}, detector helpers "
+            f"send errors {self.send_errors}, capture failures {self.capture_failures}, "
+            + (f"unreadable frames skipped {self.frames_skipped}, " if self.frames_skipped else "")
+            + "detector helpers "
             f"replaced {self.detector_recycles} for memory and {self.detector_restarts} after failures ({why})"
         )
 
@@ -232,17 +238,6 @@ def make_source(cfg: ReceiverConfig, arena: ArenaConfig, camera: CameraInfo, sto
     return SimCapture(arena, sim, fps, cfg.realtime, sleep=stop.wait)
 
 
-def _install_signal_handlers(loop: asyncio.AbstractEventLoop, stop: asyncio.Event) -> list[signal.Signals]:
-    installed = []
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        try:
-            loop.add_signal_handler(sig, stop.set)
-        except (NotImplementedError, RuntimeError, ValueError):  # not the main thread, or no signals here
-            continue
-        installed.append(sig)
-    return installed
-
-
 async def run_daemon(
     cfg: ReceiverConfig,
     *,
@@ -265,9 +260,27 @@ async def run_daemon(
     datagrams sent for it. A result may come a few frames after its frame was processed (the pipeline's
     ``lookahead_frames``); ``on_processed`` is called once each frame was processed and the results that
     became final with it were delivered, with the datagrams sent for them."""
+    loop = asyncio.get_running_loop()
+    stop_event = stop if stop is not None else asyncio.Event()
+    unroute = signals.route_to_loop(loop, lambda _sig: stop_event.set()) if handle_signals else None
+    try:
+        return await _run_daemon(cfg, stop_event, stats_out, max_frames, source, on_result, on_processed)
+    finally:
+        if unroute is not None:
+            unroute()
+
+
+async def _run_daemon(
+    cfg: ReceiverConfig,
+    stop: asyncio.Event,
+    stats_out: TextIO | None,
+    max_frames: int | None,
+    source: CaptureSource | None,
+    on_result: ResultHook | None,
+    on_processed: ProcessedHook | None,
+) -> DaemonStats:
     out = stats_out if stats_out is not None else sys.stderr
     loop = asyncio.get_running_loop()
-    stop = stop if stop is not None else asyncio.Event()
 
     arena = load_arena_config(cfg.arena)
     camera = load_camera_info(cfg.camera)
@@ -403,7 +416,6 @@ async def run_daemon(
         task.add_done_callback(tasks.discard)
         return task
 
-    handled = _install_signal_handlers(loop, stop) if handle_signals else []
     stop_wait = spawn(_wait_event(stop), "ipt-stop")
     deliver_task: asyncio.Task[None] | None = None
     start = time.monotonic()
@@ -414,7 +426,8 @@ async def run_daemon(
         await sender.open()
         if mavlink is not None:
             await mavlink.open()  # the link itself is (re)opened in the background
-        capture.start()
+        if not stop.is_set():  # a signal while starting: do not begin to capture at all
+            capture.start()
         ready = asyncio.wrap_future(capture.ready)
         await asyncio.wait({ready, stop_wait}, return_when=asyncio.FIRST_COMPLETED)
         if not ready.done():
@@ -446,8 +459,6 @@ async def run_daemon(
         # The read in progress (a render, a decode, a camera grab) ends by itself; wait for it within the
         # budget. If it does not end, the thread is a daemon thread and `capture_running` tells the caller.
         capture.join(max(0.0, deadline - time.monotonic()))
-        for sig in handled:
-            loop.remove_signal_handler(sig)
 
     if deliver_task is not None and not deliver_task.cancelled() and deliver_task.exception() is not None:
         raise RuntimeError("the delivery stage failed") from deliver_task.exception()
@@ -465,6 +476,7 @@ async def run_daemon(
         reasons=dict(meter.reasons),
         detector_recycles=pipeline.detector_replacements[0],
         detector_restarts=pipeline.detector_replacements[1],
+        frames_skipped=capture.skipped,
         capture_running=not capture.join(0),
     )
     _write(out, stats.line())

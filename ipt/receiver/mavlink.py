@@ -52,6 +52,7 @@ import numpy.typing as npt
 from ipt.config.receiver import LinkSpec, parse_link
 from ipt.errors import IptError
 from ipt.geometry import R_BODY_CAM_DOWNWARD, quat_wxyz_from_matrix, ypr_from_matrix
+from ipt.ratelimit import LogThrottle
 from ipt.receiver.kinematics import Twist, VelocityFit
 from ipt.receiver.pose import PoseEstimate
 
@@ -586,6 +587,8 @@ class MavlinkOutput:
         self._link_up_s: float | None = None
         self._silence_reported = False
         self._last_link_error: str | None = None
+        # A peer that changes its system id at every HEARTBEAT would otherwise print a line for each.
+        self._heard_log = LogThrottle(period_s=10.0, burst=3)
 
     # -- reporting -----------------------------------------------------------------------------------
 
@@ -817,7 +820,9 @@ class MavlinkOutput:
         name = _AUTOPILOT_NAMES.get(int(msg.autopilot))
         who = f"{who} ({name})" if name else who
         if self.stats.autopilot != who or self._silence_reported:
-            self._say(f"autopilot heard: {who}")
+            line = self._heard_log.line("autopilot heard", f"autopilot heard: {who}", self._clock_s())
+            if line is not None:
+                self._say(line)
         self.stats.autopilot = who
         self._silence_reported = False
 

@@ -1,7 +1,10 @@
 """Replay a recorded flight through the receiver pipeline and write the poses as a TUM file.
 
 Frame ``k`` of the recording has time ``k / fps``. Progress goes to stderr about once a second; the
-output appears only when the run completes (it is written beside the target and renamed).
+output appears only when the run completes (it is written beside the target and renamed). A recording
+is read to its end: a frame that cannot be decoded (or an image that cannot be read, or is of another
+size) is skipped and counted, keeping the others' times, and a file that ends before the frames its
+header announces is reported as truncated.
 """
 
 from __future__ import annotations
@@ -13,9 +16,10 @@ from pathlib import Path
 from typing import TextIO
 
 from ipt.config.camera_info import load_camera_info
-from ipt.config.models import ArenaConfig, PipelineConfig
+from ipt.config.models import MAX_RATE_HZ, MIN_CAMERA_RATE_HZ, ArenaConfig, PipelineConfig
 from ipt.errors import IptError
 from ipt.fileio import atomic_path
+from ipt.ratelimit import LogThrottle
 from ipt.receiver.pipeline import FrameResult, Pipeline
 from ipt.tagmap import TagMap
 from ipt.tum import TUM_HEADER, format_tum_line
@@ -34,6 +38,10 @@ class ReplaySummary:
     poses: int
     seconds: float
     reasons: dict[str, int]
+    skipped: int = 0
+    """Frames of the recording that could not be decoded or read, or were of another size (not processed)."""
+    shortfall: str | None = None
+    """Why the recording ended before the frames its header announced (a truncated file), if it did."""
 
     @property
     def yield_fraction(self) -> float:
@@ -44,9 +52,10 @@ class ReplaySummary:
         """The one-line summary printed at the end."""
         fps = self.frames / self.seconds if self.seconds > 0 else float("inf")
         why = ", ".join(f"{k}={v}" for k, v in sorted(self.reasons.items()))
+        skipped = f", {self.skipped} unreadable frames skipped" if self.skipped else ""
         return (
             f"replay: {self.frames} frames, {self.poses} poses, yield {100 * self.yield_fraction:.1f} %, "
-            f"{fps:.1f} frames/s ({why})"
+            f"{fps:.1f} frames/s{skipped} ({why})"
         )
 
 
@@ -62,7 +71,7 @@ def replay(
 ) -> ReplaySummary:
     """Run the recording at ``video_path`` through the pipeline; write one TUM line per pose."""
     camera = load_camera_info(camera_path)
-    with open_frames(video_path) as source:
+    with open_frames(video_path, skip_bad=True) as source:
         if (source.width, source.height) != (camera.width_px, camera.height_px):
             raise ReplayError(
                 f"{camera_path}: the camera is {camera.width_px}x{camera.height_px} but {video_path} has "
@@ -71,10 +80,26 @@ def replay(
         rate = fps if fps is not None else source.fps
         if rate is None or rate <= 0:
             raise ReplayError(f"{video_path}: the frame rate is unknown; give it with --fps")
+        if not MIN_CAMERA_RATE_HZ <= rate <= MAX_RATE_HZ:
+            raise ReplayError(
+                f"{video_path}: its frame rate {rate:.3g} fps is not a camera's ({MIN_CAMERA_RATE_HZ:g} to "
+                f"{MAX_RATE_HZ:g}); give the rate with --fps"
+            )
         pipeline = Pipeline(tag_map, camera, pipeline_cfg, projector_hz=arena.projector.rate_hz)
         total = source.frame_count
         frames = poses = 0
         start = last_report = time.monotonic()
+        throttle = LogThrottle()
+        said_skipped = 0
+
+        def say_skipped() -> None:
+            """A line for the newest skipped frame (a few, then a count: :class:`LogThrottle`)."""
+            nonlocal said_skipped
+            if progress is not None and source.skipped > said_skipped:
+                said_skipped = source.skipped
+                if line := throttle.line("skip", f"replay: {source.last_skipped}; skipped", time.monotonic()):
+                    progress.write(line + "\n")
+
         with atomic_path(output_path) as tmp, tmp.open("w", encoding="utf-8") as out:
             out.write(TUM_HEADER + "\n")
 
@@ -85,7 +110,9 @@ def replay(
                         out.write(format_tum_line(t_s, result.pose.position_m, result.pose.quat_wxyz))
                 return sum(r.pose is not None for r in results)
 
-            for k, frame in enumerate(source):
+            for frame in source:
+                k = source.index  # skipped frames keep their numbers: every frame keeps its time
+                say_skipped()
                 poses += write(pipeline.process(k, frame, round(k / rate * 1e6)))
                 frames += 1
                 now = time.monotonic()
@@ -98,7 +125,17 @@ def replay(
                     )
                     progress.flush()
             poses += write(pipeline.flush())
-        summary = ReplaySummary(frames, poses, time.monotonic() - start, dict(pipeline.reasons))
+            say_skipped()
+        summary = ReplaySummary(
+            frames,
+            poses,
+            time.monotonic() - start,
+            dict(pipeline.reasons),
+            skipped=source.skipped,
+            shortfall=source.shortfall(),
+        )
     if progress is not None:
         progress.write(summary.line() + "\n")
+        if summary.shortfall is not None:
+            progress.write(f"replay: {summary.shortfall}\n")
     return summary

@@ -1,22 +1,32 @@
-"""``ipt-sender``: project the video with the hidden tags, and draw the drones it hears about on it."""
+"""``ipt-sender``: project the video with the hidden tags, and draw the drones it hears about on it.
+
+Only the standard library and :mod:`ipt.cliutil` load with this module; the rest loads in ``main``, after
+the stop signals are handled (:mod:`ipt.signals`), so that SIGTERM at any moment of the start-up gives
+the final statistics line and exit status 0.
+"""
 
 from __future__ import annotations
 
 import argparse
-import asyncio
+import contextlib
 import gc
 import math
 import sys
 from collections.abc import Callable, Coroutine, Sequence
-from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from ipt import __version__
 from ipt.cliutil import Parser, run_main
-from ipt.config.models import ArenaConfig, load_arena_config, shipped_config_path
 from ipt.errors import IptError
+from ipt.signals import Interrupted
 
-DEFAULT_ARENA = shipped_config_path("arena.yaml")
+if TYPE_CHECKING:
+    from ipt.config.models import ArenaConfig
+
+DEFAULT_ARENA_NAME = "arena.yaml"
+"""The arena shipped in ``ipt/config``, used when ``--config`` is not given."""
+MAX_KEY_BYTES = 4096
+"""Largest key file read (keys are 16 bytes and up; 32 random bytes is the usual)."""
 T = TypeVar("T")
 
 
@@ -35,6 +45,28 @@ def _vehicle_id(text: str) -> int:
     return value
 
 
+def _vehicle_count(text: str) -> int:
+    """An argparse ``type``: how many vehicles may be tracked (1..65536)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid int value: '{text}'") from None
+    if not 1 <= value <= 65536:
+        raise argparse.ArgumentTypeError(f"must be 1..65536, got {value}")
+    return value
+
+
+def _rate_limit(text: str) -> float:
+    """An argparse ``type``: datagrams per second, 0 for no limit."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid float value: '{text}'") from None
+    if not (math.isfinite(value) and (value == 0 or 1 <= value <= 1e7)):
+        raise argparse.ArgumentTypeError(f"must be 0 (no limit) or 1..1e7 datagrams a second, got '{text}'")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``ipt-sender`` argument parser."""
     p = Parser(
@@ -43,10 +75,14 @@ def build_parser() -> argparse.ArgumentParser:
         "projector rate and show it (full screen, to a file, or nowhere for a benchmark). It listens for the "
         "drones' pose packets and draws each drone, its heading and its trail on the video.",
         epilog="Without --video or --image the built-in map-app animation is shown. Statistics go to stderr "
-        "every few seconds and when it stops (SIGINT or SIGTERM); the last line holds missed=<deadlines>.",
+        "every few seconds and when it stops (SIGINT, SIGTERM or SIGHUP, at any moment, also while starting: "
+        "exit status 0); the last line holds missed=<deadlines>. With --sink file and --frames N, a run stopped "
+        "short of N frames keeps no file and exits with 128 + the signal's number. Pose packets: without a key "
+        "anyone on the network can place vehicles on the projection, so give --auth-key-file (the shipped "
+        "service does) or --vehicles; at most --max-vehicles are drawn whatever arrives.",
     )
     p.add_argument("--version", action="version", version=f"ipt-sender {__version__}")
-    p.add_argument("--config", metavar="ARENA.yaml", help=f"arena YAML (default: the shipped {DEFAULT_ARENA.name})")
+    p.add_argument("--config", metavar="ARENA.yaml", help=f"arena YAML (default: the shipped {DEFAULT_ARENA_NAME})")
     content = p.add_mutually_exclusive_group()
     content.add_argument("--video", metavar="IN", help="input video file or image folder, played in a loop")
     content.add_argument("--image", metavar="IN", help="a still image to show")
@@ -89,6 +125,20 @@ def build_parser() -> argparse.ArgumentParser:
         "'ipt[gpu]'), leaving the CPU only the content and the overlay. If the GPU path cannot start, one line "
         "says why and the CPU makes the phases",
     )
+    p.add_argument(
+        "--max-vehicles",
+        type=_vehicle_count,
+        metavar="N",
+        help="most vehicles tracked and drawn at once (default 16); packets of further vehicles are refused and "
+        "counted (vehicle_limit) until one has been silent for 10 s",
+    )
+    p.add_argument(
+        "--source-rate-limit",
+        type=_rate_limit,
+        metavar="HZ",
+        help="datagrams a second taken from one source address (default 1000; 0: no limit); the rest are "
+        "refused and counted (rate_limited) before they are decoded",
+    )
     p.add_argument("--display", type=int, default=0, metavar="N", help="display index of --sink window (default 0)")
     p.add_argument("--windowed", action="store_true", help="--sink window in a window rather than full screen")
     p.add_argument("--stats-every", type=float, default=5.0, metavar="S", help="statistics interval (default 5 s)")
@@ -97,27 +147,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _read_key(path: str) -> bytes:
     """The key file's bytes, without one trailing line break (keys are often written with ``echo``)."""
-    try:
-        key = Path(path).read_bytes()
-    except OSError as exc:
-        raise SenderCliError(f"{path}: cannot read the key file ({exc.strerror or exc})") from None
+    from ipt.fileio import read_bytes_file
+
+    key = read_bytes_file(path, SenderCliError, "a key file", max_bytes=MAX_KEY_BYTES, missing="no such key file")
     for ending in (b"\r\n", b"\n"):
         if key.endswith(ending):
             return key[: -len(ending)]
     return key
 
 
-def _image_size(path: Path) -> tuple[int, int]:
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise SenderCliError(f"{path}: not an image OpenCV can read")
-    return int(img.shape[1]), int(img.shape[0])
-
-
 def _scene(args: argparse.Namespace, arena: ArenaConfig) -> tuple[Any, float]:
     """The content and its frame rate; notes on stderr where it is resized or re-timed."""
+    from ipt.config.models import MAX_RATE_HZ, MIN_CONTENT_RATE_HZ
+    from ipt.imageio import read_image
     from ipt.sender.content import GeneratedScene, StillImageScene, VideoScene
     from ipt.videoio import open_frames
 
@@ -129,6 +171,11 @@ def _scene(args: argparse.Namespace, arena: ArenaConfig) -> tuple[Any, float]:
         if size != (w, h):
             _note(f"input video is {size[0]}x{size[1]}; frames are resized to {w}x{h}")
         if fps is not None and math.isfinite(fps) and fps > 0:
+            if not MIN_CONTENT_RATE_HZ <= fps <= MAX_RATE_HZ:
+                raise SenderCliError(
+                    f"{args.video}: its frame rate is {fps:.3g} fps; content is played at "
+                    f"{MIN_CONTENT_RATE_HZ:g} to {MAX_RATE_HZ:g} frames a second"
+                )
             if abs(fps - rate_hz) > 1e-3:
                 _note(f"input video is {fps:g} fps, not the arena's input_rate_hz {rate_hz:g}: played at its own rate")
             rate_hz = fps
@@ -137,10 +184,10 @@ def _scene(args: argparse.Namespace, arena: ArenaConfig) -> tuple[Any, float]:
         # costs 6 ms a frame and a re-open at the loop.
         return VideoScene(args.video, w, h, cache_bytes=0), rate_hz
     if args.image is not None:
-        size = _image_size(Path(args.image))
-        if size != (w, h):
-            _note(f"input image is {size[0]}x{size[1]}; it is resized to {w}x{h}")
-        return StillImageScene.from_file(args.image, w, h), rate_hz
+        image = read_image(args.image, "rgb", SenderCliError)
+        if image.shape[:2] != (h, w):
+            _note(f"input image is {image.shape[1]}x{image.shape[0]}; it is resized to {w}x{h}")
+        return StillImageScene(image, w, h), rate_hz
     return GeneratedScene(w, h), rate_hz
 
 
@@ -170,6 +217,8 @@ def _gpu_path(args: argparse.Namespace, arena: ArenaConfig, mask: Any) -> tuple[
 
 def _run(make: Callable[[], Coroutine[Any, Any, T]]) -> T:
     """Run a coroutine on uvloop where it is available, else on asyncio's own loop."""
+    import asyncio  # here, not at the top: asyncio alone takes longer to import than everything else up to main()
+
     try:
         import uvloop
     except ImportError:
@@ -178,30 +227,59 @@ def _run(make: Callable[[], Coroutine[Any, Any, T]]) -> T:
         return runner.run(make())
 
 
-def _main(argv: Sequence[str] | None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+def _check_flags(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     if args.sink == "file" and args.output is None:
         parser.error("--sink file needs --output OUT.mkv")
     if args.sink != "file" and args.output is not None:
         parser.error("--output is only for --sink file")
     if args.frames is not None and args.frames < 1:
         parser.error(f"--frames must be at least 1, got {args.frames}")
-    if not args.stats_every > 0:
-        parser.error(f"--stats-every must be positive, got {args.stats_every}")
+    if not (math.isfinite(args.stats_every) and args.stats_every > 0):
+        parser.error(f"--stats-every must be a positive number, got {args.stats_every}")
     if not 1 <= args.threads <= 64:
         parser.error(f"--threads must be 1..64, got {args.threads}")
     if args.gpu and args.sink != "window":
         parser.error("--gpu is for --sink window (the GPU draws straight into the window)")
 
+
+EMPTY_STATS_LINE = (
+    "ipt-sender: done: frames=0 fps=nan work_p50=nanms work_p99=nanms missed=0 late=0 vehicles=0 packets "
+    "accepted=0 rejected=0"
+)
+"""The final statistics line of a run that never showed a frame (``SenderStats.line()`` of nothing, spelt
+out: a stop signal may have cut an import short, so nothing more is imported to print it)."""
+
+
+def _stopped_while_starting(exc: Interrupted, args: argparse.Namespace | None) -> int:
+    """What a stop signal during the start-up leaves: a note, the final line and the documented status."""
+    _note(f"stopped by {exc.name} while starting")
+    print(EMPTY_STATS_LINE, file=sys.stderr)
+    if args is not None and args.sink == "file" and args.frames is not None:
+        _note(f"{args.output} was not written (0 of the {args.frames} frames asked for)")
+        return exc.exit_status
+    return 0
+
+
+def _main(argv: Sequence[str] | None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _check_flags(parser, args)
+    try:
+        return _serve(args)
+    except Interrupted as exc:
+        return _stopped_while_starting(exc, args)
+
+
+def _serve(args: argparse.Namespace) -> int:
+    from ipt.config.models import load_arena_config, shipped_config_path
     from ipt.protocol import PacketFilter
     from ipt.sender.display import Sink, make_sink
     from ipt.sender.modulator import FrameTiming, Modulator, delta_l_warning, make_modulator
-    from ipt.sender.scene import ArScene
-    from ipt.sender.server import DEFAULT_LISTEN, parse_listen, run_sender
+    from ipt.sender.scene import DEFAULT_MAX_VEHICLES, ArScene
+    from ipt.sender.server import DEFAULT_LISTEN, DEFAULT_SOURCE_RATE_HZ, parse_listen, run_sender
     from ipt.tagmap import grid_tag_map
 
-    arena = load_arena_config(args.config if args.config is not None else DEFAULT_ARENA)
+    arena = load_arena_config(args.config if args.config is not None else shipped_config_path(DEFAULT_ARENA_NAME))
     if args.modulation is not None:
         modulation = arena.modulation.model_copy(update={"profile": args.modulation})
         arena = arena.model_copy(update={"modulation": modulation})
@@ -213,70 +291,98 @@ def _main(argv: Sequence[str] | None) -> int:
     else:
         listen = None if args.sink == "file" else DEFAULT_LISTEN
     key = _read_key(args.auth_key_file) if args.auth_key_file is not None else None
-    packet_filter = PacketFilter(key=key, vehicle_ids=args.vehicles, resync_after_s=10.0)
-    if args.gpu and mod.profile != "ipt":
-        parser.error(f"--gpu makes the ipt profile's phases; the arena's modulation.profile is {mod.profile!r}")
-    mask = grid_tag_map(arena).render_mask()
-    modulator: Modulator = make_modulator(mod.profile, mask, mod.delta_l, args.threads, mod.clip_allowance_l8)
-    scene, input_rate_hz = _scene(args, arena)
-    timing = FrameTiming(input_rate_hz, pr.rate_hz)
-    if (note := timing.note()) is not None:
-        _note(note)
-    sink: Sink | None = None
-    on_gpu = False
-    if args.gpu:
-        sink, gpu_modulator = _gpu_path(args, arena, mask)
-        if gpu_modulator is not None:
-            modulator, on_gpu = gpu_modulator, True
-    if sink is None:
-        sink = make_sink(
-            args.sink,
-            output=args.output,
-            fps=pr.rate_hz,
-            width=pr.width_px,
-            height=pr.height_px,
-            display_index=args.display,
-            fullscreen=not args.windowed,
-        )
-    ratio = float(timing.ratio)
-    per_input = f"N={int(timing.ratio)}" if timing.whole else f"{ratio:.3g} output frames per input frame"
-    print(
-        f"ipt-sender: {pr.width_px}x{pr.height_px} at {pr.rate_hz:g} Hz, input {input_rate_hz:g} Hz "
-        f"({per_input}), modulation {mod.profile}"
-        + (f" (clip allowance {mod.clip_allowance_l8:g})" if mod.profile == "ipt" else "")
-        + f", ΔL {mod.delta_l:g}, sink {args.sink}{' (phases on the GPU)' if on_gpu else ''} "
-        f"({'paced' if sink.paced else 'as fast as possible'})"
-        + ("" if key is None else ", authenticated packets only"),
-        file=sys.stderr,
+    max_vehicles = args.max_vehicles if args.max_vehicles is not None else DEFAULT_MAX_VEHICLES
+    rate = args.source_rate_limit if args.source_rate_limit is not None else DEFAULT_SOURCE_RATE_HZ
+    packet_filter = PacketFilter(
+        key=key,
+        vehicle_ids=args.vehicles,
+        resync_after_s=10.0,
+        max_vehicles=max_vehicles,
+        source_rate_hz=rate or None,
     )
-    try:
-        stats = _run(
-            lambda: run_sender(
-                arena,
-                sink,
-                scene,
-                frames=args.frames,
-                listen=listen,
-                packet_filter=packet_filter,
-                ar_scene=ArScene(arena),
-                stats_every_s=args.stats_every,
-                input_rate_hz=input_rate_hz,
-                modulator=modulator,
-            )
+    if args.gpu and mod.profile != "ipt":
+        raise SenderCliError(
+            f"--gpu makes the ipt profile's phases; the arena's modulation.profile is {mod.profile!r}"
         )
-    finally:
-        for thing in (scene, modulator):
-            close = getattr(thing, "close", None)
-            if close is not None:
-                close()
+    with contextlib.ExitStack() as stack:
+        mask = grid_tag_map(arena).render_mask()
+        modulator: Modulator = make_modulator(mod.profile, mask, mod.delta_l, args.threads, mod.clip_allowance_l8)
+        stack.callback(_close, modulator)
+        scene, input_rate_hz = _scene(args, arena)
+        stack.callback(_close, scene)
+        timing = FrameTiming(input_rate_hz, pr.rate_hz)
+        if (note := timing.note()) is not None:
+            _note(note)
+        sink: Sink | None = None
+        on_gpu = False
+        if args.gpu:
+            sink, gpu_modulator = _gpu_path(args, arena, mask)
+            if gpu_modulator is not None:
+                modulator, on_gpu = gpu_modulator, True
+                stack.callback(_close, gpu_modulator)
+        if sink is None:
+            sink = make_sink(
+                args.sink,
+                output=args.output,
+                fps=pr.rate_hz,
+                width=pr.width_px,
+                height=pr.height_px,
+                display_index=args.display,
+                fullscreen=not args.windowed,
+            )
+        ratio = float(timing.ratio)
+        per_input = f"N={int(timing.ratio)}" if timing.whole else f"{ratio:.3g} output frames per input frame"
+        guard = "authenticated packets only" if key is not None else "packets not authenticated"
+        if args.vehicles is not None:
+            guard += f", vehicles {' '.join(map(str, args.vehicles))}"
+        print(
+            f"ipt-sender: {pr.width_px}x{pr.height_px} at {pr.rate_hz:g} Hz, input {input_rate_hz:g} Hz "
+            f"({per_input}), modulation {mod.profile}"
+            + (f" (clip allowance {mod.clip_allowance_l8:g})" if mod.profile == "ipt" else "")
+            + f", ΔL {mod.delta_l:g}, sink {args.sink}{' (phases on the GPU)' if on_gpu else ''} "
+            f"({'paced' if sink.paced else 'as fast as possible'}), {guard}, at most {max_vehicles} vehicles",
+            file=sys.stderr,
+        )
+        try:
+            stats = _run(
+                lambda: run_sender(
+                    arena,
+                    sink,
+                    scene,
+                    frames=args.frames,
+                    listen=listen,
+                    packet_filter=packet_filter,
+                    ar_scene=ArScene(arena, max_vehicles=max_vehicles),
+                    stats_every_s=args.stats_every,
+                    input_rate_hz=input_rate_hz,
+                    modulator=modulator,
+                )
+            )
+        except BaseException:
+            sink.abort()  # a file begun before the run (or in it) is not left behind; aborting twice is harmless
+            raise
+    if stats.stopped_by is not None and not stats.output_kept:
+        from ipt.signals import signal_name
+
+        _note(
+            f"stopped by {signal_name(stats.stopped_by)} after {stats.frames} of the {args.frames} frames asked "
+            f"for: {args.output} was not written"
+        )
+        return 128 + stats.stopped_by
     if args.sink == "file":
         print(f"ipt-sender: wrote {stats.frames} frames -> {args.output}")
     return 0
 
 
+def _close(thing: object) -> None:
+    close = getattr(thing, "close", None)
+    if close is not None:
+        close()
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``ipt-sender``."""
-    rc = run_main("ipt-sender", _main, argv)
+    rc = run_main("ipt-sender", _main, argv, on_interrupt=lambda exc: _stopped_while_starting(exc, None))
     # Everything is closed and reported. The interpreter's last garbage collection would walk numba's many
     # compiler objects (about a second on a busy machine, after SIGTERM); leave them to the process exit.
     gc.freeze()

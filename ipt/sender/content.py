@@ -22,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.errors import IptError
+from ipt.imageio import read_image
 from ipt.videoio import FrameSource, VideoError, open_frames
 
 U8 = npt.NDArray[np.uint8]
@@ -526,11 +527,8 @@ class StillImageScene:
 
     @classmethod
     def from_file(cls, path: str | Path, width_px: int, height_px: int) -> StillImageScene:
-        """Read an image file (anything ``cv2.imread`` reads; grey becomes RGB)."""
-        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise ContentError(f"{path}: not an image OpenCV can read")
-        return cls(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), width_px, height_px)
+        """Read an image file (anything OpenCV decodes; grey becomes RGB), see :mod:`ipt.imageio`."""
+        return cls(read_image(path, "rgb", ContentError), width_px, height_px)
 
     def frame(self, index: int, rate_hz: float) -> U8:
         """The image (a new array each call, so the caller may modify it)."""

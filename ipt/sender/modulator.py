@@ -81,8 +81,11 @@ def phase_sign(output_index: int) -> int:
 
 
 def _rate(value_hz: float) -> Fraction:
-    # 1001 keeps NTSC rates exact: 60000/1001 over 30000/1001 is 2.
-    return Fraction(value_hz).limit_denominator(1001)
+    # 1001 keeps NTSC rates exact: 60000/1001 over 30000/1001 is 2. A rate the small denominator cannot
+    # hold to a millionth (a very low one would become 0 and divide by zero) is kept exactly instead.
+    exact = Fraction(value_hz)
+    near = exact.limit_denominator(1001)
+    return near if near > 0 and abs(near - exact) <= exact / 1_000_000 else exact
 
 
 def frames_per_input(input_rate_hz: float, output_rate_hz: float) -> int:

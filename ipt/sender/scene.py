@@ -15,6 +15,9 @@ What is drawn, per vehicle, at its arena position converted to projector pixels:
 - a trail of its recent positions, fainter with age.
 
 A vehicle not heard from for ``fade_after_s`` fades out linearly and is dropped after ``forget_after_s``.
+At most ``max_vehicles`` (:data:`DEFAULT_MAX_VEHICLES`) are kept: a new one while that many others are
+still shown is refused and counted (:attr:`ArScene.refused`), so no flood of vehicle ids can make a
+frame's overlay work grow (the sender's packet filter refuses them earlier, with the same limit).
 
 Speed: nothing is done per frame pixel. The marker is drawn (and, when fading, blended) in a small box
 around the vehicle; the trail is a few polylines drawn straight into the frame, each faded by mixing
@@ -72,6 +75,9 @@ _TRAIL_BANDS: Final = 8  # a trail fades in this many steps
 _TRAIL_JUMP_M: Final = 0.5  # consecutive positions further apart than this are not joined
 _FAR_PX: Final = 1_000_000.0  # beyond this (in any direction) a vehicle is not drawn at all
 
+DEFAULT_MAX_VEHICLES: Final = 16
+"""Vehicles the overlay (and the sender's packet filter) tracks at most, unless told otherwise."""
+
 
 def heading_rad(quat_wxyz: tuple[float, float, float, float] | npt.ArrayLike) -> float | None:
     """Arena yaw (radians, counter-clockwise from +x) of the camera's image-up direction on the floor.
@@ -108,6 +114,7 @@ class ArScene:
         trail_s: how far back the trail reaches.
         trail_points: most points kept per trail.
         marker_radius_m: radius of the vehicle's circle on the floor.
+        max_vehicles: most vehicles kept (and drawn) at once; more are refused and counted.
     """
 
     def __init__(
@@ -119,7 +126,10 @@ class ArScene:
         trail_s: float = 3.0,
         trail_points: int = 64,
         marker_radius_m: float = 0.05,
+        max_vehicles: int = DEFAULT_MAX_VEHICLES,
     ) -> None:
+        if max_vehicles < 1:
+            raise ValueError(f"max_vehicles must be at least 1, got {max_vehicles}")
         if not 0 <= fade_after_s < forget_after_s:
             raise ValueError(f"need 0 <= fade_after_s < forget_after_s, got {fade_after_s}, {forget_after_s}")
         if not trail_s > 0 or trail_points < 2 or not marker_radius_m > 0:
@@ -142,6 +152,9 @@ class ArScene:
         self._jump_px = _TRAIL_JUMP_M * px_per_m
         self._font_scale = max(0.3, self.radius_px / 28)
         self._font_px = max(1, round(self.radius_px / 18))
+        self.max_vehicles = max_vehicles
+        self.refused = 0
+        """Poses of new vehicles not taken because ``max_vehicles`` others were being shown."""
         self._tracks: dict[int, VehicleTrack] = {}
         self._lock = threading.Lock()
 
@@ -164,6 +177,11 @@ class ArScene:
         u, v = self.pixel_of(x, y)
         with self._lock:
             track = self._tracks.get(packet.vehicle_id)
+            if track is None and len(self._tracks) >= self.max_vehicles:
+                self._prune(now_s)
+                if len(self._tracks) >= self.max_vehicles:
+                    self.refused += 1
+                    return
             if track is None:
                 track = self._tracks[packet.vehicle_id] = VehicleTrack(
                     packet.vehicle_id, (x, y, z), heading, now_s, deque(maxlen=self.trail_points)

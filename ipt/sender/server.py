@@ -19,15 +19,21 @@ frame stays up one refresh longer, a repeated phase (``repeated_phases`` in the 
 Pacing. A sink that is ``paced`` (the window, the null sink) gets frame j at its due time. A file is
 not paced: frames are rendered and written as fast as possible, and there are no deadlines to miss.
 
-Packets. A UDP socket (an asyncio datagram endpoint on the event loop) feeds every datagram to a
-:class:`~ipt.protocol.PacketFilter`; accepted poses update the :class:`~ipt.sender.scene.ArScene`,
-rejected ones are counted by reason. Nothing in a datagram can stop the loop: anything unexpected is
-counted as ``error``.
+Packets. A UDP socket (an asyncio datagram endpoint on the event loop) feeds every datagram, with its
+source address, to a :class:`~ipt.protocol.PacketFilter`; accepted poses update the
+:class:`~ipt.sender.scene.ArScene`, rejected ones are counted by reason. Nothing in a datagram can stop
+the loop: anything unexpected is counted as ``error``. The default filter tracks at most
+:data:`~ipt.sender.scene.DEFAULT_MAX_VEHICLES` vehicles and takes at most :data:`DEFAULT_SOURCE_RATE_HZ`
+datagrams a second from one source address, so that a flood of made-up vehicle ids neither grows the
+overlay's work nor takes the event loop's time from the frames (``docs/reliability.md``).
 
-Stopping. SIGTERM and SIGINT only set a flag (a second SIGINT also skips the waits). The loop then
-stops taking frames, and shutdown runs in order with bounded waits: close the socket, let the render
-thread finish its frame and the content thread the input frame it is making, close the sink (a file is
-completed with the frames shown), print the final statistics line, which always contains ``missed=<count>``.
+Stopping. SIGTERM, SIGINT and SIGHUP only set a flag (a second SIGINT also skips the waits); one that
+arrived while the sender was starting stops it as soon as its loop runs (:mod:`ipt.signals`). The loop
+then stops taking frames, and shutdown runs in order with bounded waits: close the socket, let the
+render thread finish its frame and the content thread the input frame it is making, close the sink,
+print the final statistics line, which always contains ``missed=<count>``. A file is completed with the
+frames shown, unless a number of frames was asked for and the run stopped short of it: then the file is
+not kept (a video with fewer frames than asked for would look finished).
 """
 
 from __future__ import annotations
@@ -51,6 +57,7 @@ from typing import Any, Final, Literal
 import numpy as np
 import numpy.typing as npt
 
+from ipt import signals
 from ipt.config.models import ArenaConfig
 from ipt.errors import IptError
 from ipt.memory import keep_freed_memory, warm
@@ -59,7 +66,7 @@ from ipt.sender.content import GeneratedScene, Scene
 from ipt.sender.display import Sink
 from ipt.sender.modulator import FrameTiming, Modulator, make_modulator, phase_sign, resize_to
 from ipt.sender.pairs import default_cache_dir
-from ipt.sender.scene import ArScene
+from ipt.sender.scene import DEFAULT_MAX_VEHICLES, ArScene
 from ipt.tagmap import grid_tag_map
 
 U8 = npt.NDArray[np.uint8]
@@ -72,6 +79,24 @@ RECEIVE_BUFFER_BYTES: Final = 1 << 20
 
 ERROR: Final = "error"
 """Key in the packet counts for datagrams whose handling raised (a bug; never expected)."""
+
+DEFAULT_SOURCE_RATE_HZ: Final = 1000.0
+"""Datagrams a second the sender takes from one source address unless told otherwise: a drone sends one
+pose per camera frame (120 a second), so this leaves room for eight drones behind one address, and a
+flood from one address costs a token-bucket check per datagram instead of a decode."""
+
+
+def default_packet_filter(key: bytes | None = None, vehicle_ids: list[int] | None = None) -> PacketFilter:
+    """The sender's packet filter: ``key`` and ``vehicle_ids`` as given, a restarted drone re-baselined after
+    10 s of silence, at most :data:`DEFAULT_MAX_VEHICLES` vehicles and :data:`DEFAULT_SOURCE_RATE_HZ`
+    datagrams a second from one source address."""
+    return PacketFilter(
+        key=key,
+        vehicle_ids=vehicle_ids,
+        resync_after_s=10.0,
+        max_vehicles=DEFAULT_MAX_VEHICLES,
+        source_rate_hz=DEFAULT_SOURCE_RATE_HZ,
+    )
 
 
 class SenderError(IptError):
@@ -170,6 +195,10 @@ class SenderStats:
     startup_s: float = math.nan
     """From the start of the run to the first frame shown: the colour table, warming memory, the first
     frame's work (the modulator was made before)."""
+    stopped_by: int | None = None
+    """The signal that stopped the run, if one did."""
+    output_kept: bool = True
+    """Whether the sink's output (a file) was kept: not when the run stopped short of the frames asked for."""
 
     @property
     def frames_per_s(self) -> float:
@@ -543,7 +572,7 @@ class _PoseListener(asyncio.DatagramProtocol):
     def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
         now = time.monotonic()
         try:
-            packet = self.filter.accept(data, now)
+            packet = self.filter.accept(data, now, addr[0] if addr else None)
             if packet is not None and self.ar is not None:
                 self.ar.update(packet, now if self.clock is None else self.clock())
         except Exception:  # a bug somewhere below: count it, keep listening
@@ -562,6 +591,10 @@ def _wrap(fut: Future[Any]) -> asyncio.Future[Any]:
 
 def _stderr_line(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
+
+
+def _nothing() -> None:
+    pass
 
 
 class Sender:
@@ -649,7 +682,7 @@ class Sender:
         self._display: _Worker | None = None
         self._pending: deque[tuple[int, Future[Any]]] = deque()
         self._next_submit = 0
-        self._signals: list[int] = []
+        self._unroute_signals: Callable[[], None] = _nothing
         self._interval_work = _Histogram()
         self._overlay_error_logged = False
         self._display_failed = 0  # consecutive output frames the sink failed to show
@@ -664,23 +697,17 @@ class Sender:
     def handle_exit(self, sig: int) -> None:
         if self.should_exit and sig == signal.SIGINT:
             self.force_exit = True
+        if self.stats.stopped_by is None:
+            self.stats.stopped_by = sig
         self.should_exit = True
 
     def _install_signal_handlers(self, loop: asyncio.AbstractEventLoop) -> None:
-        if not self.install_signal_handlers or threading.current_thread() is not threading.main_thread():
-            return
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            try:
-                loop.add_signal_handler(sig, self.handle_exit, sig)
-            except (NotImplementedError, RuntimeError):  # e.g. Windows: no loop signal handlers
-                continue
-            self._signals.append(sig)
+        if self.install_signal_handlers:
+            self._unroute_signals = signals.route_to_loop(loop, self.handle_exit)
 
     def _remove_signal_handlers(self, loop: asyncio.AbstractEventLoop) -> None:
-        for sig in self._signals:
-            with contextlib.suppress(Exception):
-                loop.remove_signal_handler(sig)
-        self._signals.clear()
+        self._unroute_signals()
+        self._unroute_signals = _nothing
 
     def _stopping(self) -> bool:
         if self.stop is not None and self.stop.is_set():
@@ -928,6 +955,10 @@ class Sender:
             self._content.stop()
             if ahead is not None:
                 await asyncio.wait([_wrap(ahead)], timeout=max(0.0, t_end - time.monotonic()))
+        short = self.frames is not None and self.stats.frames < self.frames
+        if ok and short and not getattr(self.sink, "retries", False):
+            ok = False  # a file stopped short of the frames asked for would look finished: not kept
+        self.stats.output_kept = ok
         close = self.sink.close if ok else self.sink.abort
         close_timeout = 0.1 if self.force_exit else self.sink.close_timeout_s
         if self._display is None:
@@ -942,7 +973,7 @@ class Sender:
                     if (exc := d.exception()) is not None and ok:
                         raise exc
         self._collect()
-        if self._started:
+        if self._started or self.stats.stopped_by is not None:
             self.log("ipt-sender: done: " + self.stats.line())
 
 
@@ -977,14 +1008,14 @@ async def run_sender(
         frames: how many output frames to show; ``None`` runs until stopped.
         paced: hand frame j to the sink at its due time; default: the sink's own ``paced``.
         listen: ``(host, port)`` of the UDP pose listener, or ``None`` for none.
-        packet_filter: the gate for datagrams (default: any vehicle, no key, re-baselined after 10 s of
-            silence so that a restarted drone is seen again).
+        packet_filter: the gate for datagrams (default: :func:`default_packet_filter`, any vehicle, no key,
+            at most 16 vehicles, re-baselined after 10 s of silence so that a restarted drone is seen again).
         ar_scene: the overlay (default: a new :class:`ArScene`); it is also updated by the caller's
             own code if it likes (it is thread-safe).
         stats_every_s: interval of the statistics lines.
         log: where lines go (default: stderr).
         lookahead: frames the render thread may work ahead of the clock.
-        install_signal_handlers: SIGTERM/SIGINT stop the run (main thread only).
+        install_signal_handlers: SIGTERM, SIGINT and SIGHUP stop the run (main thread only).
         stop: set it to stop the run from elsewhere.
         shutdown_timeout_s: bound on waiting for the render thread when stopping.
         overlay_clock: the time (seconds) the overlay runs on: given to :meth:`ArScene.update` for each
@@ -1010,7 +1041,7 @@ async def run_sender(
             frames=frames,
             paced=sink.paced if paced is None else paced,
             listen=listen,
-            packet_filter=packet_filter if packet_filter is not None else PacketFilter(resync_after_s=10.0),
+            packet_filter=packet_filter if packet_filter is not None else default_packet_filter(),
             ar_scene=ar_scene if ar_scene is not None else ArScene(arena),
             stats_every_s=stats_every_s,
             log=log if log is not None else _stderr_line,

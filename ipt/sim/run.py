@@ -13,7 +13,7 @@ import yaml
 from ipt.config.camera_info import save_camera_info
 from ipt.config.models import ArenaConfig
 from ipt.errors import IptError
-from ipt.fileio import write_text_atomic
+from ipt.fileio import output_group, write_text_atomic
 from ipt.geometry import quat_wxyz_from_matrix
 from ipt.sender.content import Scene
 from ipt.sim.arena import SimulatedArena
@@ -27,12 +27,14 @@ VIDEO_NAME = "frames.mkv"
 CAMERA_NAME = "camera.yaml"
 TRUTH_NAME = "groundtruth.tum"
 ARENA_NAME = "arena.yaml"
+SETTINGS_NAME = "sim.json"
 
 
 class SimError(IptError):
     """The simulation cannot be run as asked."""
 
 
+@output_group()  # every file this writes is put in place at its end, all together, or removed on any failure
 def simulate_to_folder(
     arena: ArenaConfig,
     sim: SimConfig,
@@ -44,8 +46,10 @@ def simulate_to_folder(
 ) -> int:
     """Render ``seconds`` of flight into ``out_dir``; returns the number of frames.
 
-    The video is written first; camera.yaml and groundtruth.tum follow only once it is complete, each
-    atomically, so an interrupted run never leaves a folder that looks finished.
+    The five files (frames.mkv, camera.yaml, groundtruth.tum, sim.json, arena.yaml) are written beside
+    their names and put in place together when the run ends (:func:`ipt.fileio.output_group`): a failure
+    in any of them (a full disk, an error, a stop signal) leaves none of them and no temporary file, so an
+    interrupted run never leaves a folder that looks finished. A previous run's files are removed first.
     """
     if seconds <= 0:
         raise SimError(f"--seconds must be positive, got {seconds}")
@@ -53,9 +57,12 @@ def simulate_to_folder(
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise SimError(f"{out_dir}: cannot create the output folder ({exc.strerror})") from None
-    for name in (VIDEO_NAME, CAMERA_NAME, TRUTH_NAME, ARENA_NAME):
+    for name in (VIDEO_NAME, CAMERA_NAME, TRUTH_NAME, ARENA_NAME, SETTINGS_NAME):
         # A previous run's files would look like this run's result if we stopped half way.
-        (out_dir / name).unlink(missing_ok=True)
+        try:
+            (out_dir / name).unlink(missing_ok=True)
+        except OSError as exc:
+            raise SimError(f"{out_dir / name}: cannot remove the previous run's file ({exc.strerror})") from None
     cam = sim.camera
     count = max(1, round(seconds * cam.fps))
     world = SimulatedArena(arena, sim, scene, tag_map)
@@ -76,7 +83,7 @@ def simulate_to_folder(
                 progress.flush()
     save_camera_info(camera_info_of(cam), out_dir / CAMERA_NAME)
     write_tum(out_dir / TRUTH_NAME, Trajectory.from_arrays(np.array(times), np.array(positions), np.array(quats)))
-    write_text_atomic(out_dir / "sim.json", sim.model_dump_json(indent=1) + "\n")
+    write_text_atomic(out_dir / SETTINGS_NAME, sim.model_dump_json(indent=1) + "\n")
     flown = "# The arena this flight was rendered with (the --config arena with the flight's changes).\n"
     write_text_atomic(
         out_dir / ARENA_NAME, flown + yaml.safe_dump(world.arena.model_dump(mode="json"), sort_keys=False)

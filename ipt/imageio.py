@@ -1,0 +1,98 @@
+"""Image files in and out, for every tool: OpenCV decodes and encodes bytes, Python reads and writes the file.
+
+OpenCV's ``imread``/``imwrite`` take the path as a C string and crash the process (SIGSEGV) on a name
+that is not valid UTF-8, which Linux allows and Python carries as surrogate escapes. So no path is
+ever handed to OpenCV: the file is read here (bounded and regular files only, :func:`ipt.fileio.read_bytes_file`)
+and decoded with ``cv2.imdecode``; an image is encoded with ``cv2.imencode`` and written atomically
+(:func:`ipt.fileio.atomic_path`), so a full disk is one line naming the file, and libpng has no file of
+its own to complain about.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from ipt.errors import IptError
+from ipt.fileio import atomic_path, read_bytes_file
+
+U8 = npt.NDArray[np.uint8]
+
+MAX_IMAGE_BYTES = 256 * 2**20
+"""Largest image file read (a 16384x16384 PNG of noise is about 800 MB; real maps and photos are far smaller)."""
+
+IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"})
+"""File name endings (compared case-insensitively) taken for images in a folder."""
+
+ImageMode = Literal["rgb", "grey", "unchanged"]
+"""What :func:`read_image` returns: H×W×3 RGB, H×W grey, or the file's own channels and depth (OpenCV's
+channel order, BGR)."""
+
+_FLAGS: dict[str, int] = {"rgb": cv2.IMREAD_COLOR, "grey": cv2.IMREAD_GRAYSCALE, "unchanged": cv2.IMREAD_UNCHANGED}
+
+
+class ImageError(IptError):
+    """An image file cannot be read or written."""
+
+
+def decode_image(data: bytes, mode: ImageMode = "rgb") -> npt.NDArray[np.generic] | None:
+    """``data`` (the bytes of an image file) decoded as ``mode`` asks, or ``None`` if OpenCV cannot decode it."""
+    if not data:
+        return None
+    try:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), _FLAGS[mode])
+    except cv2.error:
+        return None
+    if img is None or img.size == 0:
+        return None
+    if mode == "rgb":
+        return np.ascontiguousarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), dtype=np.uint8)
+    return np.asarray(img)
+
+
+def read_image(path: str | Path, mode: ImageMode = "rgb", error: type[Exception] = ImageError) -> U8:
+    """The 8-bit image in ``path``: H×W×3 RGB (``"rgb"``, grey becomes RGB), H×W (``"grey"``) or as stored
+    (``"unchanged"``, 8-bit files only). Any problem is ``error`` with one line naming the file."""
+    p = Path(path)
+    data = read_bytes_file(p, error, "an image file", max_bytes=MAX_IMAGE_BYTES)
+    img = decode_image(data, mode)
+    if img is None:
+        raise error(f"{p}: not an image OpenCV can read")
+    if img.dtype != np.uint8:
+        raise error(f"{p}: a {img.dtype} image; 8-bit images only")
+    return np.ascontiguousarray(img, dtype=np.uint8)
+
+
+def encode_image(image: npt.NDArray[np.generic], suffix: str = ".png") -> bytes:
+    """``image`` (grey, or BGR as OpenCV stores colour) as the bytes of a ``suffix`` file (``.png``, ``.jpg``, ...)."""
+    try:
+        ok, buf = cv2.imencode(suffix, image)
+    except cv2.error as exc:
+        raise ImageError(f"cannot encode a {suffix} image: {str(exc).strip().splitlines()[-1]}") from None
+    if not ok:
+        raise ImageError(f"cannot encode a {suffix} image of shape {image.shape} {image.dtype}")
+    return bytes(buf)
+
+
+def write_image(
+    path: str | Path, image: npt.NDArray[np.generic], error: type[Exception] = ImageError, *, suffix: str | None = None
+) -> None:
+    """Write ``image`` (grey, or BGR) to ``path`` atomically, in the format ``suffix`` names (``".png"``, ...;
+    default: the one ``path`` ends with, PNG for any other ending).
+
+    A file that cannot be written (no such folder, a full or read-only disk) is a
+    :class:`~ipt.fileio.WriteError` naming ``path``; an image the format cannot hold is ``error``.
+    """
+    p = Path(path)
+    if suffix is None:
+        suffix = p.suffix.lower() if p.suffix.lower() in IMAGE_SUFFIXES else ".png"
+    try:
+        data = encode_image(image, suffix)
+    except ImageError as exc:
+        raise error(f"{p}: {exc}") from None
+    with atomic_path(p) as tmp:
+        tmp.write_bytes(data)

@@ -1,0 +1,178 @@
+"""The stop signals (SIGINT, SIGTERM, SIGHUP): one story for every program, from its first line to its last.
+
+Every command-line tool installs the handler of this module first thing in ``main``
+(:func:`ipt.cliutil.run_main` does it, before the heavy imports). From then on:
+
+- **A tool at work** (no event loop running): the first stop signal raises :class:`Interrupted` in the
+  main thread, as Ctrl-C raises ``KeyboardInterrupt``. The ``with`` blocks and ``finally`` clauses on
+  the way out run, so the temporary ``.partial`` files are removed (:mod:`ipt.fileio`) and nothing that
+  looks complete is left; the tool then says in one line that it was interrupted and exits with
+  128 + the signal's number (130 for SIGINT, 143 for SIGTERM, 129 for SIGHUP).
+- **A daemon** (the sender, the receiver) routes the signals to its own orderly stop as soon as its
+  event loop runs (:func:`route_to_loop`): the loop wakes at once, the daemon stops in order and prints
+  its final statistics line, exit status 0. A signal that arrives while the loop runs but before the
+  route is set up is kept and delivered when it is; one that arrives before the loop runs raises
+  :class:`Interrupted`, which the daemon's ``main`` turns into the same final line and status.
+- Only the first signal acts. Later ones, while the program is already stopping, are noted and
+  otherwise ignored, so that a cleanup is never cut short half way.
+
+SIGHUP is not a reload: it stops a program like SIGTERM (a closed terminal, ``kill -HUP``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import sys
+import threading
+from collections.abc import Callable, Iterator
+from types import FrameType
+from typing import TYPE_CHECKING
+
+from ipt.errors import IptError
+
+if TYPE_CHECKING:  # not imported at run time: this module loads before anything slow
+    import asyncio
+
+STOP_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+"""The signals that stop every IPT program."""
+
+
+class SignalsError(IptError):
+    """Signals cannot be set up as asked (not the main thread)."""
+
+
+class Interrupted(BaseException):
+    """A stop signal arrived while the program was working; raised from the signal handler in the main thread.
+
+    A ``BaseException`` like ``KeyboardInterrupt``, so that ``except Exception`` clauses let it pass.
+    """
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+    @property
+    def name(self) -> str:
+        """The signal's name, e.g. ``SIGTERM``."""
+        return signal_name(self.signum)
+
+    @property
+    def exit_status(self) -> int:
+        """The conventional status of a program ended by this signal: 128 + its number."""
+        return 128 + self.signum
+
+
+def signal_name(signum: int) -> str:
+    """``SIGTERM`` for 15, and so on."""
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"
+
+
+class _State:
+    received: int | None = None
+    """The first stop signal since :func:`install`, if any."""
+    quiet = False
+    """No more raising: the program is at its end (a daemon's loop has finished)."""
+
+
+_state = _State()
+
+
+def _handle(signum: int, frame: FrameType | None) -> None:
+    if _state.received is not None:
+        return  # already stopping: never cut a cleanup short
+    _state.received = signum
+    if _state.quiet:
+        return
+    aio = sys.modules.get("asyncio")  # not imported yet: no event loop can be running
+    try:
+        if aio is None:
+            raise RuntimeError("no running event loop")
+        aio.get_running_loop()
+    except RuntimeError:
+        raise Interrupted(signum) from None
+    # An event loop runs: raising now could land in one of its callbacks, which would only log it.
+    # The loop's owner picks the signal up when it routes the signals (route_to_loop).
+
+
+def install() -> Callable[[], None]:
+    """Handle the stop signals as the module doc says; returns a function that puts the previous handlers back.
+
+    Call it in the main thread, as early as possible (before slow imports): until it runs, SIGTERM and
+    SIGHUP end the process with no word.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        raise SignalsError("the stop signals can only be set up in the main thread")
+    previous = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
+    _state.received, _state.quiet = None, False
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, _handle)
+
+    def restore() -> None:
+        with blocked():
+            for sig, handler in previous.items():
+                signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+
+    return restore
+
+
+def received() -> int | None:
+    """The first stop signal received since :func:`install` (also when routed to a loop), or ``None``."""
+    return _state.received
+
+
+@contextlib.contextmanager
+def blocked() -> Iterator[None]:
+    """Hold the stop signals back in this thread while handlers are swapped; they are delivered after."""
+    try:
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+    except (AttributeError, OSError, ValueError):  # no pthread_sigmask here
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def route_to_loop(loop: asyncio.AbstractEventLoop, stop: Callable[[int], None]) -> Callable[[], None]:
+    """Make the stop signals call ``stop(signum)`` on ``loop`` (asyncio's own handlers, which wake it).
+
+    A signal that came before (kept by this module's handler while the loop ran) calls ``stop`` at once.
+    Returns a function that puts back the handlers that were there before and, from then on, only notes
+    further signals (the program is at its end). Outside the main thread nothing is routed.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+    previous = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
+
+    def on_signal(signum: int) -> None:
+        if _state.received is None:
+            _state.received = signum
+        stop(signum)
+
+    routed: list[signal.Signals] = []
+    with blocked():
+        for sig in STOP_SIGNALS:
+            try:
+                loop.add_signal_handler(sig, on_signal, int(sig))
+            except (NotImplementedError, RuntimeError, ValueError):  # e.g. Windows: no loop signal handlers
+                continue
+            routed.append(sig)
+    if _state.received is not None:
+        loop.call_soon(stop, _state.received)
+
+    def undo() -> None:
+        with blocked():
+            for sig in routed:
+                with contextlib.suppress(Exception):
+                    loop.remove_signal_handler(sig)
+                handler = previous[sig]
+                signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+            if previous.get(signal.SIGTERM) is _handle:
+                _state.quiet = True
+
+    return undo
