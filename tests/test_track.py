@@ -203,3 +203,37 @@ def test_no_map_in_view_gives_no_pose(pair: Pair, edges: MapEdges) -> None:
     assert track_pose(flat, K, edges, pair.rvec, pair.tvec, TrackSettings(), None, pair.diff.valid) is None
     away = _rt(np.array([30.0, 30.0, 0.8]), R_ARENA_CAM)  # far off the arena: no tag near the view
     assert track_pose(pair.diff.diff, K, edges, *away, TrackSettings(), None, pair.diff.valid) is None
+
+
+def test_compiled_kernels_agree_with_their_python_source() -> None:
+    # The kernels run as plain Python where numba cannot compile: both must measure the same steps.
+    from ipt.receiver import trackkernels as tk
+
+    if not tk.COMPILED:
+        pytest.skip("numba cannot compile here: only the Python source runs")
+    rng = np.random.default_rng(3)
+    image = cv2.GaussianBlur(rng.normal(0, 4, (90, 160)).astype(np.float32), (0, 0), 2.0)
+    valid = np.where(rng.random((90, 160)) < 0.9, 255, 0).astype(np.uint8)
+    obj = np.column_stack([rng.uniform(-0.3, 0.3, 300), rng.uniform(-0.2, 0.2, 300), np.zeros(300)])
+    angle = rng.uniform(0, np.pi, 300)
+    nrm = np.column_stack([np.cos(angle), np.sin(angle), np.zeros(300)])
+    sign = np.where(rng.random(300) < 0.5, -1.0, 1.0)
+    r, _ = cv2.Rodrigues(np.array([0.05, -0.03, 0.4]))
+    t = np.array([0.01, -0.02, 0.8])
+    k = np.array([[105.0, 0.0, 80.0], [0.0, 105.0, 45.0], [0.0, 0.0, 1.0]])
+    fast = tk.measure(obj, nrm, sign, r, t, k, image, valid, 4, 3.0, 6)
+    slow = tk.measure.py_func(obj, nrm, sign, r, t, k, image, valid, 4, 3.0, 6)
+    assert len(fast[0]) > 100  # most samples are measurable: the comparison means something
+    for a, b in zip(fast, slow, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
+    idx, raw, band, _ = fast
+    signs = tk.band_signs(raw, band, 6)
+    np.testing.assert_array_equal(signs, tk.band_signs.py_func(raw, band, 6))
+    threshold = np.full(len(idx), 0.5)
+    for a, b in zip(tk.peaks(raw, band, signs, threshold), tk.peaks.py_func(raw, band, signs, threshold), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    cells, tags = obj[:200], np.arange(200) % 4
+    value = np.where(rng.random(200) < 0.5, -1.0, 1.0)
+    on = np.array([True, False, True, True])
+    args = (image, k, r, t, cells, tags, value, on, signs, valid)
+    assert tk.cell_agreement(*args) == pytest.approx(tk.cell_agreement.py_func(*args))

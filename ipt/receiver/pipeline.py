@@ -37,6 +37,7 @@ import numpy.typing as npt
 
 from ipt.config.camera_info import CameraInfo
 from ipt.config.models import PipelineConfig
+from ipt.receiver import trackkernels
 from ipt.receiver.demodulator import (
     PairDifference,
     Undistorter,
@@ -175,6 +176,8 @@ class Pipeline:
         )
         self.pinhole = replace(camera, distortion=(0.0, 0.0, 0.0, 0.0, 0.0)) if self.undistort is not None else camera
         self.edges = MapEdges.from_tag_map(tag_map) if self.tracking else None
+        if self.tracking:
+            trackkernels.warm()  # before the first frame: a live camera must not wait for the compiler
         self.masks = MaskRenderer(tag_map.render_mask(), pixel_to_arena(tag_map)) if self.tracking else None
         scale = camera.width_px / 640
         t = cfg.pose.track

@@ -15,13 +15,16 @@ map fitted out.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
 from ipt.receiver.pose import PoseEstimate
+from ipt.receiver.trackkernels import band_signs, cell_agreement, measure, peaks
 from ipt.tagmap import TAG36H11_CELLS, TagMap, tag36h11_bitmap
 
 F32 = npt.NDArray[np.float32]
@@ -194,14 +197,6 @@ class TrackSettings:
 CONVERGED_PX = 0.05
 
 
-def _profiles(image: F32, pts: F64, normals: F64, radius: int) -> F32:
-    """Values of ``image`` along each normal, at offsets -radius..radius pixels (bilinear)."""
-    offsets = np.arange(-radius, radius + 1, dtype=np.float64)
-    grid = (pts[:, None, :] + offsets[None, :, None] * normals[:, None, :]).astype(np.float32)
-    out = cv2.remap(image, grid[:, :, 0], grid[:, :, 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return np.asarray(out, np.float32)
-
-
 def _select(edges: MapEdges, camera_matrix: F64, r: F64, t: F64, size: tuple[int, int], most: int) -> I64:
     """Indices of the edge samples of the tags that may be in view, at most ``most`` of them, spread evenly."""
     w, h = size
@@ -219,6 +214,17 @@ def _select(edges: MapEdges, camera_matrix: F64, r: F64, t: F64, size: tuple[int
     return chosen
 
 
+def _median(values: npt.NDArray[np.floating[Any]]) -> float:
+    """The median of a non-empty 1-D array (numpy's own costs ~10x more on the few hundred values here)."""
+    values = values.ravel()
+    n = len(values)
+    if n == 0:
+        return 0.0
+    half = n // 2
+    part = np.partition(values, half if n % 2 else (half - 1, half))
+    return float(part[half]) if n % 2 else 0.5 * (float(part[half - 1]) + float(part[half]))
+
+
 def slope_noise(diff: F32, valid: npt.NDArray[np.uint8] | None) -> float:
     """The median absolute slope of ``diff`` along rows (where valid): what a step must stand out from."""
     slopes = np.abs(np.diff(diff[::4, ::2], axis=1))
@@ -226,7 +232,7 @@ def slope_noise(diff: F32, valid: npt.NDArray[np.uint8] | None) -> float:
         inside = valid[::4, ::2][:, 1:] > 0
         if inside.any():
             slopes = slopes[inside]
-    return max(float(np.median(slopes)), 1e-3)
+    return max(_median(slopes), 1e-3)
 
 
 def track_pose(
@@ -275,18 +281,12 @@ def track_pose(
     return fit.result(diff, valid)
 
 
+_NO_MASK = np.zeros((0, 0), np.uint8)
+"""No valid mask: every pixel may be measured."""
+
+
 def _skew(v: F64) -> F64:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def _project(k: F64, r: F64, t: F64, points: F64) -> tuple[F64, F64]:
-    """Pinhole projections (N×2) of arena points, and the points in the camera frame (N×3)."""
-    cam = points @ r.T + t
-    z = cam[:, 2]
-    uv = np.empty((len(points), 2))
-    uv[:, 0] = k[0, 0] * cam[:, 0] / z + k[0, 2]
-    uv[:, 1] = k[1, 1] * cam[:, 1] / z + k[1, 2]
-    return uv, cam
 
 
 class _Fit:
@@ -308,6 +308,8 @@ class _Fit:
         self.edges, self.k, self.size, self.settings, self.valid = edges, camera_matrix, size, settings, valid
         self.obj, self.nrm = edges.points_m[chosen], edges.normals_m[chosen]
         self.step_value, self.owner = edges.step[chosen], edges.tag[chosen]
+        self.step_sign = np.sign(self.step_value).astype(np.float64)
+        self.step_size = np.abs(self.step_value).astype(np.float64)
         self.band_sign: F64 | None = None
         self.r = np.eye(3)
         self.t = np.zeros(3)
@@ -321,56 +323,21 @@ class _Fit:
 
     def step(self, image: F32, noise: float, radius: int, r: F64, t: F64) -> bool:
         """One Gauss-Newton step searching ``radius`` pixels on ``image``; False when too few samples agree."""
-        w, h = self.size
         s = self.settings
         k = self.k
-        u, cam = _project(k, r, t, self.obj)
-        z = cam[:, 2]
-        # d(u, v)/d(camera point), and the image direction of each sample's floor normal.
-        du = np.zeros((len(z), 2, 3))
-        du[:, 0, 0] = k[0, 0] / z
-        du[:, 0, 2] = -k[0, 0] * cam[:, 0] / z**2
-        du[:, 1, 1] = k[1, 1] / z
-        du[:, 1, 2] = -k[1, 1] * cam[:, 1] / z**2
-        n_img = np.einsum("nij,nj->ni", du, self.nrm @ r.T)
-        length = np.linalg.norm(n_img, axis=1)
-        b = s.border_px
-        inside = (u[:, 0] > b) & (u[:, 0] < w - 1 - b) & (u[:, 1] > b) & (u[:, 1] < h - 1 - b) & (length > 1e-9)
-        inside &= z > 0
-        if self.valid is not None:
-            ui = np.clip(np.rint(u).astype(np.int64), 0, [w - 1, h - 1])
-            inside &= self.valid[ui[:, 1], ui[:, 0]] > 0
-        idx = np.flatnonzero(inside)
+        valid = self.valid if self.valid is not None else _NO_MASK
+        idx, raw, band, a_rows = measure(
+            self.obj, self.nrm, self.step_sign, r, t, k, image, valid, radius, s.border_px, s.bands
+        )
         self.tried = len(idx)
         if self.tried < s.min_inliers:
             return False
-        n_img = n_img[idx] / length[idx, None]
-        prof = _profiles(image, u[idx], n_img, radius)
-        raw = (prof[:, 1:] - prof[:, :-1]) * np.sign(self.step_value[idx])[:, None]  # a step of the map's sign: > 0
-        band = np.minimum((u[idx, 1] * s.bands / h).astype(np.int64), s.bands - 1)
         if self.band_sign is None:
-            self.band_sign = _band_signs(raw, band, s.bands)
-        slope = raw * self.band_sign[band][:, None]
-        j = np.argmax(slope, axis=1)
-        rows = np.arange(len(idx))
-        peak = slope[rows, j]
-        last = slope.shape[1] - 1
-        yl, yr = slope[rows, np.clip(j - 1, 0, last)], slope[rows, np.clip(j + 1, 0, last)]
-        den = yl - 2 * peak + yr
-        frac = np.where((den < 0) & (j > 0) & (j < last), 0.5 * (yl - yr) / np.where(den < 0, den, -1), 0)
-        offsets = j + 0.5 + frac - radius  # slope index j lies between profile samples j and j + 1
-        strong = (peak > s.contrast * noise * np.abs(self.step_value[idx]) / 2) & (j > 0) & (j < last)
+            self.band_sign = band_signs(raw, band, s.bands)
+        threshold = s.contrast * noise * self.step_size[idx] / 2
+        offsets, strong = peaks(raw, band, self.band_sign, threshold)
         if strong.sum() < s.min_inliers:
             return False
-        # Rows of the linear system: the image normal times d(u, v)/d(δ, Δt).
-        normal_du = np.einsum("ni,nij->nj", n_img, du[idx])  # d(offset)/d(camera point)
-        rotated = self.obj[idx] @ r.T
-        a_rows = np.empty((len(idx), 6))
-        a_rows[:, 3:] = normal_du
-        # nᵀ·(−[RP]×) = (RP × n)ᵀ, written out (np.cross costs more than the arithmetic here)
-        a_rows[:, 0] = rotated[:, 1] * normal_du[:, 2] - rotated[:, 2] * normal_du[:, 1]
-        a_rows[:, 1] = rotated[:, 2] * normal_du[:, 0] - rotated[:, 0] * normal_du[:, 2]
-        a_rows[:, 2] = rotated[:, 0] * normal_du[:, 1] - rotated[:, 1] * normal_du[:, 0]
         keep = strong.copy()
         sol = np.zeros(6)
         for _ in range(2):  # robust: drop samples far from the fit (from the median absolute deviation)
@@ -378,7 +345,7 @@ class _Fit:
                 return False
             sol = _solve(a_rows[keep], offsets[keep])
             res = offsets - a_rows @ sol
-            scale = max(1.4826 * float(np.median(np.abs(res[keep]))), 0.25)
+            scale = max(1.4826 * _median(np.abs(res[keep])), 0.25)
             keep = strong & (np.abs(res) < 3.0 * scale)
         if keep.sum() < s.min_inliers or len(np.unique(self.owner[idx][keep])) < s.min_tags:
             return False
@@ -437,44 +404,22 @@ def _cell_agreement(
     valid: npt.NDArray[np.uint8] | None,
 ) -> float:
     """How many of the visible data cells' centres have the sign the map gives them at this pose."""
-    h, w = diff.shape
-    mine = np.isin(edges.cell_tag, tags)
-    u, cam = _project(camera_matrix, r, t, edges.cells_m[mine])
-    inside = (cam[:, 2] > 0) & (u[:, 0] >= 0) & (u[:, 0] <= w - 1) & (u[:, 1] >= 0) & (u[:, 1] <= h - 1)
-    expected = edges.cell_value[mine][inside]
-    ui = np.rint(u[inside]).astype(np.int64)
-    if valid is not None:
-        ok = valid[ui[:, 1], ui[:, 0]] > 0
-        ui, expected = ui[ok], expected[ok]
-    if len(ui) < 20:
-        return 0.0
-    values = diff[ui[:, 1], ui[:, 0]]
-    band = np.minimum((ui[:, 1] * len(band_sign) / h).astype(np.int64), len(band_sign) - 1)
-    values = values * band_sign[band]
-    clear = np.abs(values) > 0.3 * float(np.median(np.abs(values)))
-    if clear.sum() < 20:
-        return 0.0
-    return float(np.mean(np.sign(values[clear]) == expected[clear]))
-
-
-def _band_signs(raw: F32, band: I64, bands: int) -> F64:
-    """Per band of rows, the sign under which more samples find a clear step (+1 or -1)."""
-    best_up = raw.max(axis=1)
-    best_down = (-raw).max(axis=1)
-    out = np.ones(bands)
-    votes = np.sign(best_up - best_down)
-    for b in range(bands):
-        mine = band == b
-        if mine.any():
-            out[b] = 1.0 if votes[mine].sum() >= 0 else -1.0
-    if not (band >= 0).any():
-        return out
-    # A band without samples takes the sign of the nearest band with some.
-    counts = np.bincount(band, minlength=bands)
-    filled = np.flatnonzero(counts)
-    for empty in np.flatnonzero(counts == 0):
-        out[empty] = out[filled[np.argmin(np.abs(filled - empty))]] if len(filled) else 1.0
-    return out
+    tag_on = np.zeros(len(edges.tag_ids), np.bool_)
+    tag_on[tags] = True
+    return float(
+        cell_agreement(
+            diff,
+            camera_matrix,
+            r,
+            t,
+            edges.cells_m,
+            edges.cell_tag,
+            edges.cell_value,
+            tag_on,
+            band_sign,
+            valid if valid is not None else _NO_MASK,
+        )
+    )
 
 
 class MaskRenderer:
@@ -500,6 +445,11 @@ class MaskRenderer:
         return np.asarray(out, np.float32)
 
 
+@functools.lru_cache(maxsize=4)
+def _hanning(w: int, h: int) -> F32:
+    return np.asarray(cv2.createHanningWindow((w, h), cv2.CV_32F), np.float32)
+
+
 def coarse_shift(
     diff: F32, predicted_mask_half: F32, valid: npt.NDArray[np.uint8] | None
 ) -> tuple[float, float, float]:
@@ -509,15 +459,19 @@ def coarse_shift(
     if valid is not None:
         small = small * (cv2.resize(valid, small.shape[::-1], interpolation=cv2.INTER_NEAREST) > 0)
     h, w = small.shape
-    window = np.asarray(cv2.createHanningWindow((w, h), cv2.CV_32F), np.float32)
-    fa = np.fft.rfft2(small * window)
-    fb = np.fft.rfft2(predicted_mask_half[:h, :w] * window)
-    corr = np.fft.irfft2(fa * np.conj(fb), s=(h, w))
+    window = _hanning(w, h)
+    mask = np.ascontiguousarray(predicted_mask_half[:h, :w], np.float32)
+    # OpenCV's float32 transforms: several times cheaper than numpy's float64 ones at this size.
+    fa = cv2.dft(small * window, flags=cv2.DFT_COMPLEX_OUTPUT)
+    fb = cv2.dft(mask * window, flags=cv2.DFT_COMPLEX_OUTPUT)
+    corr = np.asarray(
+        cv2.idft(cv2.mulSpectrums(fa, fb, 0, conjB=True), flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE), np.float64
+    )
     magnitude = np.abs(corr)
     peak = int(np.argmax(magnitude))
     py, px = divmod(peak, w)
     value = float(corr.flat[peak])
-    norm = float(np.sqrt((small * small * window).sum() * (predicted_mask_half[:h, :w] ** 2 * window).sum())) + 1e-9
+    norm = float(np.sqrt((small * small * window).sum() * (mask * mask * window).sum())) + 1e-9
 
     def vertex(a: float, b: float, c: float) -> float:  # sub-pixel: the parabola through three samples
         den = a - 2 * b + c

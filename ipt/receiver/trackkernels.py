@@ -1,0 +1,275 @@
+"""The map tracker's inner loops, compiled (numba): measuring where each edge sample's step lies.
+
+One Gauss-Newton step of :mod:`ipt.receiver.track` projects a few hundred edge samples, reads the difference
+image along each sample's normal and finds the step's sub-pixel offset. Written as numpy array operations,
+that is some sixty small array calls per step (~1 ms at 640×360, most of it call overhead); here it is two
+loops over the samples (~0.1 ms). Pure: arrays in, arrays out. Where numba cannot compile (no executable
+memory), the same functions run as plain Python: correct, only slower.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
+U8 = npt.NDArray[np.uint8]
+
+COMPILED = True
+"""Whether the kernels below are compiled (False: numba is unavailable and they run as Python)."""
+
+
+def _jit(fn: Callable[..., Any]) -> Any:
+    """``fn`` compiled by numba (cached on disk where possible), else ``fn`` itself."""
+    global COMPILED
+    try:
+        import numba
+    except (ImportError, OSError):  # OSError: llvmlite refused executable memory
+        COMPILED = False
+        return fn
+    try:
+        return numba.njit(nogil=True, cache=True)(fn)
+    except RuntimeError:  # no writable cache location: compile in every process
+        return numba.njit(nogil=True)(fn)
+
+
+def _bilinear(image: F32, x: float, y: float) -> float:
+    """``image`` at (x, y), bilinear, coordinates clamped to the image (a replicated border)."""
+    h, w = image.shape
+    x = min(max(x, 0.0), w - 1.0)
+    y = min(max(y, 0.0), h - 1.0)
+    x0 = min(int(x), w - 2)
+    y0 = min(int(y), h - 2)
+    fx = x - x0
+    fy = y - y0
+    top = image[y0, x0] * (1.0 - fx) + image[y0, x0 + 1] * fx
+    bottom = image[y0 + 1, x0] * (1.0 - fx) + image[y0 + 1, x0 + 1] * fx
+    return float(top * (1.0 - fy) + bottom * fy)
+
+
+bilinear = _jit(_bilinear)
+
+
+def _measure(
+    obj: F64,
+    nrm: F64,
+    step_sign: F64,
+    r: F64,
+    t: F64,
+    k: F64,
+    image: F32,
+    valid: U8,
+    radius: int,
+    border_px: float,
+    bands: int,
+) -> tuple[I64, F32, I64, F64]:
+    """For the edge samples (arena points ``obj`` with floor normals ``nrm``, the map's step sign per sample)
+    seen at the pose (``r``, ``t``: arena → camera) through the pinhole ``k``: which samples can be measured
+    (inside the image by ``border_px``, in front of the camera, on a valid pixel when ``valid`` is not empty),
+    their slopes along the image normal at offsets −radius..radius (``2·radius`` values between the
+    ``2·radius + 1`` profile samples, times the map's sign: a step of the map's sign is positive), the band
+    of rows each falls in, and the rows of the linear system (d offset / d(δ rotation, Δt))."""
+    n = obj.shape[0]
+    h, w = image.shape
+    use_valid = valid.shape[0] == h and valid.shape[1] == w
+    width = 2 * radius
+    idx = np.empty(n, np.int64)
+    raw = np.empty((n, width), np.float32)
+    band = np.empty(n, np.int64)
+    a_rows = np.empty((n, 6))
+    count = 0
+    for i in range(n):
+        p0 = r[0, 0] * obj[i, 0] + r[0, 1] * obj[i, 1] + r[0, 2] * obj[i, 2]
+        p1 = r[1, 0] * obj[i, 0] + r[1, 1] * obj[i, 1] + r[1, 2] * obj[i, 2]
+        p2 = r[2, 0] * obj[i, 0] + r[2, 1] * obj[i, 1] + r[2, 2] * obj[i, 2]
+        x0, x1, z = p0 + t[0], p1 + t[1], p2 + t[2]
+        if z <= 0.0:
+            continue
+        u = k[0, 0] * x0 / z + k[0, 2]
+        v = k[1, 1] * x1 / z + k[1, 2]
+        if not (border_px < u < w - 1 - border_px and border_px < v < h - 1 - border_px):
+            continue
+        if use_valid and valid[int(v + 0.5), int(u + 0.5)] == 0:
+            continue
+        # d(u, v)/d(camera point): [[d00, 0, d02], [0, d11, d12]]
+        d00 = k[0, 0] / z
+        d02 = -k[0, 0] * x0 / (z * z)
+        d11 = k[1, 1] / z
+        d12 = -k[1, 1] * x1 / (z * z)
+        n0 = r[0, 0] * nrm[i, 0] + r[0, 1] * nrm[i, 1] + r[0, 2] * nrm[i, 2]
+        n1 = r[1, 0] * nrm[i, 0] + r[1, 1] * nrm[i, 1] + r[1, 2] * nrm[i, 2]
+        n2 = r[2, 0] * nrm[i, 0] + r[2, 1] * nrm[i, 1] + r[2, 2] * nrm[i, 2]
+        nx = d00 * n0 + d02 * n2
+        ny = d11 * n1 + d12 * n2
+        length = math.sqrt(nx * nx + ny * ny)
+        if length < 1e-9:
+            continue
+        nx /= length
+        ny /= length
+        sign = step_sign[i]
+        before = bilinear(image, u - radius * nx, v - radius * ny)
+        for o in range(1, width + 1):
+            now = bilinear(image, u + (o - radius) * nx, v + (o - radius) * ny)
+            raw[count, o - 1] = (now - before) * sign
+            before = now
+        band[count] = min(int(v * bands / h), bands - 1)
+        # The image normal times d(u, v)/d(δ, Δt): nᵀ·(−[RP]×) = (RP × n)ᵀ for the rotation, n for t.
+        g0 = nx * d00
+        g1 = ny * d11
+        g2 = nx * d02 + ny * d12
+        a_rows[count, 0] = p1 * g2 - p2 * g1
+        a_rows[count, 1] = p2 * g0 - p0 * g2
+        a_rows[count, 2] = p0 * g1 - p1 * g0
+        a_rows[count, 3] = g0
+        a_rows[count, 4] = g1
+        a_rows[count, 5] = g2
+        idx[count] = i
+        count += 1
+    return idx[:count], raw[:count], band[:count], a_rows[:count]
+
+
+measure = _jit(_measure)
+
+
+def _peaks(raw: F32, band: I64, band_sign: F64, threshold: F64) -> tuple[F64, npt.NDArray[np.bool_]]:
+    """Each sample's step offset from the edge's predicted place (pixels along the normal, sub-pixel by a
+    parabola through the steepest slope and its neighbours), and whether the step is clear: steeper than
+    ``threshold`` (per sample) and not at the end of the profile. Slopes count under their band's sign."""
+    n, width = raw.shape
+    radius = width // 2
+    offsets = np.zeros(n)
+    strong = np.zeros(n, np.bool_)
+    last = width - 1
+    for i in range(n):
+        s = band_sign[band[i]]
+        j = 0
+        peak = raw[i, 0] * s
+        for o in range(1, width):
+            value = raw[i, o] * s
+            if value > peak:
+                peak, j = value, o
+        frac = 0.0
+        if 0 < j < last:
+            left = raw[i, j - 1] * s
+            right = raw[i, j + 1] * s
+            den = left - 2.0 * peak + right
+            if den < 0.0:
+                frac = 0.5 * (left - right) / den
+            strong[i] = peak > threshold[i]
+        offsets[i] = j + 0.5 + frac - radius  # slope index j lies between profile samples j and j + 1
+    return offsets, strong
+
+
+peaks = _jit(_peaks)
+
+
+def _band_signs(raw: F32, band: I64, bands: int) -> F64:
+    """Per band of rows, the sign under which more samples find a clear step (+1 or -1); a band without
+    samples takes the sign of the nearest band with some (+1 if none has any)."""
+    votes = np.zeros(bands)
+    counts = np.zeros(bands, np.int64)
+    n, width = raw.shape
+    for i in range(n):
+        up = raw[i, 0]
+        down = raw[i, 0]
+        for o in range(1, width):
+            up = max(up, raw[i, o])
+            down = min(down, raw[i, o])
+        diff = up + down  # (best rise) − (best fall, as a rise of the other sign) = max + min
+        votes[band[i]] += 1.0 if diff > 0 else (-1.0 if diff < 0 else 0.0)
+        counts[band[i]] += 1
+    out = np.ones(bands)
+    for b in range(bands):
+        if counts[b] > 0:
+            out[b] = 1.0 if votes[b] >= 0 else -1.0
+    for b in range(bands):
+        if counts[b] == 0:
+            best = -1
+            for other in range(bands):
+                if counts[other] > 0 and (best < 0 or abs(other - b) < abs(best - b)):
+                    best = other
+            out[b] = out[best] if best >= 0 else 1.0
+    return out
+
+
+band_signs = _jit(_band_signs)
+
+
+def _cell_agreement(
+    diff: F32,
+    k: F64,
+    r: F64,
+    t: F64,
+    cells_m: F64,
+    cell_tag: I64,
+    cell_value: F64,
+    tag_on: npt.NDArray[np.bool_],
+    band_sign: F64,
+    valid: U8,
+) -> float:
+    """Of the data cells of the tags marked in ``tag_on`` whose centres (``cells_m``) fall inside the image
+    on a valid pixel (``valid`` empty: all are), the fraction whose difference has the sign the map gives
+    them (``cell_value``, ±1, under the band's sign), counting only clear cells (more than 0.3 × the median
+    magnitude); 0 when fewer than 20 cells can say."""
+    h, w = diff.shape
+    use_valid = valid.shape[0] == h and valid.shape[1] == w
+    bands = band_sign.shape[0]
+    n = cells_m.shape[0]
+    values = np.empty(n)
+    expected = np.empty(n)
+    count = 0
+    for i in range(n):
+        if not tag_on[cell_tag[i]]:
+            continue
+        x0 = r[0, 0] * cells_m[i, 0] + r[0, 1] * cells_m[i, 1] + r[0, 2] * cells_m[i, 2] + t[0]
+        x1 = r[1, 0] * cells_m[i, 0] + r[1, 1] * cells_m[i, 1] + r[1, 2] * cells_m[i, 2] + t[1]
+        z = r[2, 0] * cells_m[i, 0] + r[2, 1] * cells_m[i, 1] + r[2, 2] * cells_m[i, 2] + t[2]
+        if z <= 0.0:
+            continue
+        u = k[0, 0] * x0 / z + k[0, 2]
+        v = k[1, 1] * x1 / z + k[1, 2]
+        if not (0.0 <= u <= w - 1 and 0.0 <= v <= h - 1):
+            continue
+        ui, vi = int(u + 0.5), int(v + 0.5)
+        if use_valid and valid[vi, ui] == 0:
+            continue
+        b = min(vi * bands // h, bands - 1)
+        values[count] = diff[vi, ui] * band_sign[b]
+        expected[count] = cell_value[i]
+        count += 1
+    if count < 20:
+        return 0.0
+    magnitude = np.abs(values[:count])
+    limit = 0.3 * np.median(magnitude)
+    clear = 0
+    agree = 0
+    for i in range(count):
+        if magnitude[i] > limit:
+            clear += 1
+            if (values[i] > 0) == (expected[i] > 0):
+                agree += 1
+    return agree / clear if clear >= 20 else 0.0
+
+
+cell_agreement = _jit(_cell_agreement)
+
+
+def warm() -> None:
+    """Compile the kernels now (or load them from numba's disk cache: a fraction of a second), so that the
+    first frame a camera delivers does not wait seconds for the compiler."""
+    image = np.zeros((8, 8), np.float32)
+    one = np.zeros((1, 3))
+    rt = np.eye(3)
+    t = np.array([0.0, 0.0, 1.0])
+    k = np.eye(3)
+    no_mask = np.zeros((0, 0), np.uint8)
+    measure(one, one, np.ones(1), rt, t, k, image, no_mask, 2, 1.0, 2)
+    peaks(np.zeros((1, 4), np.float32), np.zeros(1, np.int64), np.ones(2), np.ones(1))
+    band_signs(np.zeros((1, 4), np.float32), np.zeros(1, np.int64), 2)
+    cell_agreement(image, k, rt, t, one, np.zeros(1, np.int64), np.ones(1), np.ones(1, np.bool_), np.ones(2), no_mask)
