@@ -221,12 +221,13 @@ def test_compiled_kernels_agree_with_their_python_source() -> None:
     r, _ = cv2.Rodrigues(np.array([0.05, -0.03, 0.4]))
     t = np.array([0.01, -0.02, 0.8])
     k = np.array([[105.0, 0.0, 80.0], [0.0, 105.0, 45.0], [0.0, 0.0, 1.0]])
-    fast = tk.measure(obj, nrm, sign, r, t, k, image, valid, 4, 3.0, 6)
-    slow = tk.measure.py_func(obj, nrm, sign, r, t, k, image, valid, 4, 3.0, 6)
+    sweep = np.array([0.004, -0.006, 0.002, 0.003, -0.002, 0.001])  # a rolling shutter's pose change
+    fast = tk.measure(obj, nrm, sign, r, t, k, image, valid, 4, 3.0, 6, sweep)
+    slow = tk.measure.py_func(obj, nrm, sign, r, t, k, image, valid, 4, 3.0, 6, sweep)
     assert len(fast[0]) > 100  # most samples are measurable: the comparison means something
     for a, b in zip(fast, slow, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
-    idx, raw, band, _ = fast
+    idx, raw, band, _, _ = fast
     signs = tk.band_signs(raw, band, 6)
     np.testing.assert_array_equal(signs, tk.band_signs.py_func(raw, band, 6))
     threshold = np.full(len(idx), 0.5)

@@ -181,7 +181,9 @@ class Pipeline:
         self.masks = MaskRenderer(tag_map.render_mask(), pixel_to_arena(tag_map)) if self.tracking else None
         scale = camera.width_px / 640
         t = cfg.pose.track
-        self.track_settings = TrackSettings(search_px=t.search_px * scale, min_inliers=t.min_inliers)
+        self.track_settings = TrackSettings(
+            search_px=t.search_px * scale, min_inliers=t.min_inliers, rolling_shutter=t.rolling_shutter
+        )
         self.detector = TagDetector(cfg.detector, known_ids=tag_map.by_id)
         self.lookahead = demod.lookahead_frames if self.ipt else 0
         self._history: deque[_Frame] = deque(maxlen=HISTORY)

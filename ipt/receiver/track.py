@@ -191,6 +191,9 @@ class TrackSettings:
     """At most this many edge samples are used (spread over the tags in view)."""
     bands: int = 6
     """Bands of rows whose sign is decided apart (a rolling shutter flips it inside a frame)."""
+    rolling_shutter: bool = False
+    """Fit, beside the pose (of the centre row), how it changes from the top row to the bottom one: a rolling
+    shutter sees the rows from different poses while the drone vibrates."""
 
 
 #: The fit has converged when its last step moved no sample by more than this (pixels).
@@ -318,6 +321,10 @@ class _Fit:
         self.offsets = np.zeros(0)
         self.idx = np.zeros(0, np.int64)
         self.sol = np.zeros(6)
+        self.sweep = np.zeros(6)
+        # The sweep's prior (per unknown: (residual σ / expected size)², residual σ 0.3 px): a rotation of
+        # ~0.5° and a move of ~5 mm over a readout, as a vibrating drone's camera makes in ~6 ms.
+        self.prior = np.array([(0.3 / 0.009) ** 2] * 3 + [(0.3 / 0.005) ** 2] * 3)
         self.tried = 0
         self.converged = False
 
@@ -326,8 +333,8 @@ class _Fit:
         s = self.settings
         k = self.k
         valid = self.valid if self.valid is not None else _NO_MASK
-        idx, raw, band, a_rows = measure(
-            self.obj, self.nrm, self.step_sign, r, t, k, image, valid, radius, s.border_px, s.bands
+        idx, raw, band, rows, place = measure(
+            self.obj, self.nrm, self.step_sign, r, t, k, image, valid, radius, s.border_px, s.bands, self.sweep
         )
         self.tried = len(idx)
         if self.tried < s.min_inliers:
@@ -338,31 +345,53 @@ class _Fit:
         offsets, strong = peaks(raw, band, self.band_sign, threshold)
         if strong.sum() < s.min_inliers:
             return False
+        a_rows = rows
+        if s.rolling_shutter:
+            # Six more unknowns: the change of pose from the top row to the bottom one, kept small by a prior.
+            a_rows = np.hstack([rows, rows * place[:, None]])
         keep = strong.copy()
-        sol = np.zeros(6)
+        sol = np.zeros(a_rows.shape[1])
         for _ in range(2):  # robust: drop samples far from the fit (from the median absolute deviation)
-            if keep.sum() < 6:
+            if keep.sum() < 12:
                 return False
-            sol = _solve(a_rows[keep], offsets[keep])
+            sol = self._solve(a_rows[keep], offsets[keep])
             res = offsets - a_rows @ sol
             scale = max(1.4826 * _median(np.abs(res[keep])), 0.25)
             keep = strong & (np.abs(res) < 3.0 * scale)
         if keep.sum() < s.min_inliers or len(np.unique(self.owner[idx][keep])) < s.min_tags:
             return False
-        sol = _solve(a_rows[keep], offsets[keep])
+        sol = self._solve(a_rows[keep], offsets[keep])
         self.idx, self.a_rows, self.offsets, self.inliers, self.sol = idx, a_rows, offsets, keep, sol
         rot, _ = cv2.Rodrigues(sol[:3].reshape(3, 1))
         self.r = np.asarray(rot, np.float64) @ r
-        self.t = t + sol[3:]
+        self.t = t + sol[3:6]
+        if s.rolling_shutter:
+            self.sweep = self.sweep + sol[6:]
         self.converged = float(np.abs(a_rows[keep] @ sol).max()) < CONVERGED_PX
         return True
+
+    def _normal(self, a: F64) -> F64:
+        """aᵀa, with the rolling-shutter prior on the sweep's unknowns when they are fitted."""
+        n = a.T @ a
+        if a.shape[1] > 6:
+            n[np.arange(6, 12), np.arange(6, 12)] += self.prior
+        return n
+
+    def _solve(self, a: F64, b: F64) -> F64:
+        """Least squares by the normal equations (cheaper than an SVD, as exact here): the pose's change
+        from the current estimate (and the sweep's)."""
+        rhs = a.T @ b
+        if a.shape[1] > 6:
+            rhs[6:] -= self.prior * self.sweep  # the prior holds the whole sweep near zero, not each step
+        return np.asarray(np.linalg.solve(self._normal(a), rhs), np.float64)
 
     def result(self, diff: F32, valid: npt.NDArray[np.uint8] | None) -> TrackResult | None:
         inl = self.inliers
         residual = self.offsets[inl] - self.a_rows[inl] @ self.sol
         rms = float(np.sqrt(np.mean(residual**2)))
         try:
-            cov = np.asarray(max(rms, 0.1) ** 2 * np.linalg.inv(self.a_rows[inl].T @ self.a_rows[inl]), np.float64)
+            full = np.linalg.inv(self._normal(self.a_rows[inl]))
+            cov = np.asarray(max(rms, 0.1) ** 2 * full[:6, :6], np.float64)
         except np.linalg.LinAlgError:
             return None
         band_sign = self.band_sign if self.band_sign is not None else np.ones(self.settings.bands)
@@ -386,11 +415,6 @@ class _Fit:
             flipped,
             agreement,
         )
-
-
-def _solve(a: F64, b: F64) -> F64:
-    """Least squares by the normal equations (six unknowns: cheaper than an SVD, as exact here)."""
-    return np.asarray(np.linalg.solve(a.T @ a, a.T @ b), np.float64)
 
 
 def _cell_agreement(

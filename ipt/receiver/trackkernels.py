@@ -68,13 +68,19 @@ def _measure(
     radius: int,
     border_px: float,
     bands: int,
-) -> tuple[I64, F32, I64, F64]:
+    sweep: F64,
+) -> tuple[I64, F32, I64, F64, F64]:
     """For the edge samples (arena points ``obj`` with floor normals ``nrm``, the map's step sign per sample)
     seen at the pose (``r``, ``t``: arena → camera) through the pinhole ``k``: which samples can be measured
     (inside the image by ``border_px``, in front of the camera, on a valid pixel when ``valid`` is not empty),
     their slopes along the image normal at offsets −radius..radius (``2·radius`` values between the
     ``2·radius + 1`` profile samples, times the map's sign: a step of the map's sign is positive), the band
-    of rows each falls in, and the rows of the linear system (d offset / d(δ rotation, Δt))."""
+    of rows each falls in, the rows of the linear system (d offset / d(δ rotation, Δt)) and each sample's
+    place in the rolling shutter's sweep, s = row / (H − 1) − ½.
+
+    ``sweep`` (6: rotation, translation) is how far the pose moves from the top row to the bottom one (a
+    rolling shutter exposes them one after the other): a sample in row v is seen from the pose moved by
+    s·sweep (to first order), and d offset / d sweep is s times its row of the system."""
     n = obj.shape[0]
     h, w = image.shape
     use_valid = valid.shape[0] == h and valid.shape[1] == w
@@ -83,6 +89,8 @@ def _measure(
     raw = np.empty((n, width), np.float32)
     band = np.empty(n, np.int64)
     a_rows = np.empty((n, 6))
+    place = np.empty(n)
+    moving = np.abs(sweep).max() > 0.0
     count = 0
     for i in range(n):
         p0 = r[0, 0] * obj[i, 0] + r[0, 1] * obj[i, 1] + r[0, 2] * obj[i, 2]
@@ -91,6 +99,15 @@ def _measure(
         x0, x1, z = p0 + t[0], p1 + t[1], p2 + t[2]
         if z <= 0.0:
             continue
+        sw = 0.0
+        if moving:
+            # The row this point lies in (seen from the centre row's pose), then the pose of that row.
+            sw = (k[1, 1] * x1 / z + k[1, 2]) / (h - 1) - 0.5
+            w0, w1, w2 = sw * sweep[0], sw * sweep[1], sw * sweep[2]
+            p0, p1, p2 = p0 + w1 * p2 - w2 * p1, p1 + w2 * p0 - w0 * p2, p2 + w0 * p1 - w1 * p0
+            x0, x1, z = p0 + t[0] + sw * sweep[3], p1 + t[1] + sw * sweep[4], p2 + t[2] + sw * sweep[5]
+            if z <= 0.0:
+                continue
         u = k[0, 0] * x0 / z + k[0, 2]
         v = k[1, 1] * x1 / z + k[1, 2]
         if not (border_px < u < w - 1 - border_px and border_px < v < h - 1 - border_px):
@@ -130,8 +147,9 @@ def _measure(
         a_rows[count, 4] = g1
         a_rows[count, 5] = g2
         idx[count] = i
+        place[count] = v / (h - 1) - 0.5
         count += 1
-    return idx[:count], raw[:count], band[:count], a_rows[:count]
+    return idx[:count], raw[:count], band[:count], a_rows[:count], place[:count]
 
 
 measure = _jit(_measure)
@@ -269,7 +287,7 @@ def warm() -> None:
     t = np.array([0.0, 0.0, 1.0])
     k = np.eye(3)
     no_mask = np.zeros((0, 0), np.uint8)
-    measure(one, one, np.ones(1), rt, t, k, image, no_mask, 2, 1.0, 2)
+    measure(one, one, np.ones(1), rt, t, k, image, no_mask, 2, 1.0, 2, np.zeros(6))
     peaks(np.zeros((1, 4), np.float32), np.zeros(1, np.int64), np.ones(2), np.ones(1))
     band_signs(np.zeros((1, 4), np.float32), np.zeros(1, np.int64), 2)
     cell_agreement(image, k, rt, t, one, np.zeros(1, np.int64), np.ones(1), np.ones(1, np.bool_), np.ones(2), no_mask)
