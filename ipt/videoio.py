@@ -271,7 +271,7 @@ LIMITED_TO_FULL_LUMA = np.clip(np.round((np.arange(256) - 16) * 255 / 219), 0, 2
 
 def expand_limited_luma(y: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
     """A limited-range Y plane as full-range luma (:data:`LIMITED_TO_FULL_LUMA`)."""
-    return np.ascontiguousarray(LIMITED_TO_FULL_LUMA[y], dtype=np.uint8)
+    return np.asarray(cv2.LUT(np.ascontiguousarray(y), LIMITED_TO_FULL_LUMA), dtype=np.uint8)
 
 
 #: 8-bit pixel formats whose first plane is the luma, one byte a pixel (FFmpeg's names); "yuvj" ones and
