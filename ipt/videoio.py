@@ -1,7 +1,10 @@
 """Frames in and out: lossless FFV1 video files, any video PyAV can read, and folders of images.
 
 Every frame that crosses this module is a C-contiguous ``numpy.uint8`` array of shape (H, W, 3) in RGB
-order (not OpenCV's BGR).
+order (not OpenCV's BGR), or, for a reader opened with ``grey`` (or a grey writer), of shape (H, W): the
+frame's luma (BT.601, full range), which is all the receiver's pipeline needs of a frame. A grey reader
+takes it without a detour through RGB where the file stores it: the Y plane of a YUV video (limited-range
+Y stretched to full range), a grey video's pixels, a JPEG decoded to grey by libjpeg.
 
 Writing: :class:`FfvWriter` stores FFV1 in Matroska with pixel format ``bgr0``. FFV1 is lossless, and
 ``bgr0`` is the only 8-bit-per-channel RGB layout the FFV1 encoder accepts (the planar ``gbrp`` is
@@ -27,9 +30,10 @@ from collections.abc import Iterator
 from fractions import Fraction
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Self
+from typing import Any, Literal, Self
 
 import av
+import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -189,7 +193,7 @@ class FfvWriter:
 
 
 class FrameSource(abc.ABC):
-    """A stream of RGB frames from a video file or an image folder; use it as an iterator.
+    """A stream of RGB (or luma) frames from a video file or an image folder; use it as an iterator.
 
     Attributes: ``path``; ``width`` and ``height`` in pixels (every frame has this size);
     ``frame_count`` (None when a video container does not say); ``fps`` (None when unknown, always
@@ -260,13 +264,48 @@ def _stream_fps(stream: Any) -> float | None:
 
 _DECODE_ERRORS = (av.FFmpegError, OSError, ValueError)
 
+#: Limited-range ("MPEG", studio swing) luma 16..235 to full range 0..255, clipped: what OpenCV's and
+#: FFmpeg's conversions of such YUV to RGB do to the luma, so a Y plane gives the RGB frame's luma.
+LIMITED_TO_FULL_LUMA = np.clip(np.round((np.arange(256) - 16) * 255 / 219), 0, 255).astype(np.uint8)
+
+
+def expand_limited_luma(y: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
+    """A limited-range Y plane as full-range luma (:data:`LIMITED_TO_FULL_LUMA`)."""
+    return np.asarray(cv2.LUT(np.ascontiguousarray(y), LIMITED_TO_FULL_LUMA), dtype=np.uint8)
+
+
+#: 8-bit pixel formats whose first plane is the luma, one byte a pixel (FFmpeg's names); "yuvj" ones and
+#: "gray" are full range, the others full range only if the frame says so.
+_LUMA_PLANE_FORMATS = frozenset(
+    {"gray", "nv12", "nv21", "yuv410p", "yuv411p", "yuv420p", "yuv422p", "yuv440p", "yuv444p"}
+    | {"yuvj411p", "yuvj420p", "yuvj422p", "yuvj440p", "yuvj444p"}
+)
+_FULL_RANGE = 2  # AVCOL_RANGE_JPEG
+
+
+def _luma(frame: Any) -> npt.NDArray[np.uint8]:
+    """A decoded PyAV video frame's luma (H×W, full range), taken from its luma plane where it has one; a
+    frame stored otherwise (RGB, packed YUV) is converted to RGB and its luma taken by OpenCV (FFmpeg's own
+    conversion to "gray" cost four times as much on FFV1 ``bgr0``)."""
+    name = frame.format.name
+    if name in _LUMA_PLANE_FORMATS:
+        plane = frame.planes[0]
+        rows = np.frombuffer(plane, np.uint8).reshape(-1, plane.line_size)
+        y = rows[: frame.height, : frame.width]
+        if name != "gray" and not name.startswith("yuvj") and frame.color_range != _FULL_RANGE:
+            return expand_limited_luma(y)
+        return np.ascontiguousarray(y, dtype=np.uint8)
+    rgb = np.ascontiguousarray(frame.to_ndarray(format="rgb24"), dtype=np.uint8)
+    return np.asarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), dtype=np.uint8)
+
 
 class _VideoSource(FrameSource):
     """Frames decoded one packet at a time from a file PyAV can open (a damaged packet costs one frame)."""
 
-    def __init__(self, path: Path, skip_bad: bool = False) -> None:
+    def __init__(self, path: Path, skip_bad: bool = False, grey: bool = False) -> None:
         self.path = path
         self.skip_bad = skip_bad
+        self.grey = grey
         try:
             self._container: Any = av.open(str(path), mode="r")
         except av.EOFError as e:
@@ -315,7 +354,10 @@ class _VideoSource(FrameSource):
                 continue
             for frame in frames:
                 try:
-                    yield np.ascontiguousarray(frame.to_ndarray(format="rgb24"), dtype=np.uint8)
+                    if self.grey:
+                        yield _luma(frame)
+                    else:
+                        yield np.ascontiguousarray(frame.to_ndarray(format="rgb24"), dtype=np.uint8)
                 except _DECODE_ERRORS as e:
                     yield e
 
@@ -385,9 +427,10 @@ def _natural_key(name: str) -> tuple[tuple[int | str, ...], str]:
 class _ImageFolderSource(FrameSource):
     """The images in a folder in natural name order, each read when it is needed."""
 
-    def __init__(self, path: Path, skip_bad: bool = False) -> None:
+    def __init__(self, path: Path, skip_bad: bool = False, grey: bool = False) -> None:
         self.path = path
         self.skip_bad = skip_bad
+        self._mode: Literal["rgb", "grey"] = "grey" if grey else "rgb"
         try:
             entries = list(path.iterdir())
         except OSError as e:
@@ -407,7 +450,7 @@ class _ImageFolderSource(FrameSource):
             if self._next >= len(self._files):
                 raise VideoError(f"{path}: none of its {len(self._files)} images can be read")
             try:
-                first = read_image(self._files[self._next], "rgb", VideoError)
+                first = read_image(self._files[self._next], self._mode, VideoError)
             except VideoError as e:
                 self._skip(str(e))
             self._next += 1
@@ -427,7 +470,7 @@ class _ImageFolderSource(FrameSource):
             file = self._files[self._next]
             self._next += 1
             try:
-                rgb = read_image(file, "rgb", VideoError)
+                rgb = read_image(file, self._mode, VideoError)
             except VideoError as e:
                 self._skip(str(e))
                 continue
@@ -446,8 +489,9 @@ class _ImageFolderSource(FrameSource):
         self._pending = None
 
 
-def open_frames(path: str | Path, *, skip_bad: bool = False) -> FrameSource:
-    """Open a video file (anything PyAV reads) or a folder of PNG/JPG/BMP/TIFF images as RGB frames.
+def open_frames(path: str | Path, *, skip_bad: bool = False, grey: bool = False) -> FrameSource:
+    """Open a video file (anything PyAV reads) or a folder of PNG/JPG/BMP/TIFF images as RGB frames (with
+    ``grey``: as H×W luma frames, see the module docstring).
 
     Raises :class:`VideoError` with one line naming the file if it is missing, unreadable, has no
     video stream or no frames, or (for a folder) if an image differs in size from the first. With
@@ -456,7 +500,7 @@ def open_frames(path: str | Path, *, skip_bad: bool = False) -> FrameSource:
     """
     p = Path(path)
     if p.is_dir():
-        return _ImageFolderSource(p, skip_bad)
+        return _ImageFolderSource(p, skip_bad, grey)
     if not p.exists():
         raise VideoError(f"{p}: no such file or folder")
-    return _VideoSource(p, skip_bad)
+    return _VideoSource(p, skip_bad, grey)

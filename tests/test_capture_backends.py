@@ -63,7 +63,7 @@ def test_image_folder_source_gives_the_video_frames_with_frame_times(short_fligh
         assert f is not None
         assert f.index == k
         assert f.capture_time_us == capture_time_us(k, 120.0)
-        np.testing.assert_array_equal(f.image_rgb, rgb)
+        np.testing.assert_array_equal(f.image, rgb)
     not_a_folder = VideoCapture(short_flight / VIDEO_NAME, 120.0, realtime=False, images_only=True)
     with pytest.raises(CaptureError, match="not a folder"):
         not_a_folder.open()
@@ -181,7 +181,7 @@ def test_picamera2_source_configures_manual_exposure_and_gives_rgb_with_sensor_t
         "AnalogueGain": 2.0,
     }
     assert frame is not None
-    assert frame.image_rgb[0, 0].tolist() == [200, 0, 10]  # libcamera's RGB888 is B, G, R in memory
+    assert frame.image[0, 0].tolist() == [200, 0, 10]  # libcamera's RGB888 is B, G, R in memory
     assert frame.capture_time_us == round((now_s - 0.004) * 1e6)  # the sensor's timestamp
     assert all(r.released for r in log["requests"])
 

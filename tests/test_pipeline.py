@@ -138,10 +138,11 @@ def test_bad_frames_are_counted_not_raised(short_flight: Path, frames: list) -> 
     ]
     results = _run(p, inputs)  # type: ignore[arg-type]
     assert [r.index for r in results] == list(range(len(inputs)))
-    assert [results[i].reason for i in (2, 3, 6)] == ["bad_frame"] * 3
+    assert [r.reason for r in results[2:7]] == ["wrong_size", "bad_frame", "dark", "saturated", "bad_frame"]
     assert all(r.pose is None for r in results[2:7])
-    assert results[4].partner in (None, 5)  # pairing starts afresh after a bad frame: never with frame 1
-    assert p.reasons["bad_frame"] == 3
+    assert results[7].partner is None  # pairing starts afresh after a frame that is not this camera's
+    assert p.reasons["bad_frame"] == 2
+    assert p.reasons["wrong_size"] == p.reasons["dark"] == p.reasons["saturated"] == 1
 
 
 def test_a_jump_in_time_restarts_pairing(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]
@@ -152,7 +153,7 @@ def test_a_jump_in_time_restarts_pairing(short_flight: Path, frames: list) -> No
     out += p.process(4, frames[4], _t_us(4) + 500_000)
     out += p.process(5, frames[5], _t_us(3))  # time going backwards
     out += p.flush()
-    assert [r.reason for r in out[4:]] == ["first_frame", "first_frame"]
+    assert [r.reason for r in out[4:]] == ["time_gap", "time_gap"]
 
 
 def _gate(p: Pipeline, xs: list[float], stds: list[float] | None = None) -> list[FrameResult]:

@@ -76,7 +76,8 @@ def _live_views(device: int, size: tuple[int, int], wanted: int, finder_find: ob
             frame = cam.read()
             if frame is None or time.monotonic() - last < LIVE_MIN_GAP_S:
                 continue
-            gray = np.asarray(cv2.cvtColor(frame.image_rgb, cv2.COLOR_RGB2GRAY), dtype=np.uint8)
+            image = frame.image
+            gray = image if image.ndim == 2 else np.asarray(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY), dtype=np.uint8)
             if finder_find(gray) is None:  # type: ignore[operator]
                 continue
             taken += 1

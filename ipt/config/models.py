@@ -365,6 +365,13 @@ class PipelineConfig(StrictModel):
     detector: DetectorConfig = Field(default_factory=DetectorConfig, description="Tag detection.")
     pose: PoseConfig = Field(default_factory=PoseConfig, description="Pose estimation.")
 
+    @property
+    def luminance_only(self) -> bool:
+        """Whether a frame's luma is all the processing needs (lightness 'luma'): frame sources then hand
+        over grey frames, taken without a detour through RGB (a YUV camera's Y plane, a JPEG decoded to
+        grey). The paper's CIELAB lightness needs the colours."""
+        return self.demodulation.lightness == "luma"
+
     @classmethod
     def profile(cls, name: str) -> PipelineConfig:
         """The settings of a named profile: ``ipt`` (the defaults) or ``paper`` (the paper as published)."""

@@ -25,6 +25,9 @@ from ipt.config.models import (
 )
 from ipt.fileio import read_bytes_file
 
+FOURCC_ALIASES = {"Y800": "GREY", "Y8  ": "GREY", "JPEG": "MJPG", "YUY2": "YUYV"}
+"""Other names of the V4L2 pixel formats the receiver decodes itself, as camera documentation uses them."""
+
 DEFAULT_SEND_TARGET = "127.0.0.1:9870"
 """Where poses go unless configured otherwise: a listener on this machine."""
 
@@ -346,9 +349,21 @@ class CameraControls(StrictModel):
         None,
         min_length=4,
         max_length=4,
-        description="V4L2 pixel format to ask for, e.g. 'MJPG' (many USB cameras reach 120 FPS only compressed) or "
-        "'YUYV'. null: the driver's default.",
+        description="V4L2 pixel format to ask a device:N camera for (its four-character code, as "
+        "'v4l2-ctl --list-formats-ext' lists them). The receiver takes the luma straight from 'GREY' (8-bit mono, "
+        "also called Y8 or Y800), 'YUYV' (its Y bytes) and 'MJPG' (JPEG decoded to grey; many USB cameras reach "
+        "120 FPS only compressed), without OpenCV's conversion to RGB; any other format is converted by OpenCV. "
+        "null: the driver's default. (A picamera2 camera gives the Y plane of YUV420 by itself.)",
     )
+
+    @field_validator("fourcc")
+    @classmethod
+    def _check_fourcc(cls, value: str | None) -> str | None:
+        if value is None:
+            return value
+        if not re.fullmatch(r"[A-Z0-9][A-Z0-9 ]{3}", value):
+            raise ValueError(f"must be a V4L2 pixel format code such as GREY, YUYV or MJPG, got {value!r}")
+        return FOURCC_ALIASES.get(value, value)
 
 
 class ReceiverConfig(StrictModel):

@@ -13,12 +13,19 @@ Two queue policies:
   wins. When the queue is full the *oldest* frame is dropped and counted; the camera never waits.
 - a recording read **as fast as possible** (no pacing): the reader waits for room, nothing is dropped.
 
+A source made with ``grey`` hands over H×W luma frames instead of RGB ones (the daemon asks for them
+when the pipeline works on luminance only, :attr:`~ipt.config.models.PipelineConfig.luminance_only`),
+taken without a detour through RGB where the source has them: a V4L2 camera's GREY, YUYV or MJPG
+buffers (:mod:`ipt.receiver.pixelformats`), a Pi camera's YUV420 Y plane, a video's Y plane, a JPEG
+decoded to grey.
+
 A camera that fails (``read()`` raises, e.g. unplugged) is reported on stderr, closed and opened again
-with exponential backoff; the daemon keeps running. A recording is a recording: it is read once, to its
-end, which ends the run. A frame of it that cannot be decoded (or an image that cannot be read or has
-another size) is skipped and counted, with a few lines on stderr (rate-limited) and the count in the
-final statistics; a file that ends before the frames its header announces is reported as truncated;
-any other read error ends the recording there, with one line.
+with exponential backoff; the daemon keeps running. A camera frame that cannot be decoded (a damaged
+MJPG frame) is skipped and counted like a recording's; only many in a row count as a failure. A
+recording is a recording: it is read once, to its end, which ends the run. A frame of it that cannot be
+decoded (or an image that cannot be read or has another size) is skipped and counted, with a few lines
+on stderr (rate-limited) and the count in the final statistics; a file that ends before the frames its
+header announces is reported as truncated; any other read error ends the recording there, with one line.
 """
 
 from __future__ import annotations
@@ -46,6 +53,7 @@ from ipt.config.models import MAX_RATE_HZ, MIN_CAMERA_RATE_HZ, ArenaConfig, Conf
 from ipt.config.receiver import CameraControls
 from ipt.errors import IptError
 from ipt.ratelimit import LogThrottle
+from ipt.receiver.pixelformats import RAW_LUMA_FORMATS, PixelFormatError, raw_luma
 from ipt.sim.config import SimCameraConfig, SimConfig
 from ipt.videoio import FrameSource, open_frames
 
@@ -74,8 +82,8 @@ class CapturedFrame:
     capture_time_us: int
     """Capture time in microseconds: ``round(k / fps · 1e6)`` for a recording or the simulator, the
     monotonic clock at grab time for a camera. This is what the pose packet carries."""
-    image_rgb: U8
-    """H×W×3 uint8 RGB."""
+    image: U8
+    """H×W×3 uint8 RGB, or H×W uint8 luma from a source asked for ``grey`` frames (or a mono camera)."""
     grabbed_s: float = field(default_factory=time.monotonic)
     """``time.monotonic()`` when the frame was grabbed (camera) or read (recording, simulator): the start
     of the capture→send latency."""
@@ -235,8 +243,11 @@ class VideoCapture:
         clock: Clock = time.monotonic,
         sleep: Sleep = time.sleep,
         images_only: bool = False,
+        grey: bool = False,
     ) -> None:
         self.path = Path(path)
+        self.grey = grey
+        """Hand over H×W luma frames (see :func:`ipt.videoio.open_frames`)."""
         self.images_only = images_only
         """Only a folder of images will do (the ``images:DIR`` source)."""
         self.name = f"{'images' if images_only else 'video'}:{self.path}"
@@ -261,7 +272,7 @@ class VideoCapture:
         """Open the recording (bad frames are skipped and counted, see the class doc)."""
         if self.images_only and not self.path.is_dir():
             raise CaptureError(f"{self.path}: not a folder (images:DIR reads the images in a folder)")
-        source = open_frames(self.path, skip_bad=True)
+        source = open_frames(self.path, skip_bad=True, grey=self.grey)
         try:
             if self.size is not None and (source.width, source.height) != self.size:
                 w, h = self.size
@@ -362,7 +373,10 @@ class SimCapture:
         *,
         clock: Clock = time.monotonic,
         sleep: Sleep = time.sleep,
+        grey: bool = False,
     ) -> None:
+        self.grey = grey
+        """Hand over H×W luma frames (a colour camera's converted on the capture thread)."""
         rate = fps if fps is not None else sim_cfg.camera.fps
         if rate != sim_cfg.camera.fps:
             try:
@@ -395,6 +409,8 @@ class SimCapture:
         k = self._next
         self._next += 1
         image = world.render(k).image_rgb
+        if self.grey and image.ndim == 3:
+            image = np.asarray(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY), dtype=np.uint8)
         if self._pacer is not None:
             self._pacer.wait(k)
         return CapturedFrame(k, capture_time_us(k, self.fps), image, self._clock())
@@ -409,6 +425,11 @@ V4L2_EXPOSURE_APERTURE_PRIORITY = 3
 """V4L2's ``exposure_auto`` value for automatic exposure on UVC cameras."""
 V4L2_EXPOSURE_UNIT_US = 100.0
 """V4L2's ``exposure_time_absolute`` counts in units of 100 µs."""
+
+
+MAX_UNDECODABLE_IN_A_ROW = 30
+"""A camera whose frames fail to decode this many times in a row is reopened (a single damaged frame,
+e.g. an MJPG frame cut short on a busy USB bus, is skipped and counted)."""
 
 
 class _LiveCamera:
@@ -428,18 +449,37 @@ class _LiveCamera:
         *,
         controls: CameraControls | None = None,
         clock: Clock = time.monotonic,
+        grey: bool = False,
     ) -> None:
         self.index, self.width, self.height, self.fps = index, width, height, fps
         self.controls = controls if controls is not None else CameraControls()
+        self.grey = grey
+        """Hand over H×W luma frames instead of RGB ones."""
         self.name = f"{self.kind}:{index}"
         self.notes: list[str] = []
         """What the driver did not do as asked, from the last open (one line each)."""
+        self.skipped = 0
+        """Frames that could not be decoded (skipped; the next frame is read instead)."""
+        self.last_skipped: str | None = None
+        """Why the last skipped frame was skipped."""
         self._clock = clock
         self._count = 0
 
+    def _skip(self, why: str) -> None:
+        """Count a frame that cannot be decoded; raise once :data:`MAX_UNDECODABLE_IN_A_ROW` came in a row."""
+        self.skipped += 1
+        self._undecodable += 1
+        self.last_skipped = f"{self.name}: frame {self._count}: {why}"
+        self._count += 1  # the frame had its number: the next one keeps its own, the gap shows
+        if self._undecodable >= MAX_UNDECODABLE_IN_A_ROW:
+            self._undecodable = 0
+            raise CaptureError(f"{self.name}: {MAX_UNDECODABLE_IN_A_ROW} frames in a row cannot be decoded ({why})")
+
+    _undecodable = 0
+
 
 class DeviceCapture(_LiveCamera):
-    """A V4L2 camera (``/dev/videoN``) through OpenCV; BGR converted to RGB.
+    """A V4L2 camera (``/dev/videoN``) through OpenCV: RGB frames, or with ``grey`` the luma.
 
     The capture time is the monotonic clock at the moment ``grab`` returned, in microseconds. A camera
     is always live (newest wins); if it cannot be opened it is retried, like a read failure.
@@ -447,11 +487,15 @@ class DeviceCapture(_LiveCamera):
     On open, the pixel format, size and rate are asked for, then automatic exposure and white balance are
     turned off (unless ``controls`` leave them on) and the manual exposure and gain set. What the driver
     did not take is listed in :attr:`notes` (the capture thread prints them): drivers differ in what they
-    allow.
+    allow. With ``grey``, a camera delivering GREY, YUYV or MJPG (whichever the driver settled on) hands
+    over its raw buffers, whose luma :mod:`ipt.receiver.pixelformats` takes; any other format goes through
+    OpenCV's conversion to BGR and then to grey. A frame that does not decode is skipped and counted.
     """
 
     kind = "device"
     _cap: cv2.VideoCapture | None = None  # while open
+    raw_format: str | None = None
+    """The pixel format whose raw buffers are decoded here (None: OpenCV converts to BGR)."""
 
     def open(self) -> None:
         """Open the device and ask for the camera's format, size, rate, exposure and gain."""
@@ -460,28 +504,48 @@ class DeviceCapture(_LiveCamera):
             cap.release()
             raise CaptureError(f"/dev/video{self.index}: cannot open the camera")
         self.notes = apply_v4l2_settings(cap, self.width, self.height, self.fps, self.controls, self.name)
+        self.raw_format = None
+        if self.grey:
+            fourcc = _fourcc_text(cap.get(cv2.CAP_PROP_FOURCC))
+            if fourcc in RAW_LUMA_FORMATS and cap.set(cv2.CAP_PROP_CONVERT_RGB, 0):
+                self.raw_format = fourcc
         self._cap = cap
+        self._undecodable = 0
 
     def read(self) -> CapturedFrame | None:
-        """The next frame; raises :class:`CaptureError` if the camera fails (it is then reopened)."""
+        """The next frame that decodes; raises :class:`CaptureError` if the camera fails (it is then
+        reopened)."""
         cap = self._cap
         if cap is None:
             raise CaptureError(f"/dev/video{self.index}: read before open")
-        if not cap.grab():
-            raise CaptureError(f"/dev/video{self.index}: grabbing a frame failed")
-        grabbed = self._clock()
-        ok, bgr = cap.retrieve()
-        if not ok or bgr is None:
-            raise CaptureError(f"/dev/video{self.index}: decoding a frame failed")
-        if bgr.ndim != 3 or bgr.shape[:2] != (self.height, self.width):
-            raise CaptureError(
-                f"/dev/video{self.index}: frames are {bgr.shape[1]}x{bgr.shape[0]}, the camera file says "
-                f"{self.width}x{self.height}"
-            )
-        rgb = np.ascontiguousarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), dtype=np.uint8)
+        while True:
+            if not cap.grab():
+                raise CaptureError(f"/dev/video{self.index}: grabbing a frame failed")
+            grabbed = self._clock()
+            ok, data = cap.retrieve()
+            image = self._decoded(data) if ok and data is not None else None
+            if image is not None:
+                break
+            self._skip("cannot be decoded")  # OpenCV's V4L2 backend fails a damaged MJPG frame in retrieve
+        self._undecodable = 0
         k = self._count
         self._count += 1
-        return CapturedFrame(k, round(grabbed * 1e6), rgb, grabbed)
+        return CapturedFrame(k, round(grabbed * 1e6), image, grabbed)
+
+    def _decoded(self, data: npt.NDArray[np.uint8]) -> U8 | None:
+        """The frame (RGB, or the luma with ``grey``) from what ``retrieve`` gave; None if it does not decode."""
+        if self.raw_format is not None:
+            try:
+                return raw_luma(data, self.raw_format, self.width, self.height)
+            except PixelFormatError as exc:
+                raise CaptureError(f"/dev/video{self.index}: {exc}") from None
+        if data.ndim != 3 or data.shape[:2] != (self.height, self.width):
+            raise CaptureError(
+                f"/dev/video{self.index}: frames are {data.shape[1]}x{data.shape[0]}, the camera file says "
+                f"{self.width}x{self.height}"
+            )
+        code = cv2.COLOR_BGR2GRAY if self.grey else cv2.COLOR_BGR2RGB
+        return np.ascontiguousarray(cv2.cvtColor(data, code), dtype=np.uint8)
 
     def close(self) -> None:
         """Release the device."""
@@ -549,8 +613,10 @@ PICAMERA2_MISSING = (
 class PiCamera2Capture(_LiveCamera):
     """A Raspberry Pi camera through picamera2 (imported only when this source is opened).
 
-    Frames are asked for as RGB888 (which libcamera stores B, G, R) at the camera file's size; automatic
-    exposure and white balance are turned off unless ``controls`` leave them on. The capture time is the
+    Frames are asked for as RGB888 (which libcamera stores B, G, R) at the camera file's size, or with
+    ``grey`` as YUV420 in full-range sYCC (the JPEG colour space) whose Y plane is the luma: the ISP makes
+    it, nothing is converted on the CPU. Automatic exposure and white balance are turned off unless
+    ``controls`` leave them on. The capture time is the
     frame's ``SensorTimestamp`` (the start of its exposure, on the monotonic clock) when the driver gives
     one on that clock, else the moment the frame was handed over.
     """
@@ -582,10 +648,19 @@ class PiCamera2Capture(_LiveCamera):
         except Exception as exc:  # no such camera, or it is in use: picamera2 raises various types
             raise CaptureError(f"{self.name}: cannot open the camera ({type(exc).__name__}: {exc})") from None
         try:
+            extra: dict[str, Any] = {}
+            if self.grey:
+                try:  # libcamera's Python module comes with picamera2
+                    from libcamera import ColorSpace
+
+                    extra["colour_space"] = ColorSpace.Sycc()
+                except ImportError:
+                    pass
             config = cam.create_video_configuration(
-                main={"size": (self.width, self.height), "format": "RGB888"},
+                main={"size": (self.width, self.height), "format": "YUV420" if self.grey else "RGB888"},
                 controls=self.camera_controls(),
                 buffer_count=4,
+                **extra,
             )
             cam.configure(config)
             cam.start()
@@ -596,30 +671,38 @@ class PiCamera2Capture(_LiveCamera):
         self._cam = cam
 
     def read(self) -> CapturedFrame | None:
-        """The next frame, RGB; raises :class:`CaptureError` if the camera fails."""
+        """The next frame, RGB (or the luma); raises :class:`CaptureError` if the camera fails."""
         cam = self._cam
         if cam is None:
             raise CaptureError(f"{self.name}: read before open")
         request = cam.capture_request()
         try:
-            bgr = np.asarray(request.make_array("main"), dtype=np.uint8)
+            array = np.asarray(request.make_array("main"), dtype=np.uint8)
             metadata = request.get_metadata()
         finally:
             request.release()
         handed_s = self._clock()
-        if bgr.ndim != 3 or bgr.shape[:2] != (self.height, self.width):
-            raise CaptureError(
-                f"{self.name}: frames are {bgr.shape[1]}x{bgr.shape[0]}, "
-                f"the camera file says {self.width}x{self.height}"
-            )
-        rgb = np.ascontiguousarray(bgr[:, :, 2::-1], dtype=np.uint8)
+        if self.grey:
+            # YUV420 comes as one array of 1.5 times the height (Y, then U and V), rows padded to the stride.
+            if array.ndim != 2 or array.shape[0] != self.height * 3 // 2 or array.shape[1] < self.width:
+                raise CaptureError(
+                    f"{self.name}: YUV420 frames are {array.shape}, the camera file says {self.width}x{self.height}"
+                )
+            image = np.ascontiguousarray(array[: self.height, : self.width])
+        else:
+            if array.ndim != 3 or array.shape[:2] != (self.height, self.width):
+                raise CaptureError(
+                    f"{self.name}: frames are {array.shape[1]}x{array.shape[0]}, "
+                    f"the camera file says {self.width}x{self.height}"
+                )
+            image = np.ascontiguousarray(array[:, :, 2::-1], dtype=np.uint8)
         sensor_ns = metadata.get("SensorTimestamp") if isinstance(metadata, dict) else None
         captured_s = handed_s
         if isinstance(sensor_ns, int) and abs(sensor_ns * 1e-9 - handed_s) < 1.0:
             captured_s = sensor_ns * 1e-9
         k = self._count
         self._count += 1
-        return CapturedFrame(k, round(captured_s * 1e6), rgb, captured_s)
+        return CapturedFrame(k, round(captured_s * 1e6), image, captured_s)
 
     def close(self) -> None:
         """Stop and release the camera."""

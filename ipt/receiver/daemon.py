@@ -225,17 +225,21 @@ def _write(out: TextIO, line: str) -> None:
 def make_source(cfg: ReceiverConfig, arena: ArenaConfig, camera: CameraInfo, stop: threading.Event) -> CaptureSource:
     """The frame source ``cfg.source`` describes; its pacing sleeps end early when ``stop`` is set."""
     spec = cfg.source_spec
+    grey = cfg.pipeline.luminance_only  # frames as luma, without a detour through RGB
     if spec.kind in ("video", "images") and spec.path is not None:
         size = (camera.width_px, camera.height_px)
         images = spec.kind == "images"
-        return VideoCapture(spec.path, cfg.fps, cfg.realtime, size=size, sleep=stop.wait, images_only=images)
+        return VideoCapture(
+            spec.path, cfg.fps, cfg.realtime, size=size, sleep=stop.wait, images_only=images, grey=grey
+        )
+    w, h = camera.width_px, camera.height_px
     if spec.kind == "device" and spec.device is not None:
-        return DeviceCapture(spec.device, camera.width_px, camera.height_px, cfg.fps, controls=cfg.camera_controls)
+        return DeviceCapture(spec.device, w, h, cfg.fps, controls=cfg.camera_controls, grey=grey)
     if spec.kind == "picamera2" and spec.device is not None:
-        return PiCamera2Capture(spec.device, camera.width_px, camera.height_px, cfg.fps, controls=cfg.camera_controls)
+        return PiCamera2Capture(spec.device, w, h, cfg.fps, controls=cfg.camera_controls, grey=grey)
     fps = cfg.fps if cfg.fps is not None else SimCameraConfig().fps
     sim = SimConfig(camera=sim_camera_from(camera, fps))
-    return SimCapture(arena, sim, fps, cfg.realtime, sleep=stop.wait)
+    return SimCapture(arena, sim, fps, cfg.realtime, sleep=stop.wait, grey=grey)
 
 
 async def run_daemon(
@@ -318,7 +322,7 @@ async def _run_daemon(
         if frame is None:
             batch = pipeline.flush()
         else:
-            batch = pipeline.process(frame.index, frame.image_rgb, frame.capture_time_us)
+            batch = pipeline.process(frame.index, frame.image, frame.capture_time_us)
         if before is None or stage_totals is None:
             return batch, {}
         stages = {k: v - before.get(k, 0.0) for k, v in stage_totals.items() if v != before.get(k, 0.0)}

@@ -18,8 +18,8 @@ inverted otherwise; :func:`demodulate` returns the binary image for the first ca
 its inverse too (AprilTag 3 looks for dark borders only).
 
 The ``ipt`` profile works differently (see :mod:`ipt.receiver.pipeline`), with the pieces below the
-paper's: each frame undistorted once (:class:`Undistorter`), its lightness as it comes (a mono camera's
-grey) or BT.601 luma through a table, a mask of where it can carry signal at all (:func:`signal_mask`:
+paper's: each frame undistorted once (:class:`Undistorter`), its lightness (BT.601 luma, or a mono
+camera's grey, through a table to L), a mask of where it can carry signal at all (:func:`signal_mask`:
 not in the drone's shadow, not beyond the projection), and the pair's difference signed, brightness-
 matched and masked where content changed (:func:`pair_difference`); the homography that aligns the pair
 comes from :mod:`ipt.receiver.imagealign`.
@@ -179,9 +179,11 @@ class Undistorter:
 
 
 def luminance(frame: U8, method: str = "luma") -> U8:
-    """The frame's lightness: a grey (mono camera) frame as it is, an RGB one through :func:`lightness`."""
+    """The frame's lightness: an RGB frame through :func:`lightness`; a grey one (a mono camera's, or the
+    luma plane of a YUV or JPEG frame) through the table that ``"luma"`` maps an RGB frame's luma by, which
+    is also the CIELAB L of a grey pixel, so that a scene gives the same lightness either way."""
     if frame.ndim == 2 and frame.dtype == np.uint8:
-        return frame
+        return np.asarray(cv2.LUT(frame, _LUMA_TO_L), dtype=np.uint8)
     return lightness(frame, method)
 
 

@@ -44,12 +44,12 @@ from ipt.receiver.demodulator import (
     binarise_difference,
     demodulate,
     ksize_for,
-    lightness,
     luminance,
     pair_difference,
     signal_mask,
 )
 from ipt.receiver.detector import DetectorError, TagDetection, TagDetector
+from ipt.receiver.framecheck import RESTARTS, frame_problem
 from ipt.receiver.imagealign import AlignTarget, alignment_features, floor_warp_between, warp_image
 from ipt.receiver.motion import MotionTrack, floor_warp
 from ipt.receiver.pose import PoseEstimate, solve_pose
@@ -104,7 +104,7 @@ class FrameResult:
     num_detections: int
     """Tags the pose rests on (AprilTag detections, or tags whose edges the track used)."""
     reason: str
-    """"pose" when a pose was made; otherwise why not (e.g. "first_frame", "no_tags", "bad_frame")."""
+    """"pose" when a pose was made; otherwise why not (e.g. "first_frame", "no_tags", "dark", "bad_frame")."""
     reset: bool = False
     """The pose re-initialises the track (it disagreed with the previous ones, which were dropped)."""
     method: str = ""
@@ -215,26 +215,26 @@ class Pipeline:
     # -- the interface -------------------------------------------------------------------------------
 
     def process(self, index: int, frame: U8, capture_time_us: int) -> list[FrameResult]:
-        """Take camera frame ``index`` (H×W×3 RGB or H×W grey); return the results that became final, in
-        frame order (this frame's, earlier ones' that waited for it, or none yet). Never raises for a bad
-        frame: its result says why."""
+        """Take camera frame ``index`` (H×W×3 RGB, or H×W grey: a mono camera's, or the luma plane of a YUV
+        or JPEG frame); return the results that became final, in frame order (this frame's, earlier ones'
+        that waited for it, or none yet). Never raises for a bad frame: its result says why
+        (:mod:`ipt.receiver.framecheck`: "bad_frame", "wrong_size", "dark", "saturated"; "time_gap" for the
+        first frame after a gap in capture times, which pairing starts afresh from)."""
         t0 = time.perf_counter()
-        expected = (self.camera.height_px, self.camera.width_px)
-        if (
-            not isinstance(frame, np.ndarray)
-            or frame.dtype != np.uint8
-            or frame.shape[:2] != expected
-            or frame.ndim not in (2, 3)
-            or (frame.ndim == 3 and frame.shape[2] != 3)
-        ):
-            self._restart()
-            bad = _Frame(index, capture_time_us, np.zeros(expected, np.uint8), final=True)
-            bad.result = FrameResult(index, capture_time_us, None, 0, "bad_frame")
+        problem = frame_problem(frame, self.camera.height_px, self.camera.width_px)
+        if problem is not None:  # not an image of this camera, or one without signal: never a partner
+            if problem in RESTARTS:
+                self._restart()
+            bad = _Frame(index, capture_time_us, np.zeros((0, 0), np.uint8), final=True)
+            bad.result = FrameResult(index, capture_time_us, None, 0, problem)
             self._pending.append(bad)
             return self._emit()
-        if self._history and not 0 < capture_time_us - self._history[-1].time_us <= MAX_GAP_US:
+        gap = bool(self._history) and not 0 < capture_time_us - self._history[-1].time_us <= MAX_GAP_US
+        if gap:
             self._restart()  # a jump in the video, or time going backwards
         new = self._frame(index, frame, capture_time_us)
+        if gap:  # its reason unless a later frame pairs with it
+            new.failure = FrameResult(index, capture_time_us, None, 0, "time_gap")
         t0 = self._lap("lightness", t0)
         self._history.append(new)
         self._pending.append(new)
@@ -259,7 +259,7 @@ class Pipeline:
 
     def _frame(self, index: int, image: U8, time_us: int) -> _Frame:
         if not self.ipt:
-            return _Frame(index, time_us, lightness(image, self.cfg.demodulation.lightness))
+            return _Frame(index, time_us, luminance(image, self.cfg.demodulation.lightness))
         lum = luminance(image, self.cfg.demodulation.lightness)
         coverage = None
         if self.undistort is not None:
@@ -326,7 +326,7 @@ class Pipeline:
     # -- the paper's way -----------------------------------------------------------------------------
 
     def _paper(self, new: _Frame) -> FrameResult:
-        result = FrameResult(new.index, new.time_us, None, 0, "first_frame")
+        result = new.failure or FrameResult(new.index, new.time_us, None, 0, "first_frame")
         t0 = time.perf_counter()
         for prev in self._partners(new, earlier=True):
             new.tried.add(prev.index)

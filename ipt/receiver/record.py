@@ -63,7 +63,7 @@ class DifferenceSampler:
         self._last_us: int | None = None
         self._pending: tuple[int, U8] | None = None
 
-    def offer(self, capture_time_us: int, image_rgb: U8) -> tuple[int, U8, U8] | None:
+    def offer(self, capture_time_us: int, image: U8) -> tuple[int, U8, U8] | None:
         """(capture time, earlier grey, this grey) when this frame completes a pair, else None."""
         if self.interval_us is None:
             return None
@@ -72,17 +72,20 @@ class DifferenceSampler:
             periods = (capture_time_us - t0) / self.period_us
             if 0.5 <= periods < 1.5:
                 self._pending = None
-                return capture_time_us, grey0, _grey(image_rgb)
+                return capture_time_us, grey0, _grey(image)
             if periods >= 1.5 or periods < 0:  # the partner was lost: start again
                 self._pending = None
         if self._pending is None and (self._last_us is None or capture_time_us - self._last_us >= self.interval_us):
             self._last_us = capture_time_us
-            self._pending = (capture_time_us, _grey(image_rgb))
+            self._pending = (capture_time_us, _grey(image))
         return None
 
 
-def _grey(image_rgb: U8) -> U8:
-    return np.asarray(cv2.cvtColor(np.ascontiguousarray(image_rgb), cv2.COLOR_RGB2GRAY), np.uint8)
+def _grey(image: U8) -> U8:
+    """An RGB frame's luma; a grey frame (a mono camera's, or the luma a source handed over) as it is."""
+    if image.ndim == 2:
+        return image
+    return np.asarray(cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY), np.uint8)
 
 
 def difference_jpeg(before: U8, after: U8, gain: float = DIFFERENCE_GAIN) -> bytes:
@@ -190,9 +193,9 @@ class McapRecorder:
         for item in items:
             self._enqueue(("message", item), 1)
 
-    def offer_frame(self, capture_time_us: int, stamp_ns: int, image_rgb: U8) -> None:
+    def offer_frame(self, capture_time_us: int, stamp_ns: int, image: U8) -> None:
         """Let the difference-image sampler see a frame; queue an image when one is due."""
-        pair = self.images.offer(capture_time_us, image_rgb)
+        pair = self.images.offer(capture_time_us, image)
         if pair is not None:
             self._enqueue(("image", stamp_ns, pair[1], pair[2]), 1)
 

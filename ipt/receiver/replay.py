@@ -71,7 +71,7 @@ def replay(
 ) -> ReplaySummary:
     """Run the recording at ``video_path`` through the pipeline; write one TUM line per pose."""
     camera = load_camera_info(camera_path)
-    with open_frames(video_path, skip_bad=True) as source:
+    with open_frames(video_path, skip_bad=True, grey=pipeline_cfg.luminance_only) as source:
         if (source.width, source.height) != (camera.width_px, camera.height_px):
             raise ReplayError(
                 f"{camera_path}: the camera is {camera.width_px}x{camera.height_px} but {video_path} has "

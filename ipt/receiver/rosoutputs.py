@@ -110,7 +110,7 @@ class RosOutputs:
             item = (frame.index, frame.capture_time_us, frame.grabbed_s, result.reason, result.num_detections,
                     result.pose, result.reset, stages)  # fmt: skip
         try:
-            self._queue.put_nowait((*item, frame.image_rgb))
+            self._queue.put_nowait((*item, frame.image))
         except queue.Full:
             self.dropped += 1
 
