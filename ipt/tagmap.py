@@ -6,7 +6,10 @@ corners of each detected id from the same code and the same arena config.
 Coordinates:
 - projector pixels are continuous with the origin at the top-left *corner* of the top-left pixel, so
   pixel (i, j) covers [i, i+1) x [j, j+1) (the convention AprilTag reports corners in);
-- arena metres are ENU with the origin at the centre of the projected image, y towards the top edge.
+- arena metres are ENU with the origin at the centre of the projected image, y towards the top edge,
+  projector pixels mapping to them by the uniform scale of ``screen``, or, where the arena was measured
+  (``floor:``, ``ipt calibrate arena --points``), by the measured homography in the user's floor frame
+  (:func:`pixel_to_floor_matrix`). Every part maps through the functions here, so they all agree.
 
 Corner order, in both lists of a tag: bottom-left, bottom-right, top-right, top-left as the tag is seen
 in the projector image: counter-clockwise seen from above in the arena, and the order in which
@@ -195,15 +198,34 @@ def _draw_tag(mask: npt.NDArray[np.int8], tag: TagPlacement) -> None:
     roi[warped == 1] = -1
 
 
+def pixel_to_floor_matrix(arena: ArenaConfig) -> npt.NDArray[np.float64]:
+    """3x3 homography taking homogeneous projector pixels (u, v, 1), edge origin, to arena floor metres
+    (x_m, y_m, 1): the measured one (``floor.pixel_to_floor``) if the arena has it, else the uniform scale
+    of ``screen``. The one mapping every part uses (through this module's functions)."""
+    if arena.floor is not None:
+        return np.array(arena.floor.pixel_to_floor, np.float64)
+    sx = arena.screen.width_m / arena.projector.width_px
+    sy = arena.screen.height_m / arena.projector.height_px
+    w2, h2 = arena.projector.width_px / 2, arena.projector.height_px / 2
+    return np.array([[sx, 0, -w2 * sx], [0, -sy, h2 * sy], [0, 0, 1]])
+
+
 def pixel_to_arena_m(arena: ArenaConfig, u_px: float, v_px: float) -> tuple[float, float, float]:
     """Arena ENU metres (z = 0, the floor) of the projector point (u, v) in edge-origin pixels."""
+    if arena.floor is not None:
+        (a, b, c), (d, e, f), (g, h, k) = arena.floor.pixel_to_floor
+        w = g * u_px + h * v_px + k
+        return ((a * u_px + b * v_px + c) / w, (d * u_px + e * v_px + f) / w, 0.0)
     sx = arena.screen.width_m / arena.projector.width_px
     sy = arena.screen.height_m / arena.projector.height_px
     return ((u_px - arena.projector.width_px / 2) * sx, (arena.projector.height_px / 2 - v_px) * sy, 0.0)
 
 
 def arena_to_pixel_matrix(arena: ArenaConfig) -> npt.NDArray[np.float64]:
-    """3x3 matrix taking homogeneous arena floor points (x_m, y_m, 1) to projector pixels (edge origin)."""
+    """3x3 matrix taking homogeneous arena floor points (x_m, y_m, 1) to projector pixels (edge origin): the
+    inverse of :func:`pixel_to_floor_matrix`."""
+    if arena.floor is not None:
+        return np.asarray(np.linalg.inv(np.array(arena.floor.pixel_to_floor, np.float64)), np.float64)
     sx = arena.screen.width_m / arena.projector.width_px
     sy = arena.screen.height_m / arena.projector.height_px
     return np.array([[1 / sx, 0, arena.projector.width_px / 2], [0, -1 / sy, arena.projector.height_px / 2], [0, 0, 1]])

@@ -58,6 +58,59 @@ class ScreenConfig(StrictModel):
     height_m: float = Field(2.47, gt=0, le=100, description="Height of the projected image in metres.")
 
 
+class FloorConfig(StrictModel):
+    """Where the projected image lands on the floor, measured (``ipt calibrate arena --points``).
+
+    A projector mounted even a little off-axis keystones: its pixels are not a uniform grid on the floor.
+    The homography takes it exactly (a plane to a plane); without this section the layout is the uniform
+    scale of ``screen``."""
+
+    pixel_to_floor: tuple[
+        tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]
+    ] = Field(
+        description="3x3 homography, rows of three: homogeneous projector pixels (u, v, 1), edge origin (pixel "
+        "(i, j) covers [i, i+1) x [j, j+1), u right, v down) to homogeneous floor metres (x, y, 1) in the "
+        "arena frame. Used instead of screen by every part: tag corners, the simulator, the AR overlay."
+    )
+    points: int = Field(4, ge=4, le=100000, description="How many measured points it was fitted to (for the record).")
+    rms_m: float = Field(
+        0.0, ge=0.0, le=100.0, description="RMS distance of those points from the fit, metres (for the record)."
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> FloorConfig:
+        h = [[float(x) for x in row] for row in self.pixel_to_floor]
+        if not all(math.isfinite(x) for row in h for x in row):
+            raise ValueError("pixel_to_floor must hold finite numbers")
+        (a, b, c), (d, e, f), (g, i, k) = h
+        det = a * (e * k - f * i) - b * (d * k - f * g) + c * (d * i - e * g)
+        if not (math.isfinite(det) and abs(det) > 1e-300):
+            raise ValueError("pixel_to_floor is singular (not a homography)")
+        return self
+
+
+def floor_homography_fits(floor: FloorConfig, width_px: int, height_px: int) -> str | None:
+    """Why ``floor`` cannot be the floor mapping of a ``width_px`` x ``height_px`` image, or None if it can.
+
+    The image must land on the floor in one piece (the projective denominator keeps its sign over it: no
+    point at infinity inside) and unmirrored (v down in the image is y up on the floor, as in the uniform
+    layout; a mirrored image would mirror every tag, and no detector decodes those)."""
+    h = [[float(x) for x in row] for row in floor.pixel_to_floor]
+    (a, b, c), (d, e, f), (g, i, k) = h
+    det = a * (e * k - f * i) - b * (d * k - f * g) + c * (d * i - e * g)
+    weights = []
+    for u, v in ((0, 0), (width_px, 0), (width_px, height_px), (0, height_px)):
+        w = g * u + i * v + k
+        if not abs(w) > 0:
+            return f"pixel_to_floor sends projector pixel ({u}, {v}) to infinity"
+        weights.append(w)
+    if min(weights) < 0 < max(weights):  # w is affine in (u, v): its sign at the corners holds inside
+        return "pixel_to_floor sends part of the image to infinity (a horizon crosses it)"
+    if not det / weights[0] ** 3 < 0:  # the Jacobian's determinant: negative keeps the tags' handedness
+        return "pixel_to_floor mirrors the image (v down in the image must be y up on the floor)"
+    return None
+
+
 class TagMapConfig(StrictModel):
     """The grid of AprilTags hidden in the video (the paper's Fig. 3)."""
 
@@ -115,13 +168,25 @@ class ArenaConfig(StrictModel):
     """Everything both sides must agree on: projector, screen size, tag map and modulation."""
 
     projector: ProjectorConfig = Field(default_factory=ProjectorConfig, description="The projector.")
-    screen: ScreenConfig = Field(default_factory=ScreenConfig, description="The projected image on the floor.")
+    screen: ScreenConfig = Field(
+        default_factory=ScreenConfig,
+        description="The projected image on the floor (its size: the uniform layout, used without 'floor').",
+    )
+    floor: FloorConfig | None = Field(
+        None,
+        description="The measured projector-to-floor homography (ipt calibrate arena --points); null: the "
+        "uniform layout of screen.",
+    )
     tag_map: TagMapConfig = Field(default_factory=TagMapConfig, description="The hidden tag grid.")
     modulation: ModulationConfig = Field(default_factory=ModulationConfig, description="The modulation.")
 
     @model_validator(mode="after")
     def _check(self) -> ArenaConfig:
         tm, pr = self.tag_map, self.projector
+        if self.floor is not None:
+            problem = floor_homography_fits(self.floor, pr.width_px, pr.height_px)
+            if problem is not None:
+                raise ValueError(f"floor: {problem}")
         quiet_px = tm.tag_size_px // 8
         if pr.width_px / tm.cols < tm.tag_size_px + 2 * quiet_px:
             raise ValueError(
