@@ -14,6 +14,11 @@ helper process too) with OpenCV on one thread, and scored against its ground tru
 - ``frames_per_s``: frames over the pipeline's processor time on one core (decoding not counted), and the
   per-stage times; ``reasons``: why frames gave no pose.
 
+A flight with a keystoned projector (``keystone:``) is scored three ways: ``NAME (uncalibrated)`` with the
+arena file's uniform layout, ``NAME (calibrated)`` with the arena ``ipt calibrate arena --points`` makes
+from the rendering's ``survey.csv`` (its output is kept in the JSON), and ``NAME (flat)``: the same flight
+rendered without the keystone.
+
 JSON goes to stdout (one object: every flight, every profile); a Markdown table of the same figures goes to
 stderr at the end and, with ``--markdown``, to a file (the README's "How well it works" table).
 """
@@ -26,6 +31,7 @@ import hashlib
 import json
 import os
 import shutil
+import subprocess
 import sys
 import time
 from collections.abc import Iterator
@@ -55,7 +61,7 @@ ORDER = ("moving-content", "shadow-vibration", "realcam", "rolling", "fast", "ta
 HEIGHT_BANDS_M = ((0.0, 0.4), (0.4, 0.7), (0.7, 1.2), (1.2, 1.7), (1.7, 2.2), (2.2, 10.0))
 #: Sources whose change invalidates a cached rendering.
 RENDER_SOURCES = ("ipt/sim", "ipt/sender/photos.py", "ipt/sender/content.py", "ipt/sender/modulator.py",
-                  "ipt/sender/colour.py", "ipt/tagmap.py", "ipt/videoio.py")  # fmt: skip
+                  "ipt/sender/colour.py", "ipt/tagmap.py", "ipt/videoio.py", "ipt/calib/floor.py")  # fmt: skip
 
 
 def scenario_files(only: list[str] | None) -> list[Path]:
@@ -164,6 +170,18 @@ def score(folder: Path, arena: ArenaConfig, profile: str) -> dict[str, Any]:
     return out
 
 
+def calibrate(folder: Path) -> tuple[ArenaConfig, list[str]]:
+    """The flight's arena calibrated from its survey (``survey.csv``) by ``ipt calibrate arena --points`` run
+    as a user would (a subprocess), and what it printed."""
+    out = folder / "calibrated.yaml"
+    cmd = [sys.executable, "-m", "ipt.cli", "calibrate", "arena", "--config", str(folder / "arena.yaml"),
+           "--points", str(folder / "survey.csv"), "--output", str(out)]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=False)
+    if done.returncode != 0:
+        raise SystemExit(f"suite: {' '.join(cmd)} failed: {done.stderr.strip()}")
+    return load_arena_config(out), done.stdout.splitlines()
+
+
 def _cell_mm(v: list[float] | None) -> str:
     return "—" if v is None else " / ".join(f"{x:.1f}" for x in v)
 
@@ -221,6 +239,29 @@ def main() -> int:
                 flush=True,
             )
         results["flights"][path.stem] = flight
+        if sim.keystone is not None:
+            # The same rendering scored with the arena calibrated from its survey (the row above is the
+            # uncalibrated receiver), and the same flight without the keystone, for the yield to match.
+            calibrated, said = calibrate(folder)
+            flight["description"] += " — uncalibrated: the receiver uses the arena file's uniform layout"
+            results["flights"][f"{path.stem} (uncalibrated)"] = results["flights"].pop(path.stem)
+            flat_sim = sim.model_copy(update={"keystone": None})
+            flat = render(f"{path.stem}.flat", flat_sim, arena, args.seconds, args.cache, digest)
+            for name, where, scored_arena, desc in (
+                (f"{path.stem} (calibrated)", folder, calibrated, "calibrated by ipt calibrate arena --points"),
+                (f"{path.stem} (flat)", flat, arena, "the same flight without the keystone"),
+            ):
+                entry: dict[str, Any] = {"description": f"{sim.description} — {desc}", "profiles": {}}
+                if where is folder:
+                    entry["calibration"] = said
+                for profile in profiles:
+                    entry["profiles"][profile] = r = score(where, scored_arena, profile)
+                    print(
+                        f"suite: {name} / {profile}: yield {r['yield_pct']:.1f} %, MAE {_cell_mm(r['mae_mm'])} mm",
+                        file=sys.stderr,
+                        flush=True,
+                    )
+                results["flights"][name] = entry
     print(json.dumps(results, indent=1))
     table = markdown(results)
     print("\n" + table, file=sys.stderr)

@@ -3,9 +3,12 @@
 Timing: camera frame ``k`` is exposed for ``exposure_ms`` centred on ``k / fps`` (its middle row's, with a
 rolling shutter). The projector flips frames every ``1 / (rate_hz · (1 + ppm·1e-6))`` seconds, the first
 flip at ``projector_offset_ms``; an exposure that straddles a flip sees both phases in proportion. The
-ground truth of frame ``k`` is the camera pose at ``k / fps``. Every frame has its own random stream
-(seeded by the flight's seed and the frame number), so frames can be rendered in any order, or in
-several processes, and come out the same.
+ground truth of frame ``k`` is the camera pose at ``k / fps``, in the floor's frame. Every frame has its
+own random stream (seeded by the flight's seed and the frame number), so frames can be rendered in any
+order, or in several processes, and come out the same.
+
+Geometry: the projector's pixels land on the floor where the arena says (:mod:`ipt.tagmap`), unless the
+flight keystones them (``keystone``): then by its own homography, which the receiver is not told.
 """
 
 from __future__ import annotations
@@ -18,14 +21,15 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ipt.config.models import ArenaConfig
+from ipt.calib.floor import grid_pixels
+from ipt.config.models import ArenaConfig, ConfigError, FloorConfig, floor_homography_fits
 from ipt.sender.content import GeneratedScene, Scene
 from ipt.sender.modulator import JIT_UNAVAILABLE, FrameTiming, make_modulator, phase_sign
 from ipt.sender.photos import PanningPhotoScene
 from ipt.sim.config import SimConfig, apply_arena_changes
 from ipt.sim.flight import Flight, FlightState, HoverPath, Oscillation, Path, RectangleFlight, TakeoffPath
 from ipt.sim.render import CameraRenderer
-from ipt.tagmap import TagMap, arena_to_pixel_matrix, grid_tag_map
+from ipt.tagmap import TagMap, arena_to_pixel_matrix, grid_tag_map, pixel_to_arena_m
 
 U8 = npt.NDArray[np.uint8]
 I64 = npt.NDArray[np.int64]
@@ -91,6 +95,55 @@ def scene_for(sim: SimConfig, arena: ArenaConfig) -> Scene:
     return PanningPhotoScene(pr.width_px, pr.height_px, sim.seed, c.pan_px_per_frame, c.cut_every_s)
 
 
+def true_arena(arena: ArenaConfig, sim: SimConfig) -> ArenaConfig:
+    """The arena as the floor truly gets it: ``arena`` itself, or with a keystoned flight's (``sim.keystone``)
+    true floor homography in place of its layout. :class:`ConfigError` if the keystone is not a usable one."""
+    if sim.keystone is None:
+        return arena
+    pr = arena.projector
+    w, h = pr.width_px, pr.height_px
+    image = [(0.0, 0.0), (float(w), 0.0), (float(w), float(h)), (0.0, float(h))]
+    floor = [
+        (x + dx, y + dy)
+        for (x, y, _), (dx, dy) in zip(
+            (pixel_to_arena_m(arena, u, v) for u, v in image), sim.keystone.corner_shift_m, strict=True
+        )
+    ]
+    # The homography through four correspondences, in float64 (OpenCV's getPerspectiveTransform is float32).
+    a = []
+    for (u, v), (x, y) in zip(image, floor, strict=True):
+        a.append([u, v, 1, 0, 0, 0, -u * x, -v * x, x])
+        a.append([0, 0, 0, u, v, 1, -u * y, -v * y, y])
+    sys_ = np.array(a, np.float64)
+    try:
+        if abs(float(np.linalg.det(sys_[:, :8]))) < 1e-300:
+            raise ValueError("three corners on one line")
+        rows_flat = np.append(np.linalg.solve(sys_[:, :8], sys_[:, 8]), 1.0)
+        rows = tuple(tuple(float(x) for x in r) for r in rows_flat.reshape(3, 3))
+        measured = FloorConfig(pixel_to_floor=rows)
+        problem = floor_homography_fits(measured, w, h)
+        if problem is not None:
+            raise ValueError(problem)
+        return arena.model_copy(update={"floor": measured})
+    except ValueError as exc:
+        raise ConfigError(f"keystone: corner_shift_m gives no usable image on the floor ({exc})") from None
+
+
+def survey_points(arena: ArenaConfig, sim: SimConfig) -> list[tuple[float, float, float, float]]:
+    """The survey of a keystoned floor a user would make: (u_px, v_px, x_m, y_m) of each mark of the flight's
+    ``survey_grid``, where it truly lands, measured with ``survey_noise_m`` of noise (seeded by the flight)."""
+    if sim.keystone is None:
+        return []
+    k, truth = sim.keystone, true_arena(arena, sim)
+    rng = np.random.default_rng([sim.seed, 17])
+    out = []
+    for u, v in grid_pixels(arena.projector.width_px, arena.projector.height_px, *k.survey_grid):
+        x, y, _ = pixel_to_arena_m(truth, u, v)
+        nx, ny = rng.normal(0.0, k.survey_noise_m, 2) if k.survey_noise_m > 0 else (0.0, 0.0)
+        out.append((float(u), float(v), x + float(nx), y + float(ny)))
+    return out
+
+
 class SimulatedArena:
     """Renders the camera's view frame by frame; deterministic for a given seed."""
 
@@ -115,7 +168,7 @@ class SimulatedArena:
         self.projector_period_s = 1.0 / (arena.projector.rate_hz * (1.0 + sim.projector_clock_ppm * 1e-6))
         self.renderer = CameraRenderer(
             sim.camera,
-            arena_to_pixel_matrix(arena),
+            arena_to_pixel_matrix(true_arena(arena, sim)),  # where the projector's pixels truly land
             (arena.projector.width_px, arena.projector.height_px),
             shadow=sim.shadow,
             seed=sim.seed,
