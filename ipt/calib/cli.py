@@ -17,6 +17,8 @@ if TYPE_CHECKING:
     import numpy as np
     import numpy.typing as npt
 
+    from ipt.calib.floor import FloorFit
+
     U8 = npt.NDArray[np.uint8]
 
 LIVE_TIMEOUT_S = 120.0
@@ -185,22 +187,10 @@ def _cmd_marks(args: argparse.Namespace, config: Path) -> int:
     return 0
 
 
-def _cmd_points(args: argparse.Namespace, config: Path) -> int:
-    """``--points``: the floor homography from measured points, written into the arena config."""
-    import numpy as np
-
-    from ipt.calib.arena import write_arena_text
-    from ipt.calib.floor import FloorCalibrationError, fit_floor, read_points, update_floor_yaml
-    from ipt.config.models import load_arena_config
-    from ipt.fileio import read_text_file
-    from ipt.tagmap import pixel_to_floor_matrix
-
-    arena = load_arena_config(config)
-    pr = arena.projector
-    points = Path(args.points)
-    fit = fit_floor(points, read_points(points, arena), pr.width_px, pr.height_px)
-    print(f"ipt calibrate arena: {len(fit.points)} points from {points}; distance of each from the fit, and from "
-          "where the other points put it")  # fmt: skip
+def _report_fit(fit: FloorFit, points: Path, label: str) -> None:
+    """Print a fit's table of points, its RMS and the points that are off."""
+    print(f"ipt calibrate arena: {label}{len(fit.points)} points from {points}; distance of each from the fit, "
+          "and from where the other points put it")  # fmt: skip
     print(f"  {'point':>5} {'row':>4} {'u_px':>8} {'v_px':>8} {'x_m':>9} {'y_m':>9} {'residual':>9} {'left out':>9}")
     for i, p in enumerate(fit.points):
         out = "—" if fit.left_out_m is None else f"{1e3 * fit.left_out_m[i]:.1f} mm"
@@ -208,9 +198,9 @@ def _cmd_points(args: argparse.Namespace, config: Path) -> int:
             f"  {i + 1:>5} {p.row:>4} {p.u_px:>8g} {p.v_px:>8g} {p.x_m:>9.4f} {p.y_m:>9.4f} "
             f"{1e3 * fit.residual_m[i]:>6.1f} mm {out:>9}"
         )
-    print(f"ipt calibrate arena: RMS {1e3 * fit.rms_m:.2f} mm over {len(fit.points)} points")
+    print(f"ipt calibrate arena: {label}RMS {1e3 * fit.rms_m:.2f} mm over {len(fit.points)} points")
     if len(fit.points) == 4:
-        print("ipt calibrate arena: 4 points fit exactly, so nothing checks them: measure 6 or more")
+        print(f"ipt calibrate arena: {label}4 points fit exactly, so nothing checks them: measure 6 or more")
     for i in fit.far:
         p = fit.points[i]
         d = fit.left_out_m[i] if fit.left_out_m is not None else fit.residual_m[i]
@@ -218,24 +208,80 @@ def _cmd_points(args: argparse.Namespace, config: Path) -> int:
             f"ipt calibrate arena: point {i + 1} (row {p.row} of {points}) is {1e2 * d:.1f} cm from where the other "
             "points put it: remeasure it, or leave it out"
         )
-    # How far the uniform layout was from what was measured, over the image's corners and centre.
-    w, h = pr.width_px, pr.height_px
-    probe = np.array([[0, 0, 1], [w, 0, 1], [w, h, 1], [0, h, 1], [w / 2, h / 2, 1]], np.float64).T
-    uniform = arena.model_copy(update={"floor": None})
-    a, b = pixel_to_floor_matrix(uniform) @ probe, fit.pixel_to_floor @ probe
-    shift = np.linalg.norm(a[:2] / a[2] - b[:2] / b[2], axis=0)
+
+
+def _cmd_points(args: argparse.Namespace, config: Path) -> int:
+    """``--points``: the floor homography (of each projector tile) from measured points, written into the
+    arena config."""
+    import numpy as np
+
+    from ipt.calib.arena import write_arena_text
+    from ipt.calib.floor import (
+        FloorCalibrationError,
+        fit_floor,
+        read_points,
+        update_floor_yaml,
+        update_tiles_yaml,
+    )
+    from ipt.config.models import load_arena_config
+    from ipt.fileio import read_text_file
+    from ipt.tagmap import pixel_to_floor_matrix, tile_of
+
+    arena = load_arena_config(config)
+    pr = arena.projector
+    points = Path(args.points)
+    measured = read_points(points, arena)
+    tiles = arena.projectors
+    if tiles is None:
+        groups = [("", measured, (0, 0, pr.width_px, pr.height_px))]
+    else:
+        groups = []
+        for n, t in enumerate(tiles):
+            rect = (t.x_px, t.y_px, t.width_px, t.height_px)
+            mine = [p for p in measured if tile_of(arena, p.u_px, p.v_px) == n]
+            groups.append((f"projector {n + 1} (x {t.x_px}-{t.x_px + t.width_px}, y {t.y_px}-{t.y_px + t.height_px}): ",
+                           mine, rect))  # fmt: skip
+    fits = []
+    for label, mine, (x0, y0, w, h) in groups:
+        where = f" in {label[:-2]}" if label else ""
+        fits.append(fit_floor(points, mine, w, h, origin_px=(x0, y0), where=where))
+    uniform = arena.model_copy(update={"floor": None, "projectors": None})
+    worst = 0.0
+    for (label, _, (x0, y0, w, h)), fit in zip(groups, fits, strict=True):
+        _report_fit(fit, points, label)
+        # How far the uniform layout was from what was measured, over the image's corners and centre.
+        corners = [(x0, y0), (x0 + w, y0), (x0 + w, y0 + h), (x0, y0 + h), (x0 + w / 2, y0 + h / 2)]
+        probe = np.array([[u, v, 1.0] for u, v in corners]).T
+        a, b = pixel_to_floor_matrix(uniform) @ probe, fit.pixel_to_floor @ probe
+        worst = max(worst, float(np.linalg.norm(a[:2] / a[2] - b[:2] / b[2], axis=0).max()))
     print(
         f"ipt calibrate arena: the measured floor differs from the uniform {arena.screen.width_m:g} x "
-        f"{arena.screen.height_m:g} m layout by up to {1e2 * float(shift.max()):.1f} cm (image corners and centre)"
+        f"{arena.screen.height_m:g} m layout by up to {1e2 * worst:.1f} cm (image corners and centre)"
     )
     if args.dry_run:
         print("ipt calibrate arena: --dry-run: nothing written")
         return 0
     text = read_text_file(config, FloorCalibrationError, "an arena YAML file")
-    new_text = update_floor_yaml(text, fit.config())
+    if tiles is None:
+        new_text = update_floor_yaml(text, fits[0].config())
+    else:
+        new_text = update_tiles_yaml(
+            text,
+            tuple(
+                t.model_copy(
+                    update={
+                        "pixel_to_floor": f.config().pixel_to_floor,
+                        "points": len(f.points),
+                        "rms_m": round(f.rms_m, 7),
+                    }
+                )
+                for t, f in zip(tiles, fits, strict=True)
+            ),
+        )
     written, backup = write_arena_text(config, new_text, output=Path(args.output) if args.output else None)
     kept = f" (the previous file is {backup})" if backup is not None else ""
-    print(f"ipt calibrate arena: wrote the floor homography to {written}{kept}")
+    what = "the floor homography" if tiles is None else f"the floor homographies of the {len(tiles)} projectors"
+    print(f"ipt calibrate arena: wrote {what} to {written}{kept}")
     return 0
 
 

@@ -28,7 +28,7 @@ import numpy as np
 import numpy.typing as npt
 import yaml
 
-from ipt.config.models import ArenaConfig, FloorConfig, floor_homography_fits
+from ipt.config.models import ArenaConfig, FloorConfig, TileConfig, floor_homography_fits
 from ipt.errors import IptError
 from ipt.fileio import read_text_file
 
@@ -194,12 +194,22 @@ def _apply(h: F64, px: F64) -> F64:
     return np.asarray(q[:, :2] / q[:, 2:3], np.float64)
 
 
-def fit_floor(path: Path, points: list[SurveyPoint], width_px: int, height_px: int) -> FloorFit:
-    """The least-squares homography of the measured ``points`` (from ``path``, for the messages)."""
+def fit_floor(
+    path: Path,
+    points: list[SurveyPoint],
+    width_px: int,
+    height_px: int,
+    *,
+    origin_px: tuple[int, int] = (0, 0),
+    where: str = "",
+) -> FloorFit:
+    """The least-squares homography of the measured ``points`` (from ``path``, for the messages), for the
+    ``width_px`` x ``height_px`` image whose top-left is canvas pixel ``origin_px`` (a projector's tile;
+    ``where`` names it in the messages)."""
     if len(points) < 4:
         raise FloorCalibrationError(
-            f"{path}: {len(points)} point{'s' if len(points) != 1 else ''}; the floor homography needs at least 4, "
-            "no three on one line (9 or more, spread over the image, to check them)"
+            f"{path}: {len(points)} point{'s' if len(points) != 1 else ''}{where}; the floor homography needs at "
+            "least 4, no three on one line (9 or more, spread over the image, to check them)"
         )
     px = np.array([(p.u_px, p.v_px) for p in points], np.float64)
     m = np.array([(p.x_m, p.y_m) for p in points], np.float64)
@@ -219,15 +229,18 @@ def fit_floor(path: Path, points: list[SurveyPoint], width_px: int, height_px: i
                     f"{path}: rows {rows}: on one line on the {label}; the homography needs four points with no "
                     "three on a line"
                 )
-        raise FloorCalibrationError(f"{path}: these points do not determine a homography (nearly on one line?)")
+        raise FloorCalibrationError(f"{path}: these points{where} do not determine a homography (nearly on one line?)")
     h = _fit(px, m)
+    x0, y0 = origin_px
     problem = floor_homography_fits(
-        FloorConfig(pixel_to_floor=tuple(tuple(float(x) for x in r) for r in h)),
+        FloorConfig(pixel_to_floor=tuple((float(r[0]), float(r[1]), float(r[0] * x0 + r[1] * y0 + r[2])) for r in h)),
         width_px,
         height_px,
     )
     if problem is not None:
-        raise FloorCalibrationError(f"{path}: the points give no usable mapping: {problem}; check the x_m, y_m columns")
+        raise FloorCalibrationError(
+            f"{path}: the points{where} give no usable mapping: {problem}; check the x_m, y_m columns"
+        )
     residual = np.linalg.norm(_apply(h, px) - m, axis=1)
     left_out = _left_out(px, m, np.ones(len(points), bool), residual) if len(points) >= 5 else None
     far: list[int] = []
@@ -276,6 +289,31 @@ def update_floor_yaml(text: str, floor: FloorConfig) -> str:
     """``text`` (an arena YAML file) with its top-level ``floor:`` section replaced by ``floor`` (or added at
     the end), everything else (comments, order, other keys) as it was. Raises
     :class:`FloorCalibrationError` if the result does not parse to the same mapping with the new section."""
+    return _replace_section(text, "floor", _floor_block(floor), floor.model_dump(mode="json"))
+
+
+def update_tiles_yaml(text: str, tiles: tuple[TileConfig, ...]) -> str:
+    """``text`` with its top-level ``projectors:`` section (the tiles) written anew from ``tiles``, everything
+    else as it was (:func:`update_floor_yaml`)."""
+    block = "projectors:             # tiles of the canvas; pixel_to_floor measured by ipt calibrate arena --points\n"
+    for t in tiles:
+        block += f"  - x_px: {t.x_px}\n    y_px: {t.y_px}\n    width_px: {t.width_px}\n    height_px: {t.height_px}\n"
+        if t.pixel_to_floor is not None:
+            block += "    pixel_to_floor:\n"
+            block += "".join(f"      - [{', '.join(repr(float(x)) for x in r)}]\n" for r in t.pixel_to_floor)
+        block += f"    points: {t.points}\n    rms_m: {t.rms_m!r}\n"
+    return _replace_section(text, "projectors", block, [t.model_dump(mode="json") for t in tiles])
+
+
+def _normalised_section(key: str, value: Any) -> Any:
+    if value is None:
+        return None
+    if key == "floor":
+        return FloorConfig.model_validate(value).model_dump(mode="json")
+    return [TileConfig.model_validate(t).model_dump(mode="json") for t in value]
+
+
+def _replace_section(text: str, key: str, block: str, value: Any) -> str:
     try:
         original = yaml.safe_load(text) if text.strip() else {}
     except yaml.YAMLError as exc:
@@ -285,8 +323,7 @@ def update_floor_yaml(text: str, floor: FloorConfig) -> str:
     if not isinstance(original, dict):
         raise FloorCalibrationError("the arena file is not a YAML mapping")
     lines = text.splitlines(keepends=True)
-    head = next((i for i, line in enumerate(lines) if re.match(r"floor\s*:", line)), None)
-    block = _floor_block(floor)
+    head = next((i for i, line in enumerate(lines) if re.match(rf"{key}\s*:", line)), None)
     if head is None:
         new_lines = [*lines]
         if new_lines and not new_lines[-1].endswith("\n"):
@@ -300,18 +337,16 @@ def update_floor_yaml(text: str, floor: FloorConfig) -> str:
             end -= 1
         new_lines = [*lines[:head], block, *lines[end:]]
     new_text = "".join(new_lines)
-    expected: dict[str, Any] = {**original, "floor": floor.model_dump(mode="json")}
+    expected: dict[str, Any] = {**original, key: value}
     try:
         parsed = yaml.safe_load(new_text)
-    except yaml.YAMLError:
+        if isinstance(parsed, dict):
+            parsed = {**parsed, key: _normalised_section(key, parsed.get(key))}
+    except (yaml.YAMLError, ValueError):
         parsed = None
-    if not isinstance(parsed, dict) or parsed.get("floor") is None:
-        parsed = None
-    else:
-        parsed = {**parsed, "floor": FloorConfig.model_validate(parsed["floor"]).model_dump(mode="json")}
     if parsed != expected:
         raise FloorCalibrationError(
-            "cannot write the floor section into this file in place (an unusual layout); write a new file "
+            f"cannot write the {key} section into this file in place (an unusual layout); write a new file "
             "with --output"
         )
     return new_text
