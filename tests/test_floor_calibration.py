@@ -344,3 +344,91 @@ def test_the_simulator_lays_the_keystoned_image_and_writes_its_survey(tmp_path: 
     assert flown.floor is None  # the receiver is told the file's layout, not the truth
     fl = FloorConfig.model_validate({"pixel_to_floor": TRUE_H.tolist()})
     assert fl.pixel_to_floor[2][2] == pytest.approx(1.0)
+
+
+# --- several projectors ---------------------------------------------------------------------------------
+
+TILES = {
+    "projectors": [
+        {"x_px": 0, "y_px": 0, "width_px": 1920, "height_px": 1080},
+        {"x_px": 0, "y_px": 1080, "width_px": 1920, "height_px": 1080},
+    ]
+}
+TWO = ArenaConfig.model_validate(TILES)
+ZERO = ((0.0, 0.0), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0))
+OFF_1CM = ((0.01, 0.0), (0.01, 0.0), (0.01, 0.0), (0.01, 0.0))
+TWO_TRUE = true_arena(TWO, SimConfig(keystone=KeystoneConfig(tile_corner_shift_m=(ZERO, OFF_1CM))))
+
+
+@pytest.mark.parametrize(
+    ("tiles", "expected"),
+    [
+        ([{"x_px": 0, "y_px": 0, "width_px": 1920, "height_px": 1200}, {"x_px": 0, "y_px": 1080, "width_px": 1920,
+          "height_px": 1080}], "overlaps"),
+        ([{"x_px": 0, "y_px": 0, "width_px": 1920, "height_px": 1080}], "cover the whole"),
+        ([{"x_px": 100, "y_px": 0, "width_px": 1920, "height_px": 2160}], "outside"),
+    ],
+)  # fmt: skip
+def test_tiles_must_partition_the_canvas(tiles: list[dict[str, int]], expected: str) -> None:
+    with pytest.raises(ValueError, match=expected):
+        ArenaConfig.model_validate({"projectors": tiles})
+    with pytest.raises(ValueError, match="not both"):
+        ArenaConfig.model_validate({**TILES, "floor": {"pixel_to_floor": TRUE_H.tolist()}})
+
+
+def test_tags_stay_out_of_the_seam_and_take_their_own_projectors_mapping() -> None:
+    tm = grid_tag_map(TWO_TRUE)
+    assert sorted(set(range(81)) - set(tm.by_id)) == list(range(36, 45))  # the middle row crosses the seam
+    for tag in tm.tags:
+        tile = 0 if tag.corners_px[0][1] <= 1080 else 1
+        h = pixel_to_floor_matrix(TWO_TRUE, tile)
+        for (u, v), (x, y, _) in zip(tag.corners_px, tag.corners_m, strict=True):
+            assert (x, y) == pytest.approx(_floor(h, u, v), abs=1e-12)
+    lower = tm.by_id[4].corners_m[0][0] - grid_tag_map(TWO).by_id[4].corners_m[0][0]
+    upper = tm.by_id[76].corners_m[0][0] - grid_tag_map(TWO).by_id[76].corners_m[0][0]
+    assert (lower, upper) == pytest.approx((0.01, 0.0), abs=1e-12)  # the lower projector is 1 cm off
+    ar = ArScene(TWO_TRUE)
+    for u, v in [(500.0, 300.0), (500.0, 1900.0), (1500.0, 1100.0)]:
+        x, y, _ = pixel_to_arena_m(TWO_TRUE, u, v)
+        assert ar.pixel_of(x, y) == pytest.approx((u, v), abs=1e-6)
+
+
+def test_tiles_calibrated_each_from_its_own_points(tmp_path: Path) -> None:
+    (tmp_path / "arena.yaml").write_text("# two\n" + yaml.safe_dump(TILES, sort_keys=False), encoding="utf-8")
+    survey = survey_points(TWO, SimConfig(keystone=KeystoneConfig(tile_corner_shift_m=(ZERO, OFF_1CM)), seed=1))
+    rows = ["u_px,v_px,x_m,y_m", *(f"{u:g},{v:g},{x:.6f},{y:.6f}" for u, v, x, y in survey)]
+    (tmp_path / "p.csv").write_text("\n".join(rows) + "\n", encoding="utf-8")
+    out = _ipt("calibrate", "arena", "--config", "arena.yaml", "--points", "p.csv", "--output", "cal.yaml",
+               cwd=tmp_path)  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    assert "projector 2 (x 0-1920, y 1080-2160): RMS" in out.stdout
+    cal = load_arena_config(tmp_path / "cal.yaml")
+    assert cal.projectors is not None
+    assert [t.points for t in cal.projectors] == [9, 9]
+    # Along the seam, both sides land within 4 mm of the truth (1 mm noise on 9 marks each).
+    for tile in (0, 1):
+        v = 1080.0
+        for u in np.linspace(0, W, 9):
+            got = _floor(pixel_to_floor_matrix(cal, tile), float(u), v)
+            want = _floor(pixel_to_floor_matrix(TWO_TRUE, tile), float(u), v)
+            assert math.dist(got, want) < 0.004
+    # A projector with fewer than four points: one line naming the file and that projector.
+    (tmp_path / "p.csv").write_text("\n".join(rows[:13]) + "\n", encoding="utf-8")
+    bad = _ipt("calibrate", "arena", "--config", "arena.yaml", "--points", "p.csv", cwd=tmp_path)
+    assert bad.returncode == 2
+    assert "p.csv: 3 points in projector 2 (x 0-1920, y 1080-2160)" in bad.stderr
+    assert not (tmp_path / "arena.yaml.bak").exists()
+
+
+def test_two_projectors_that_agree_render_as_one() -> None:
+    sim = SimConfig.smooth(seed=2)
+    sim = sim.model_copy(update={"flight": sim.flight.model_copy(update={"path": "hover", "centre_m": (0.1, 0.0)})})
+    tm = grid_tag_map(TWO)  # the same tags drawn (the two-projector map leaves the seam's row out)
+    one = SimulatedArena(PAPER, sim, GeneratedScene(W, H, seed=2), tm).render(3).image_rgb.astype(int)
+    two = SimulatedArena(TWO, sim, GeneratedScene(W, H, seed=2), tm).render(3).image_rgb.astype(int)
+    # Bilinear sampling is linear in the image: the two crops, each black beyond its seam, add up to the
+    # whole exactly (up to the order of float sums), so no seam shows where the projectors agree.
+    assert int(np.abs(one - two).max()) <= 1
+    shifted = SimConfig(**{**sim.model_dump(), "keystone": {"tile_corner_shift_m": (ZERO, OFF_1CM)}})
+    off = SimulatedArena(TWO, shifted, GeneratedScene(W, H, seed=2), tm).render(3).image_rgb.astype(int)
+    assert (np.abs(off - two).max(axis=2) > 4).mean() > 0.1  # half the view moved by 1 cm (6 px)

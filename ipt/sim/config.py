@@ -242,9 +242,18 @@ class KeystoneConfig(StrictModel):
     corner_shift_m: tuple[
         tuple[float, float], tuple[float, float], tuple[float, float], tuple[float, float]
     ] = Field(
+        ((0.0, 0.0), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0)),
         description="Where the projected image's corners truly land, (dx, dy) metres from where the arena file "
         "puts them, in the order top-left, top-right, bottom-right, bottom-left of the image (projector pixels "
-        "(0, 0), (W, 0), (W, H), (0, H)). The image between them follows the homography they define."
+        "(0, 0), (W, 0), (W, H), (0, H)). The image between them follows the homography they define.",
+    )
+    tile_corner_shift_m: (
+        tuple[tuple[tuple[float, float], tuple[float, float], tuple[float, float], tuple[float, float]], ...] | None
+    ) = Field(
+        None,
+        description="For an arena of several projectors (its projectors: tiles): the same per tile, in the "
+        "tiles' order, each of its corners in its own part of the canvas (then corner_shift_m is not used). "
+        "Survey marks are a survey_grid in each tile.",
     )
     survey_grid: tuple[int, int] = Field(
         (3, 3),
@@ -255,14 +264,12 @@ class KeystoneConfig(StrictModel):
         0.001, ge=0, le=0.1, description="Standard deviation of each measured coordinate of a mark, metres."
     )
 
-    @field_validator("corner_shift_m")
-    @classmethod
-    def _small(
-        cls, v: tuple[tuple[float, float], ...]
-    ) -> tuple[tuple[float, float], ...]:
-        if any(not math.isfinite(c) or abs(c) > 5 for corner in v for c in corner):
+    @model_validator(mode="after")
+    def _small(self) -> KeystoneConfig:
+        shifts = [self.corner_shift_m, *(self.tile_corner_shift_m or ())]
+        if any(not math.isfinite(c) or abs(c) > 5 for corners in shifts for corner in corners for c in corner):
             raise ValueError("corner_shift_m: each shift must be finite and within 5 m")
-        return v
+        return self
 
     @field_validator("survey_grid")
     @classmethod
