@@ -312,10 +312,10 @@ def _cmd_arena(args: argparse.Namespace) -> int:
     if args.points is not None:
         return _cmd_points(args, config)
     arena = load_arena_config(config)
-    if arena.floor is not None:
+    if arena.floor is not None or any(t.pixel_to_floor is not None for t in arena.projectors or ()):
         raise ArenaCalibrationError(
-            f"{config}: the arena has a measured floor homography (floor:), which a scale does not change: measure "
-            "again with --points, or delete the floor section first"
+            f"{config}: the arena has a measured floor homography (floor: or projectors:), which a scale does not "
+            "change: measure again with --points, or delete the measured homographies first"
         )
     if args.height_m is not None:
         if args.camera is None or not args.image:
