@@ -412,6 +412,12 @@ def test_tiles_calibrated_each_from_its_own_points(tmp_path: Path) -> None:
             got = _floor(pixel_to_floor_matrix(cal, tile), float(u), v)
             want = _floor(pixel_to_floor_matrix(TWO_TRUE, tile), float(u), v)
             assert math.dist(got, want) < 0.004
+    # The marks to measure: a grid in each projector's part of the canvas.
+    marks = _ipt("calibrate", "arena", "--config", "arena.yaml", "--points", "m.csv", "--marks", "m.png", cwd=tmp_path)
+    assert marks.returncode == 0, marks.stderr
+    pix = [tuple(int(c) for c in r.split(",")[:2]) for r in (tmp_path / "m.csv").read_text().splitlines()[1:]]
+    assert len(pix) == 18
+    assert sum(v < 1080 for _, v in pix) == 9
     # A projector with fewer than four points: one line naming the file and that projector.
     (tmp_path / "p.csv").write_text("\n".join(rows[:13]) + "\n", encoding="utf-8")
     bad = _ipt("calibrate", "arena", "--config", "arena.yaml", "--points", "p.csv", cwd=tmp_path)

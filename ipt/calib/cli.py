@@ -174,7 +174,13 @@ def _cmd_marks(args: argparse.Namespace, config: Path) -> int:
         pixels = [(p.u_px, p.v_px) for p in read_points(points, arena, measured=False)]
         template = None
     else:
-        pixels = [(float(u), float(v)) for u, v in grid_pixels(pr.width_px, pr.height_px, *args.grid)]
+        # A grid over the image, or over each projector's part of the canvas (each is fitted on its own).
+        rects = [(t.x_px, t.y_px, t.width_px, t.height_px) for t in arena.projectors or ()]
+        pixels = [
+            (float(x0 + u), float(y0 + v))
+            for x0, y0, w, h in rects or [(0, 0, pr.width_px, pr.height_px)]
+            for u, v in grid_pixels(w, h, *args.grid)
+        ]
         template = template_csv(pixels)
     with output_group():
         write_image(args.marks, marks_image(pr.width_px, pr.height_px, pixels), FloorCalibrationError, suffix=".png")
@@ -396,10 +402,12 @@ def add_calibrate_parser(sub: argparse._SubParsersAction[Parser]) -> None:
         "CSV file with the header u_px,v_px,x_m,y_m. They give the projector-to-floor homography (least squares); "
         "each point's distance from the fit and from where the other points put it is printed, a point more than "
         "1 cm off is named, and the 'floor:' section of the config is written (every part uses it: tag corners, "
-        "simulator, AR overlay). To get the points: '--points P.csv --marks M.png' writes M.png, numbered cross-"
-        "hairs at a --grid of pixels (default 3x3), and P.csv listing their pixels with x_m, y_m empty; project "
-        "M.png, measure each crossing, fill in P.csv, run again without --marks. (With an existing P.csv, "
-        "--marks draws its pixels.) "
+        "simulator, AR overlay); for an arena of several projectors (projectors: tiles of the canvas) each tile "
+        "is fitted from the points in its part and gets its own homography. To get the points: '--points P.csv "
+        "--marks M.png' writes M.png, numbered cross-hairs at a --grid of pixels (default 3x3, in each "
+        "projector's part), and P.csv listing their pixels with x_m, y_m empty; project M.png, measure each "
+        "crossing, fill in P.csv, run again without --marks. (With an existing P.csv, --marks draws its "
+        "pixels.) "
         "Without a floor section the layout is a uniform scale, which the other methods measure: how large the "
         "projected image is on the floor, written as screen.width_m and "
         "screen.height_m into the arena config (the aspect of a projector pixel is kept). Either project the plain "
