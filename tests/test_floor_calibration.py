@@ -111,6 +111,12 @@ def test_nine_points_with_a_millimetre_of_noise_map_the_whole_floor_within_a_few
     assert max(worst) < 0.004
 
 
+def test_a_spreadsheets_csv_reads_as_written() -> None:
+    text = "\ufeffx_m,y_m,u_px,v_px\r\n# taped 3 May\r\n0.5,0.25,100,200\r\n\r\n"
+    (p,) = parse_points(Path("p.csv"), text, W, H)
+    assert (p.row, p.u_px, p.v_px, p.x_m, p.y_m) == (3, 100.0, 200.0, 0.5, 0.25)
+
+
 def test_a_point_two_centimetres_off_is_the_one_named() -> None:
     path = Path("p.csv")
     points = parse_points(path, _csv(_grid(), 0.001, 3), W, H)

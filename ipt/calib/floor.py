@@ -108,7 +108,7 @@ def parse_points(path: Path, text: str, width_px: int, height_px: int, *, measur
     """The points of a CSV text (header ``u_px,v_px,x_m,y_m``, any column order, blank lines and ``#``
     lines skipped), each pixel inside the ``width_px`` x ``height_px`` image. ``measured=False`` lets the
     floor columns be empty (a template of marks). Raises :class:`FloorCalibrationError` naming the row."""
-    lines = text.splitlines()
+    lines = text.removeprefix("\ufeff").splitlines()  # a spreadsheet's "CSV UTF-8" starts with a byte-order mark
     rows = [(i + 1, line) for i, line in enumerate(lines) if line.strip() and not line.lstrip().startswith("#")]
     if not rows:
         raise FloorCalibrationError(f"{path}: empty; expected the header {','.join(HEADER)} and a point per row")
