@@ -14,6 +14,12 @@ helper process too) with OpenCV on one thread, and scored against its ground tru
 - ``frames_per_s``: frames over the pipeline's processor time on one core (decoding not counted), and the
   per-stage times; ``reasons``: why frames gave no pose.
 
+A flight with a keystoned projector (``keystone:``) is scored three ways: ``NAME (uncalibrated)`` with the
+arena file's uniform layout, ``NAME (calibrated)`` with the arena ``ipt calibrate arena --points`` makes
+from the rendering's ``survey.csv`` (its output is kept in the JSON), and ``NAME (flat)``: the same flight
+rendered without the keystone. A flight of several projectors (``arena: {projectors: ...}``) also gets
+``seam_mae_mm`` and ``seam_max_error_mm``: the error of the poses whose camera is within 0.25 m of a seam.
+
 JSON goes to stdout (one object: every flight, every profile); a Markdown table of the same figures goes to
 stderr at the end and, with ``--markdown``, to a file (the README's "How well it works" table).
 """
@@ -26,6 +32,7 @@ import hashlib
 import json
 import os
 import shutil
+import subprocess
 import sys
 import time
 from collections.abc import Iterator
@@ -34,15 +41,16 @@ from typing import Any
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from ipt.config.camera_info import load_camera_info
 from ipt.config.models import PROFILES, ArenaConfig, PipelineConfig, load_arena_config, load_yaml_model
 from ipt.eval import evaluate
 from ipt.receiver.pipeline import Pipeline
-from ipt.sim.arena import scene_for
+from ipt.sim.arena import scene_for, true_arena
 from ipt.sim.config import SimConfig, apply_arena_changes, describe_flight
 from ipt.sim.run import simulate_to_folder
-from ipt.tagmap import grid_tag_map
+from ipt.tagmap import grid_tag_map, pixel_to_arena_m
 from ipt.tum import Trajectory, read_tum
 from ipt.videoio import open_frames
 
@@ -55,7 +63,7 @@ ORDER = ("moving-content", "shadow-vibration", "realcam", "rolling", "fast", "ta
 HEIGHT_BANDS_M = ((0.0, 0.4), (0.4, 0.7), (0.7, 1.2), (1.2, 1.7), (1.7, 2.2), (2.2, 10.0))
 #: Sources whose change invalidates a cached rendering.
 RENDER_SOURCES = ("ipt/sim", "ipt/sender/photos.py", "ipt/sender/content.py", "ipt/sender/modulator.py",
-                  "ipt/sender/colour.py", "ipt/tagmap.py", "ipt/videoio.py")  # fmt: skip
+                  "ipt/sender/colour.py", "ipt/tagmap.py", "ipt/videoio.py", "ipt/calib/floor.py")  # fmt: skip
 
 
 def scenario_files(only: list[str] | None) -> list[Path]:
@@ -114,7 +122,31 @@ def one_core() -> Iterator[None]:
             os.sched_setaffinity(0, saved)
 
 
-def score(folder: Path, arena: ArenaConfig, profile: str) -> dict[str, Any]:
+SEAM_BAND_M = 0.25
+"""Poses whose camera is within this of a seam between projectors (on the floor) count as across it: at
+0.8 m the 640x360 camera sees about 0.55 x 0.3 m on either side of its centre."""
+
+
+def seam_points_m(truth: ArenaConfig) -> npt.NDArray[np.float64] | None:
+    """Points every few millimetres along the seams between projector tiles, on the floor where they truly
+    land (the inner tile edges), or None for one projector."""
+    if not truth.projectors or len(truth.projectors) < 2:
+        return None
+    pr, out = truth.projector, []
+    for n, t in enumerate(truth.projectors):
+        x0, y0, x1, y1 = t.x_px, t.y_px, t.x_px + t.width_px, t.y_px + t.height_px
+        for a, b in (((x0, y0), (x1, y0)), ((x1, y0), (x1, y1)), ((x1, y1), (x0, y1)), ((x0, y1), (x0, y0))):
+            if (a[0] == b[0] and a[0] in (0, pr.width_px)) or (a[1] == b[1] and a[1] in (0, pr.height_px)):
+                continue  # an edge of the canvas, not a seam
+            for f in np.linspace(0, 1, 400):
+                u, v = a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1])
+                out.append(pixel_to_arena_m(truth, u, v, n)[:2])
+    return np.array(out) if out else None
+
+
+def score(
+    folder: Path, arena: ArenaConfig, profile: str, seam_m: npt.NDArray[np.float64] | None = None
+) -> dict[str, Any]:
     camera = load_camera_info(folder / "camera.yaml")
     truth = read_tum(folder / "groundtruth.tum")
     rate = 1.0 / float(np.median(np.diff(truth.times_s)))
@@ -150,6 +182,15 @@ def score(folder: Path, arena: ArenaConfig, profile: str) -> dict[str, Any]:
         )
     else:
         out.update(mae_mm=None, tilt_mae_deg=None, yaw_mae_deg=None, poses_over_10cm=0, max_error_mm=None)
+    if seam_m is not None and len(times):
+        # The poses across a seam: the camera within SEAM_BAND_M of it (truth), their error alone.
+        t_idx = np.searchsorted(np.round(truth.times_s, 6), np.round(np.array(times), 6))
+        true_xy = truth.positions_m[t_idx, :2]
+        near = np.min(np.linalg.norm(true_xy[:, None, :] - seam_m[None, :, :], axis=2), axis=1) <= SEAM_BAND_M
+        err = np.abs(np.array(positions)[near] - truth.positions_m[t_idx][near])
+        out["seam_poses"] = int(near.sum())
+        out["seam_mae_mm"] = [round(1e3 * float(v), 2) for v in err.mean(axis=0)] if near.any() else None
+        out["seam_max_error_mm"] = round(1e3 * float(np.linalg.norm(err, axis=1).max()), 1) if near.any() else None
     heights = truth.positions_m[:frames, 2]
     posed = np.isin(np.round(truth.times_s[:frames], 6), np.round(np.array(times), 6))
     bands = {}
@@ -164,8 +205,27 @@ def score(folder: Path, arena: ArenaConfig, profile: str) -> dict[str, Any]:
     return out
 
 
+def calibrate(folder: Path) -> tuple[ArenaConfig, list[str]]:
+    """The flight's arena calibrated from its survey (``survey.csv``) by ``ipt calibrate arena --points`` run
+    as a user would (a subprocess), and what it printed."""
+    out = folder / "calibrated.yaml"
+    cmd = [sys.executable, "-m", "ipt.cli", "calibrate", "arena", "--config", str(folder / "arena.yaml"),
+           "--points", str(folder / "survey.csv"), "--output", str(out)]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=False)
+    if done.returncode != 0:
+        raise SystemExit(f"suite: {' '.join(cmd)} failed: {done.stderr.strip()}")
+    return load_arena_config(out), done.stdout.splitlines()
+
+
 def _cell_mm(v: list[float] | None) -> str:
     return "—" if v is None else " / ".join(f"{x:.1f}" for x in v)
+
+
+def _seam(r: dict[str, Any]) -> str:
+    if "seam_mae_mm" not in r:
+        return ""
+    mae, worst = _cell_mm(r["seam_mae_mm"]), r["seam_max_error_mm"]
+    return f"; across the seam ({r['seam_poses']} poses): MAE {mae} mm, worst {worst} mm"
 
 
 def markdown(results: dict[str, Any]) -> str:
@@ -210,17 +270,42 @@ def main() -> int:
         arena = apply_arena_changes(base, sim.arena)
         folder = render(path.stem, sim, arena, args.seconds, args.cache, digest)
         flight: dict[str, Any] = {"description": sim.description or describe_flight(sim), "profiles": {}}
+        seam = seam_points_m(true_arena(arena, sim))
         for profile in profiles:
             start = time.monotonic()
-            flight["profiles"][profile] = score(folder, arena, profile)
+            flight["profiles"][profile] = score(folder, arena, profile, seam)
             r = flight["profiles"][profile]
             print(
                 f"suite: {path.stem} / {profile}: yield {r['yield_pct']:.1f} %, MAE {_cell_mm(r['mae_mm'])} mm, "
-                f"{r['frames_per_s']} frames/s ({time.monotonic() - start:.0f} s)",
+                f"{r['frames_per_s']} frames/s ({time.monotonic() - start:.0f} s){_seam(r)}",
                 file=sys.stderr,
                 flush=True,
             )
         results["flights"][path.stem] = flight
+        if sim.keystone is not None:
+            # The same rendering scored with the arena calibrated from its survey (the row above is the
+            # uncalibrated receiver), and the same flight without the keystone, for the yield to match.
+            calibrated, said = calibrate(folder)
+            flight["description"] += " — uncalibrated: the receiver uses the arena file's uniform layout"
+            results["flights"][f"{path.stem} (uncalibrated)"] = results["flights"].pop(path.stem)
+            flat_sim = sim.model_copy(update={"keystone": None})
+            flat = render(f"{path.stem}.flat", flat_sim, arena, args.seconds, args.cache, digest)
+            for name, where, scored_arena, desc in (
+                (f"{path.stem} (calibrated)", folder, calibrated, "calibrated by ipt calibrate arena --points"),
+                (f"{path.stem} (flat)", flat, arena, "the same flight without the keystone"),
+            ):
+                entry: dict[str, Any] = {"description": f"{sim.description} — {desc}", "profiles": {}}
+                if where is folder:
+                    entry["calibration"] = said
+                for profile in profiles:
+                    entry["profiles"][profile] = r = score(where, scored_arena, profile, seam)
+                    print(
+                        f"suite: {name} / {profile}: yield {r['yield_pct']:.1f} %, MAE {_cell_mm(r['mae_mm'])} mm"
+                        f"{_seam(r)}",
+                        file=sys.stderr,
+                        flush=True,
+                    )
+                results["flights"][name] = entry
     print(json.dumps(results, indent=1))
     table = markdown(results)
     print("\n" + table, file=sys.stderr)

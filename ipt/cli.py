@@ -102,7 +102,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     arena = apply_arena_changes(_arena(args.config), sim.arena)
     scene = scene_for(sim, arena) if args.content is None else _scene(args.content, arena, sim.seed)
     n = simulate_to_folder(arena, sim, scene, Path(args.out), args.seconds)
-    print(f"ipt sim: {n} frames -> {args.out}/frames.mkv, camera.yaml, groundtruth.tum, arena.yaml")
+    survey = ", survey.csv" if sim.keystone is not None else ""
+    print(f"ipt sim: {n} frames -> {args.out}/frames.mkv, camera.yaml, groundtruth.tum, arena.yaml{survey}")
     return 0
 
 
@@ -222,7 +223,9 @@ def build_parser() -> argparse.ArgumentParser:
         "JPEG, rolling shutter, gain drift, vignetting; flight: rectangle, takeoff or hover; shadow; content; "
         "arena changes such as ΔL): see benchmarks/flights/*.yaml. Writes OUT/frames.mkv (lossless FFV1; "
         "grey for a mono camera), OUT/camera.yaml (ROS camera_info), OUT/groundtruth.tum (camera pose at "
-        "each frame time), OUT/arena.yaml (the arena flown, with the flight's changes) and OUT/sim.json.",
+        "each frame time), OUT/arena.yaml (the arena flown, with the flight's changes) and OUT/sim.json; for a "
+        "keystoned projector (keystone: in --sim-config) also OUT/survey.csv, its marks as a tape would measure "
+        "them, for 'ipt calibrate arena --points'.",
     )
     s.add_argument("--config", metavar="ARENA.yaml", help=cfg_help)
     s.add_argument("--out", required=True, metavar="DIR", help="output folder (created if needed)")

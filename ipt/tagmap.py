@@ -6,7 +6,10 @@ corners of each detected id from the same code and the same arena config.
 Coordinates:
 - projector pixels are continuous with the origin at the top-left *corner* of the top-left pixel, so
   pixel (i, j) covers [i, i+1) x [j, j+1) (the convention AprilTag reports corners in);
-- arena metres are ENU with the origin at the centre of the projected image, y towards the top edge.
+- arena metres are ENU with the origin at the centre of the projected image, y towards the top edge,
+  projector pixels mapping to them by the uniform scale of ``screen``, or, where the arena was measured
+  (``floor:``, ``ipt calibrate arena --points``), by the measured homography in the user's floor frame
+  (:func:`pixel_to_floor_matrix`). Every part maps through the functions here, so they all agree.
 
 Corner order, in both lists of a tag: bottom-left, bottom-right, top-right, top-left as the tag is seen
 in the projector image: counter-clockwise seen from above in the arena, and the order in which
@@ -195,15 +198,59 @@ def _draw_tag(mask: npt.NDArray[np.int8], tag: TagPlacement) -> None:
     roi[warped == 1] = -1
 
 
-def pixel_to_arena_m(arena: ArenaConfig, u_px: float, v_px: float) -> tuple[float, float, float]:
-    """Arena ENU metres (z = 0, the floor) of the projector point (u, v) in edge-origin pixels."""
+def tile_of(arena: ArenaConfig, u_px: float, v_px: float) -> int | None:
+    """Index of the projector tile (``arena.projectors``) whose part of the canvas holds (u, v), or None for
+    a one-projector arena (or a point outside every tile)."""
+    for n, tile in enumerate(arena.projectors or ()):
+        if tile.contains(u_px, v_px):
+            return n
+    return None
+
+
+def _measured(arena: ArenaConfig, tile: int | None) -> tuple[tuple[float, ...], ...] | None:
+    """The measured homography that maps ``tile`` (or the one projector), None for the uniform layout."""
+    if arena.projectors is not None:
+        return None if tile is None else arena.projectors[tile].pixel_to_floor
+    return arena.floor.pixel_to_floor if arena.floor is not None else None
+
+
+def pixel_to_floor_matrix(arena: ArenaConfig, tile: int | None = None) -> npt.NDArray[np.float64]:
+    """3x3 homography taking homogeneous projector pixels (u, v, 1), edge origin, to arena floor metres
+    (x_m, y_m, 1): the measured one (``floor.pixel_to_floor``, or tile ``tile``'s of ``projectors``) if the
+    arena has it, else the uniform scale of ``screen``. The one mapping every part uses (through this
+    module's functions)."""
+    h = _measured(arena, tile)
+    if h is not None:
+        return np.array(h, np.float64)
+    sx = arena.screen.width_m / arena.projector.width_px
+    sy = arena.screen.height_m / arena.projector.height_px
+    w2, h2 = arena.projector.width_px / 2, arena.projector.height_px / 2
+    return np.array([[sx, 0, -w2 * sx], [0, -sy, h2 * sy], [0, 0, 1]])
+
+
+def pixel_to_arena_m(
+    arena: ArenaConfig, u_px: float, v_px: float, tile: int | None = None
+) -> tuple[float, float, float]:
+    """Arena ENU metres (z = 0, the floor) of the projector point (u, v) in edge-origin pixels (of the canvas;
+    with several projectors, through tile ``tile``'s mapping, by default the tile holding the point)."""
+    if arena.projectors is not None and tile is None:
+        tile = tile_of(arena, u_px, v_px)
+    h = _measured(arena, tile)
+    if h is not None:
+        (a, b, c), (d, e, f), (g, i, k) = h
+        w = g * u_px + i * v_px + k
+        return ((a * u_px + b * v_px + c) / w, (d * u_px + e * v_px + f) / w, 0.0)
     sx = arena.screen.width_m / arena.projector.width_px
     sy = arena.screen.height_m / arena.projector.height_px
     return ((u_px - arena.projector.width_px / 2) * sx, (arena.projector.height_px / 2 - v_px) * sy, 0.0)
 
 
-def arena_to_pixel_matrix(arena: ArenaConfig) -> npt.NDArray[np.float64]:
-    """3x3 matrix taking homogeneous arena floor points (x_m, y_m, 1) to projector pixels (edge origin)."""
+def arena_to_pixel_matrix(arena: ArenaConfig, tile: int | None = None) -> npt.NDArray[np.float64]:
+    """3x3 matrix taking homogeneous arena floor points (x_m, y_m, 1) to projector pixels (edge origin): the
+    inverse of :func:`pixel_to_floor_matrix`."""
+    h = _measured(arena, tile)
+    if h is not None:
+        return np.asarray(np.linalg.inv(np.array(h, np.float64)), np.float64)
     sx = arena.screen.width_m / arena.projector.width_px
     sy = arena.screen.height_m / arena.projector.height_px
     return np.array([[1 / sx, 0, arena.projector.width_px / 2], [0, -1 / sy, arena.projector.height_px / 2], [0, 0, 1]])
@@ -221,7 +268,8 @@ def pixel_to_arena(tag_map: TagMap) -> npt.NDArray[np.float64]:
 
 
 def grid_tag_map(arena: ArenaConfig) -> TagMap:
-    """The evenly spaced grid of the arena config: ids left to right, then bottom to top."""
+    """The evenly spaced grid of the arena config: ids left to right, then bottom to top (with several
+    projectors, the ids of tags that would cross a seam are left out)."""
     tm, pr = arena.tag_map, arena.projector
     pitch_x = pr.width_px / tm.cols
     pitch_y = pr.height_px / tm.rows
@@ -233,7 +281,16 @@ def grid_tag_map(arena: ArenaConfig) -> TagMap:
             top = round(pr.height_px - (row + 0.5) * pitch_y - s / 2)
             px = ((left, top + s), (left + s, top + s), (left + s, top), (left, top))
             corners_px = tuple((float(u), float(v)) for u, v in px)
-            corners_m = tuple(pixel_to_arena_m(arena, u, v) for u, v in corners_px)
+            tile = None
+            if arena.projectors is not None:
+                # Kept out of the seams: a tag (with its quiet zone) drawn by two projectors that disagree on
+                # the floor would be a broken tag.
+                q = s // 8
+                tile = tile_of(arena, left + s / 2, top + s / 2)
+                box = [(u, v) for u in (left - q, left + s + q) for v in (top - q, top + s + q)]
+                if tile is None or not all(arena.projectors[tile].contains(u, v) for u, v in box):
+                    continue
+            corners_m = tuple(pixel_to_arena_m(arena, u, v, tile) for u, v in corners_px)
             tags.append(TagPlacement(tm.first_id + row * tm.cols + col, corners_px, corners_m))
     return TagMap(pr.width_px, pr.height_px, tuple(tags))
 

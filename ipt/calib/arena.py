@@ -215,7 +215,13 @@ def write_screen(
     ``config_path`` after copying it to ``<name>.bak``. Returns (written file, backup or None). The result
     is validated as an arena config before anything is replaced."""
     text = read_text_file(config_path, ArenaCalibrationError, "an arena YAML file")
-    new_text = update_screen_yaml(text, width_m, height_m)
+    return write_arena_text(config_path, update_screen_yaml(text, width_m, height_m), output=output)
+
+
+def write_arena_text(config_path: Path, new_text: str, *, output: Path | None = None) -> tuple[Path, Path | None]:
+    """Write ``new_text``, the updated form of the arena file ``config_path``: to ``output`` if given
+    (``config_path`` untouched), else into ``config_path`` after copying it to ``<name>.bak``. Returns
+    (written file, backup or None). Nothing is written unless ``new_text`` is a valid arena config."""
     try:
         ArenaConfig.model_validate(yaml.safe_load(new_text) or {})
     except (ValueError, ConfigError) as exc:

@@ -17,6 +17,8 @@ if TYPE_CHECKING:
     import numpy as np
     import numpy.typing as npt
 
+    from ipt.calib.floor import FloorFit
+
     U8 = npt.NDArray[np.uint8]
 
 LIVE_TIMEOUT_S = 120.0
@@ -149,6 +151,147 @@ def _point(text: str) -> tuple[float, float]:
 _point.__name__ = "projector pixel U,V"
 
 
+def _grid(text: str) -> tuple[int, int]:
+    c, sep, r = text.lower().partition("x")
+    if not sep or not c.isdigit() or not r.isdigit() or not 1 <= int(c) <= 50 or not 1 <= int(r) <= 50:
+        raise argparse.ArgumentTypeError(f"a grid is COLSxROWS, each 1 to 50, as in 3x3, got {text!r}")
+    return int(c), int(r)
+
+
+_grid.__name__ = "grid COLSxROWS"
+
+
+def _cmd_marks(args: argparse.Namespace, config: Path) -> int:
+    """``--marks``: the cross-hairs to project and measure, and the points file to fill in."""
+    from ipt.calib.floor import FloorCalibrationError, grid_pixels, marks_image, read_points, template_csv
+    from ipt.config.models import load_arena_config
+    from ipt.fileio import output_group, write_text_atomic
+    from ipt.imageio import write_image
+
+    arena = load_arena_config(config)
+    pr = arena.projector
+    points = Path(args.points)
+    if points.exists():
+        pixels = [(p.u_px, p.v_px) for p in read_points(points, arena, measured=False)]
+        template = None
+    else:
+        # A grid over the image, or over each projector's part of the canvas (each is fitted on its own).
+        rects = [(t.x_px, t.y_px, t.width_px, t.height_px) for t in arena.projectors or ()]
+        pixels = [
+            (float(x0 + u), float(y0 + v))
+            for x0, y0, w, h in rects or [(0, 0, pr.width_px, pr.height_px)]
+            for u, v in grid_pixels(w, h, *args.grid)
+        ]
+        template = template_csv(pixels)
+    with output_group():
+        write_image(args.marks, marks_image(pr.width_px, pr.height_px, pixels), FloorCalibrationError, suffix=".png")
+        if template is not None:
+            write_text_atomic(points, template)
+    print(f"ipt calibrate arena: {len(pixels)} numbered cross-hairs at {pr.width_px}x{pr.height_px} -> {args.marks}")
+    if template is not None:
+        print(f"ipt calibrate arena: their pixels -> {points}: project the image, measure where each crossing lands "
+              f"on the floor, fill in x_m and y_m, then run again without --marks")  # fmt: skip
+    return 0
+
+
+def _report_fit(fit: FloorFit, points: Path, label: str) -> None:
+    """Print a fit's table of points, its RMS and the points that are off."""
+    print(f"ipt calibrate arena: {label}{len(fit.points)} points from {points}; distance of each from the fit, "
+          "and from where the other points put it")  # fmt: skip
+    print(f"  {'point':>5} {'row':>4} {'u_px':>8} {'v_px':>8} {'x_m':>9} {'y_m':>9} {'residual':>9} {'left out':>9}")
+    for i, p in enumerate(fit.points):
+        out = "—" if fit.left_out_m is None else f"{1e3 * fit.left_out_m[i]:.1f} mm"
+        print(
+            f"  {i + 1:>5} {p.row:>4} {p.u_px:>8g} {p.v_px:>8g} {p.x_m:>9.4f} {p.y_m:>9.4f} "
+            f"{1e3 * fit.residual_m[i]:>6.1f} mm {out:>9}"
+        )
+    print(f"ipt calibrate arena: {label}RMS {1e3 * fit.rms_m:.2f} mm over {len(fit.points)} points")
+    if len(fit.points) == 4:
+        print(f"ipt calibrate arena: {label}4 points fit exactly, so nothing checks them: measure 6 or more")
+    for i in fit.far:
+        p = fit.points[i]
+        d = fit.left_out_m[i] if fit.left_out_m is not None else fit.residual_m[i]
+        print(
+            f"ipt calibrate arena: point {i + 1} (row {p.row} of {points}) is {1e2 * d:.1f} cm from where the other "
+            "points put it: remeasure it, or leave it out"
+        )
+
+
+def _cmd_points(args: argparse.Namespace, config: Path) -> int:
+    """``--points``: the floor homography (of each projector tile) from measured points, written into the
+    arena config."""
+    import numpy as np
+
+    from ipt.calib.arena import write_arena_text
+    from ipt.calib.floor import (
+        FloorCalibrationError,
+        fit_floor,
+        read_points,
+        update_floor_yaml,
+        update_tiles_yaml,
+    )
+    from ipt.config.models import load_arena_config
+    from ipt.fileio import read_text_file
+    from ipt.tagmap import pixel_to_floor_matrix, tile_of
+
+    arena = load_arena_config(config)
+    pr = arena.projector
+    points = Path(args.points)
+    measured = read_points(points, arena)
+    tiles = arena.projectors
+    if tiles is None:
+        groups = [("", measured, (0, 0, pr.width_px, pr.height_px))]
+    else:
+        groups = []
+        for n, t in enumerate(tiles):
+            rect = (t.x_px, t.y_px, t.width_px, t.height_px)
+            mine = [p for p in measured if tile_of(arena, p.u_px, p.v_px) == n]
+            groups.append((f"projector {n + 1} (x {t.x_px}-{t.x_px + t.width_px}, y {t.y_px}-{t.y_px + t.height_px}): ",
+                           mine, rect))  # fmt: skip
+    fits = []
+    for label, mine, (x0, y0, w, h) in groups:
+        where = f" in {label[:-2]}" if label else ""
+        fits.append(fit_floor(points, mine, w, h, origin_px=(x0, y0), where=where))
+    uniform = arena.model_copy(update={"floor": None, "projectors": None})
+    worst = 0.0
+    for (label, _, (x0, y0, w, h)), fit in zip(groups, fits, strict=True):
+        _report_fit(fit, points, label)
+        # How far the uniform layout was from what was measured, over the image's corners and centre.
+        corners = [(x0, y0), (x0 + w, y0), (x0 + w, y0 + h), (x0, y0 + h), (x0 + w / 2, y0 + h / 2)]
+        probe = np.array([[u, v, 1.0] for u, v in corners]).T
+        a, b = pixel_to_floor_matrix(uniform) @ probe, fit.pixel_to_floor @ probe
+        worst = max(worst, float(np.linalg.norm(a[:2] / a[2] - b[:2] / b[2], axis=0).max()))
+    print(
+        f"ipt calibrate arena: the measured floor differs from the uniform {arena.screen.width_m:g} x "
+        f"{arena.screen.height_m:g} m layout by up to {1e2 * worst:.1f} cm (image corners and centre)"
+    )
+    if args.dry_run:
+        print("ipt calibrate arena: --dry-run: nothing written")
+        return 0
+    text = read_text_file(config, FloorCalibrationError, "an arena YAML file")
+    if tiles is None:
+        new_text = update_floor_yaml(text, fits[0].config())
+    else:
+        new_text = update_tiles_yaml(
+            text,
+            tuple(
+                t.model_copy(
+                    update={
+                        "pixel_to_floor": f.config().pixel_to_floor,
+                        "points": len(f.points),
+                        "rms_m": round(f.rms_m, 7),
+                    }
+                )
+                for t, f in zip(tiles, fits, strict=True)
+            ),
+        )
+    written, backup = write_arena_text(config, new_text, output=Path(args.output) if args.output else None)
+    kept = f" (the previous file is {backup})" if backup is not None else ""
+    what = "the floor homography" if tiles is None else f"the floor homographies of the {len(tiles)} projectors"
+    print(f"ipt calibrate arena: wrote {what} to {written}{kept}")
+    return 0
+
+
 def _cmd_arena(args: argparse.Namespace) -> int:
     from ipt.calib.arena import (
         ArenaCalibrationError,
@@ -163,10 +306,24 @@ def _cmd_arena(args: argparse.Namespace) -> int:
     from ipt.tagmap import grid_tag_map
 
     config = Path(args.config)
-    arena = load_arena_config(config)
-    methods = sum(x is not None for x in (args.height_m, args.tags, args.pixels))
+    methods = sum(x is not None for x in (args.height_m, args.tags, args.pixels, args.points))
     if methods != 1:
-        raise ArenaCalibrationError("give one measurement: --height-m (with --camera and --image), --tags or --pixels")
+        raise ArenaCalibrationError(
+            "give one measurement: --points (with or without --marks), --height-m (with --camera and --image), "
+            "--tags or --pixels"
+        )
+    if args.marks is not None and args.points is None:
+        raise ArenaCalibrationError("--marks needs --points POINTS.csv (the pixels to mark, or where to list them)")
+    if args.marks is not None:
+        return _cmd_marks(args, config)
+    if args.points is not None:
+        return _cmd_points(args, config)
+    arena = load_arena_config(config)
+    if arena.floor is not None or any(t.pixel_to_floor is not None for t in arena.projectors or ()):
+        raise ArenaCalibrationError(
+            f"{config}: the arena has a measured floor homography (floor: or projectors:), which a scale does not "
+            "change: measure again with --points, or delete the measured homographies first"
+        )
     if args.height_m is not None:
         if args.camera is None or not args.image:
             raise ArenaCalibrationError("--height-m needs --camera CAMERA.yaml and at least one --image")
@@ -239,14 +396,27 @@ def add_calibrate_parser(sub: argparse._SubParsersAction[Parser]) -> None:
 
     ar = csub.add_parser(
         "arena",
-        help="measure the projector-pixel-to-metre scale and write it into the arena config",
-        description="Measure how large the projected image is on the floor and write screen.width_m and "
+        help="measure where projector pixels land on the floor and write it into the arena config",
+        description="Measure where the projector's pixels land on the floor, and write it into the arena config. "
+        "A keystoned projector (mounted off-axis) needs --points: list four or more projector pixels and the "
+        "floor positions you measured for them (tape, laser, total station; in your own floor frame, metres) in a "
+        "CSV file with the header u_px,v_px,x_m,y_m. They give the projector-to-floor homography (least squares); "
+        "each point's distance from the fit and from where the other points put it is printed, a point more than "
+        "1 cm off is named, and the 'floor:' section of the config is written (every part uses it: tag corners, "
+        "simulator, AR overlay); for an arena of several projectors (projectors: tiles of the canvas) each tile "
+        "is fitted from the points in its part and gets its own homography. To get the points: '--points P.csv "
+        "--marks M.png' writes M.png, numbered cross-hairs at a --grid of pixels (default 3x3, in each "
+        "projector's part), and P.csv listing their pixels with x_m, y_m empty; project M.png, measure each "
+        "crossing, fill in P.csv, run again without --marks. (With an existing P.csv, --marks draws its "
+        "pixels.) "
+        "Without a floor section the layout is a uniform scale, which the other methods measure: how large the "
+        "projected image is on the floor, written as screen.width_m and "
         "screen.height_m into the arena config (the aspect of a projector pixel is kept). Either project the plain "
         "map ('ipt map export') and give a calibrated camera's images taken looking down from a measured height "
         "(--height-m, --camera, --image: measure to the lens, from 1 m or more, as 1 cm is 1 % at 1 m), or tape-"
         "measure the distance between two tag centres (--tags A B) or two projector pixels (--pixels U,V U,V). "
-        "The config is updated in place, only those two numbers, after a copy to CONFIG.bak; or written to "
-        "--output.",
+        "The config is updated in place, only what was measured (the floor section, or those two numbers), after "
+        "a copy to CONFIG.bak; or written to --output.",
     )
     ar.add_argument("--config", required=True, metavar="ARENA.yaml", help="the arena config to measure and update")
     ar.add_argument("--height-m", type=float, help="the camera's height above the floor, metres")
@@ -255,6 +425,9 @@ def add_calibrate_parser(sub: argparse._SubParsersAction[Parser]) -> None:
     ar.add_argument("--tags", type=int, nargs=2, metavar=("A", "B"), help="two tag ids whose centres were measured")
     ar.add_argument("--pixels", type=_point, nargs=2, metavar=("U,V", "U,V"), help="two projector pixels measured")
     ar.add_argument("--distance-m", type=float, help="the floor distance between the two points, metres")
+    ar.add_argument("--points", metavar="POINTS.csv", help="measured points: u_px,v_px,x_m,y_m (4 or more)")
+    ar.add_argument("--marks", metavar="MARKS.png", help="write numbered cross-hairs to project and measure")
+    ar.add_argument("--grid", type=_grid, default=(3, 3), metavar="COLSxROWS", help="marks' grid (default 3x3)")
     ar.add_argument("--output", metavar="ARENA.yaml", help="write the updated config here; leave --config as it is")
     ar.add_argument("--dry-run", action="store_true", help="only print the measurement")
     ar.set_defaults(func=_cmd_arena)

@@ -58,6 +58,92 @@ class ScreenConfig(StrictModel):
     height_m: float = Field(2.47, gt=0, le=100, description="Height of the projected image in metres.")
 
 
+class FloorConfig(StrictModel):
+    """Where the projected image lands on the floor, measured (``ipt calibrate arena --points``).
+
+    A projector mounted even a little off-axis keystones: its pixels are not a uniform grid on the floor.
+    The homography takes it exactly (a plane to a plane); without this section the layout is the uniform
+    scale of ``screen``."""
+
+    pixel_to_floor: tuple[
+        tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]
+    ] = Field(
+        description="3x3 homography, rows of three: homogeneous projector pixels (u, v, 1), edge origin (pixel "
+        "(i, j) covers [i, i+1) x [j, j+1), u right, v down) to homogeneous floor metres (x, y, 1) in the "
+        "arena frame. Used instead of screen by every part: tag corners, the simulator, the AR overlay."
+    )
+    points: int = Field(4, ge=4, le=100000, description="How many measured points it was fitted to (for the record).")
+    rms_m: float = Field(
+        0.0, ge=0.0, le=100.0, description="RMS distance of those points from the fit, metres (for the record)."
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> FloorConfig:
+        h = [[float(x) for x in row] for row in self.pixel_to_floor]
+        if not all(math.isfinite(x) for row in h for x in row):
+            raise ValueError("pixel_to_floor must hold finite numbers")
+        (a, b, c), (d, e, f), (g, i, k) = h
+        det = a * (e * k - f * i) - b * (d * k - f * g) + c * (d * i - e * g)
+        if not (math.isfinite(det) and abs(det) > 1e-300):
+            raise ValueError("pixel_to_floor is singular (not a homography)")
+        return self
+
+
+def floor_homography_fits(floor: FloorConfig, width_px: int, height_px: int) -> str | None:
+    """Why ``floor`` cannot be the floor mapping of a ``width_px`` x ``height_px`` image, or None if it can.
+
+    The image must land on the floor in one piece (the projective denominator keeps its sign over it: no
+    point at infinity inside) and unmirrored (v down in the image is y up on the floor, as in the uniform
+    layout; a mirrored image would mirror every tag, and no detector decodes those)."""
+    h = [[float(x) for x in row] for row in floor.pixel_to_floor]
+    (a, b, c), (d, e, f), (g, i, k) = h
+    det = a * (e * k - f * i) - b * (d * k - f * g) + c * (d * i - e * g)
+    weights = []
+    for u, v in ((0, 0), (width_px, 0), (width_px, height_px), (0, height_px)):
+        w = g * u + i * v + k
+        if not abs(w) > 0:
+            return f"pixel_to_floor sends projector pixel ({u}, {v}) to infinity"
+        weights.append(w)
+    if min(weights) < 0 < max(weights):  # w is affine in (u, v): its sign at the corners holds inside
+        return "pixel_to_floor sends part of the image to infinity (a horizon crosses it)"
+    if not det * weights[0] < 0:  # the Jacobian's determinant, det / w³, negative: the tags keep their handedness
+        return "pixel_to_floor mirrors the image (v down in the image must be y up on the floor)"
+    return None
+
+
+class TileConfig(StrictModel):
+    """One projector of several that together make the canvas (NVIDIA Mosaic / Surround, or a window each):
+    its part of the canvas and, once measured, where its pixels land on the floor."""
+
+    x_px: int = Field(ge=0, le=16384, description="Left edge of this projector's part of the canvas, canvas pixels.")
+    y_px: int = Field(ge=0, le=16384, description="Top edge of this projector's part of the canvas, canvas pixels.")
+    width_px: int = Field(ge=16, le=16384, description="Width of this projector's part of the canvas, pixels.")
+    height_px: int = Field(ge=16, le=16384, description="Height of this projector's part of the canvas, pixels.")
+    pixel_to_floor: (
+        tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]] | None
+    ) = Field(
+        None,
+        description="3x3 homography from canvas pixels (u, v, 1), edge origin, inside this tile to floor metres "
+        "(x, y, 1), measured by ipt calibrate arena --points. null: the uniform layout of screen (as if one "
+        "projector made the whole canvas).",
+    )
+    points: int = Field(0, ge=0, le=100000, description="How many measured points it was fitted to (for the record).")
+    rms_m: float = Field(
+        0.0, ge=0.0, le=100.0, description="RMS distance of those points from the fit, metres (for the record)."
+    )
+
+    @property
+    def floor(self) -> FloorConfig | None:
+        """The measured mapping as a :class:`FloorConfig` (None until measured)."""
+        if self.pixel_to_floor is None:
+            return None
+        return FloorConfig(pixel_to_floor=self.pixel_to_floor, points=max(4, self.points), rms_m=self.rms_m)
+
+    def contains(self, u_px: float, v_px: float) -> bool:
+        """Whether canvas point (u, v) is in this tile (edges included)."""
+        return self.x_px <= u_px <= self.x_px + self.width_px and self.y_px <= v_px <= self.y_px + self.height_px
+
+
 class TagMapConfig(StrictModel):
     """The grid of AprilTags hidden in the video (the paper's Fig. 3)."""
 
@@ -115,13 +201,34 @@ class ArenaConfig(StrictModel):
     """Everything both sides must agree on: projector, screen size, tag map and modulation."""
 
     projector: ProjectorConfig = Field(default_factory=ProjectorConfig, description="The projector.")
-    screen: ScreenConfig = Field(default_factory=ScreenConfig, description="The projected image on the floor.")
+    screen: ScreenConfig = Field(
+        default_factory=ScreenConfig,
+        description="The projected image on the floor (its size: the uniform layout, used without 'floor').",
+    )
+    floor: FloorConfig | None = Field(
+        None,
+        description="The measured projector-to-floor homography (ipt calibrate arena --points); null: the "
+        "uniform layout of screen.",
+    )
+    projectors: tuple[TileConfig, ...] | None = Field(
+        None,
+        description="Several projectors making the canvas (projector.width_px x height_px) together, each with "
+        "its own floor homography: tiles that cover the canvas without overlapping. Tags are kept out of the "
+        "seams between them (a tag across a seam would be drawn by two projectors that disagree). null: one "
+        "projector (see floor).",
+    )
     tag_map: TagMapConfig = Field(default_factory=TagMapConfig, description="The hidden tag grid.")
     modulation: ModulationConfig = Field(default_factory=ModulationConfig, description="The modulation.")
 
     @model_validator(mode="after")
     def _check(self) -> ArenaConfig:
         tm, pr = self.tag_map, self.projector
+        if self.floor is not None:
+            problem = floor_homography_fits(self.floor, pr.width_px, pr.height_px)
+            if problem is not None:
+                raise ValueError(f"floor: {problem}")
+        if self.projectors is not None:
+            self._check_tiles()
         quiet_px = tm.tag_size_px // 8
         if pr.width_px / tm.cols < tm.tag_size_px + 2 * quiet_px:
             raise ValueError(
@@ -132,6 +239,39 @@ class ArenaConfig(StrictModel):
                 f"{tm.rows} rows of {tm.tag_size_px} px tags (plus quiet zone) do not fit in {pr.height_px} px"
             )
         return self
+
+
+    def _check_tiles(self) -> None:
+        tiles, pr = self.projectors or (), self.projector
+        if self.floor is not None:
+            raise ValueError("give floor (one projector) or projectors (tiles), not both")
+        if len(tiles) < 1:
+            raise ValueError("projectors: list one tile or more")
+        for n, t in enumerate(tiles):
+            if t.x_px + t.width_px > pr.width_px or t.y_px + t.height_px > pr.height_px:
+                raise ValueError(f"projectors[{n}]: reaches outside the {pr.width_px}x{pr.height_px} canvas")
+            for m in range(n):
+                o = tiles[m]
+                if (
+                    t.x_px < o.x_px + o.width_px
+                    and o.x_px < t.x_px + t.width_px
+                    and t.y_px < o.y_px + o.height_px
+                    and o.y_px < t.y_px + t.height_px
+                ):
+                    raise ValueError(f"projectors[{n}]: overlaps projectors[{m}] in the canvas")
+            if t.floor is not None:
+                # The tile's own part of the canvas must land in one piece and unmirrored.
+                shifted = [[*row] for row in t.floor.pixel_to_floor]
+                offset = FloorConfig(
+                    pixel_to_floor=tuple(
+                        (r[0], r[1], r[0] * t.x_px + r[1] * t.y_px + r[2]) for r in shifted
+                    )
+                )
+                problem = floor_homography_fits(offset, t.width_px, t.height_px)
+                if problem is not None:
+                    raise ValueError(f"projectors[{n}]: {problem}")
+        if sum(t.width_px * t.height_px for t in tiles) != pr.width_px * pr.height_px:
+            raise ValueError(f"projectors: the tiles must cover the whole {pr.width_px}x{pr.height_px} canvas")
 
 
 #: Image width the receiver's pixel-sized defaults are stated for (the paper's 640x360 camera); they

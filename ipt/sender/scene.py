@@ -44,7 +44,7 @@ import numpy.typing as npt
 from ipt.config.models import ArenaConfig
 from ipt.geometry import matrix_from_quat_wxyz
 from ipt.protocol import PosePacket, QualityFlags
-from ipt.tagmap import arena_to_pixel_matrix
+from ipt.tagmap import arena_to_pixel_matrix, pixel_to_arena_m
 
 U8 = npt.NDArray[np.uint8]
 
@@ -140,10 +140,26 @@ class ArScene:
         self.forget_after_s = forget_after_s
         self.trail_s = trail_s
         self.trail_points = trail_points
-        m = arena_to_pixel_matrix(arena)
-        self._scale = (float(m[0, 0]), float(m[1, 1]))  # pixels per metre along u and v (v is negative)
-        self._offset = (float(m[0, 2]), float(m[1, 2]))
-        px_per_m = min(abs(self._scale[0]), abs(self._scale[1]))
+        # The arena's floor mapping: uniform, or measured (keystone); with several projectors, each tile's,
+        # used for the floor points that land in its part of the canvas.
+        rects: list[tuple[float, float, float, float] | None] = [None]
+        tiles: list[int | None] = [None]
+        if arena.projectors is not None:
+            tiles = list(range(len(arena.projectors)))
+            rects = [(t.x_px, t.y_px, t.x_px + t.width_px, t.y_px + t.height_px) for t in arena.projectors]
+        self._maps: list[tuple[tuple[tuple[float, ...], ...], tuple[float, float, float, float] | None]] = []
+        for tile, rect in zip(tiles, rects, strict=True):
+            m = arena_to_pixel_matrix(arena, tile)
+            box = rect if rect is not None else (0.0, 0.0, float(self.width_px), float(self.height_px))
+            u0, v0 = (box[0] + box[2]) / 2, (box[1] + box[3]) / 2
+            cx, cy, _ = pixel_to_arena_m(arena, u0, v0, tile)  # (0, 0) when uniform
+            if float(m[2] @ np.array([cx, cy, 1.0])) < 0:
+                m = -m  # the same mapping, with the projective weight positive on the image (see pixel_of)
+            self._maps.append((tuple(tuple(float(x) for x in row) for row in m), rect))
+        cx, cy, _ = pixel_to_arena_m(arena, self.width_px / 2, self.height_px / 2)
+        # Pixels per metre along u and v (at the image's centre, for a measured mapping).
+        jac = self._jacobian(cx, cy)
+        px_per_m = min(math.hypot(jac[0][0], jac[1][0]), math.hypot(jac[0][1], jac[1][1]))
         self.radius_px = max(4.0, marker_radius_m * px_per_m)
         self._rim_px = max(1, round(self.radius_px / 8))
         self._arrow_px = max(2, round(self.radius_px / 5))
@@ -160,13 +176,41 @@ class ArScene:
 
     # -- state --
 
+    def _map_of(self, x_m: float, y_m: float) -> tuple[tuple[float, ...], ...]:
+        """The mapping that draws floor point (x, y): the one projector's, or the tile's whose part of the
+        canvas it lands in (the first tile's for a point outside them all)."""
+        if len(self._maps) == 1:
+            return self._maps[0][0]
+        for m, rect in self._maps:
+            (a, b, c), (d, e, f), (g, h, k) = m
+            w = g * x_m + h * y_m + k
+            if w > 0 and rect is not None:
+                u, v = (a * x_m + b * y_m + c) / w, (d * x_m + e * y_m + f) / w
+                if rect[0] <= u <= rect[2] and rect[1] <= v <= rect[3]:
+                    return m
+        return self._maps[0][0]
+
     def pixel_of(self, x_m: float, y_m: float) -> tuple[float, float]:
         """Projector pixel (edge origin: the top-left pixel covers [0, 1) x [0, 1)) of an arena floor point."""
-        return x_m * self._scale[0] + self._offset[0], y_m * self._scale[1] + self._offset[1]
+        (a, b, c), (d, e, f), (g, h, k) = self._map_of(x_m, y_m)
+        w = g * x_m + h * y_m + k  # exactly 1 for the uniform layout (g = h = 0), so its pixels are as before
+        if not w > 0:  # beyond the keystoned image's horizon: nowhere in the image
+            return math.inf, math.inf
+        return (a * x_m + b * y_m + c) / w, (d * x_m + e * y_m + f) / w
 
-    def heading_px(self, heading: float) -> tuple[float, float]:
-        """Unit direction in projector pixels (u right, v down) of the arena yaw ``heading``."""
-        du, dv = math.cos(heading) * self._scale[0], math.sin(heading) * self._scale[1]
+    def _jacobian(self, x_m: float, y_m: float) -> tuple[tuple[float, float], tuple[float, float]]:
+        """d(u, v) / d(x, y) at a floor point: pixels per metre, and which way the floor's axes run there."""
+        (a, b, c), (d, e, f), (g, h, k) = self._map_of(x_m, y_m)
+        w = g * x_m + h * y_m + k
+        u, v = (a * x_m + b * y_m + c) / w, (d * x_m + e * y_m + f) / w
+        return ((a - u * g) / w, (b - u * h) / w), ((d - v * g) / w, (e - v * h) / w)
+
+    def heading_px(self, heading: float, x_m: float = 0.0, y_m: float = 0.0) -> tuple[float, float]:
+        """Unit direction in projector pixels (u right, v down) of the arena yaw ``heading`` at the floor point
+        (``x_m``, ``y_m``) (a keystoned image turns and stretches directions differently across the floor)."""
+        (ja, jb), (jc, jd) = self._jacobian(x_m, y_m)
+        cx, sy = math.cos(heading), math.sin(heading)
+        du, dv = ja * cx + jb * sy, jc * cx + jd * sy
         norm = math.hypot(du, dv)
         return du / norm, dv / norm
 
@@ -344,7 +388,7 @@ class ArScene:
         cv2.circle(layer, centre, round((r + self._rim_px) * _ONE), _RIM, -1, cv2.LINE_AA, _SHIFT)
         cv2.circle(layer, centre, round(r * _ONE), colour, -1, cv2.LINE_AA, _SHIFT)
         if track.heading_rad is not None:
-            du, dv = self.heading_px(track.heading_rad)
+            du, dv = self.heading_px(track.heading_rad, x, y)
             tip = fixed(cu + arrow * du, cv_ + arrow * dv)
             cv2.arrowedLine(layer, centre, tip, _INK, self._arrow_px, cv2.LINE_AA, _SHIFT, 0.3)
         org = (round(lu - x0), round(lv - y0))

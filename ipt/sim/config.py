@@ -9,6 +9,7 @@ kind flight: no shadow, no vibration, the slowly animated map). Scenario files
 
 from __future__ import annotations
 
+import math
 from typing import Any, Literal
 
 from pydantic import Field, ValidationError, field_validator, model_validator
@@ -232,6 +233,52 @@ class SimContentConfig(StrictModel):
         return v
 
 
+class KeystoneConfig(StrictModel):
+    """A projector mounted off-axis: its image lands on the floor as a quadrilateral, not the arena's layout.
+
+    The receiver is told the arena file's layout; the floor truly gets this one. ``ipt sim`` also writes the
+    survey a user would make of it (``survey.csv``: marks measured with a tape), for ``ipt calibrate arena``."""
+
+    corner_shift_m: tuple[
+        tuple[float, float], tuple[float, float], tuple[float, float], tuple[float, float]
+    ] = Field(
+        ((0.0, 0.0), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0)),
+        description="Where the projected image's corners truly land, (dx, dy) metres from where the arena file "
+        "puts them, in the order top-left, top-right, bottom-right, bottom-left of the image (projector pixels "
+        "(0, 0), (W, 0), (W, H), (0, H)). The image between them follows the homography they define.",
+    )
+    tile_corner_shift_m: (
+        tuple[tuple[tuple[float, float], tuple[float, float], tuple[float, float], tuple[float, float]], ...] | None
+    ) = Field(
+        None,
+        description="For an arena of several projectors (its projectors: tiles): the same per tile, in the "
+        "tiles' order, each of its corners in its own part of the canvas (then corner_shift_m is not used). "
+        "Survey marks are a survey_grid in each tile.",
+    )
+    survey_grid: tuple[int, int] = Field(
+        (3, 3),
+        description="The survey's marks: columns x rows of projector pixels spread over the image, 5 % in from "
+        "its edges (what 'ipt calibrate arena --marks --grid' draws).",
+    )
+    survey_noise_m: float = Field(
+        0.001, ge=0, le=0.1, description="Standard deviation of each measured coordinate of a mark, metres."
+    )
+
+    @model_validator(mode="after")
+    def _small(self) -> KeystoneConfig:
+        shifts = [self.corner_shift_m, *(self.tile_corner_shift_m or ())]
+        if any(not math.isfinite(c) or abs(c) > 5 for corners in shifts for corner in corners for c in corner):
+            raise ValueError("corner_shift_m: each shift must be finite and within 5 m")
+        return self
+
+    @field_validator("survey_grid")
+    @classmethod
+    def _grid(cls, v: tuple[int, int]) -> tuple[int, int]:
+        if not (1 <= v[0] <= 50 and 1 <= v[1] <= 50 and v[0] * v[1] >= 4):
+            raise ValueError(f"survey_grid: 1-50 columns and rows, 4 marks or more, got {list(v)}")
+        return v
+
+
 class SimConfig(StrictModel):
     """The simulated arena: a camera flying over the projected, modulated floor."""
 
@@ -254,6 +301,11 @@ class SimConfig(StrictModel):
         le=8,
         description="The projector's own temporal dithering: each output pixel is moved up or down by up to "
         "this many 8-bit levels, afresh every projector frame (DLP and LCD projectors dither). 0: none.",
+    )
+    keystone: KeystoneConfig | None = Field(
+        None,
+        description="The projector's image lands keystoned on the floor (the receiver is not told, unless it is "
+        "given a calibrated arena); null: exactly where the arena file says.",
     )
     arena: dict[str, Any] = Field(
         default_factory=dict,

@@ -233,11 +233,16 @@ class CameraRenderer:
         projector_size: tuple[int, int],
         shadow: ShadowConfig | None = None,
         seed: int = 0,
+        tiles: Sequence[tuple[F64, tuple[int, int, int, int]]] = (),
     ) -> None:
         self.cfg = cfg
         self.arena_to_px = arena_to_px
         self.px_to_arena = np.linalg.inv(arena_to_px)
         self.proj_w, self.proj_h = projector_size
+        # Several projectors: each lights the floor with its own part (x0, y0, x1, y1) of the canvas through
+        # its own mapping; their light adds (a gap between them stays dark, an overlap is brighter). Kept as
+        # the map from the first mapping's projector pixels to each tile's, as every sample holds the first.
+        self._tiles = [(np.asarray(m, np.float64) @ self.px_to_arena, rect) for m, rect in tiles]
         self.shadow = shadow
         self.channels = 1 if cfg.mono else 3
         info = camera_info_of(cfg)
@@ -321,6 +326,22 @@ class CameraRenderer:
             return None
         return (x0, y0, x1, y1)
 
+    def _tile_views(self, samples: Sequence[_Sample]) -> list[tuple[Sequence[_Sample], tuple[int, int, int, int]]]:
+        """Per projector: the samples through its mapping, and the part of its canvas region in view."""
+        if not self._tiles:
+            region = self._region(samples)
+            return [] if region is None else [(samples, region)]
+        out: list[tuple[Sequence[_Sample], tuple[int, int, int, int]]] = []
+        for to_tile, (tx0, ty0, tx1, ty1) in self._tiles:
+            mine = [_Sample(np.einsum("ij,bjk->bik", to_tile, s.homographies), s.row_index) for s in samples]
+            region = self._region(mine)
+            if region is None:
+                continue
+            x0, y0, x1, y1 = max(region[0], tx0), max(region[1], ty0), min(region[2], tx1), min(region[3], ty1)
+            if x1 > x0 and y1 > y0:
+                out.append((mine, (x0, y0, x1, y1)))
+        return out
+
     def _lit_view(self, j: int, region: tuple[int, int, int, int], crop: ProjectorCrop) -> F32:
         """Linear light of ``region`` of projector frame ``j`` (a view whose origin is the region's)."""
         x0, y0, x1, y1 = region
@@ -386,10 +407,9 @@ class CameraRenderer:
         cfg = self.cfg
         shape = (*self._shape_ss, self.channels) if self.channels > 1 else self._shape_ss
         acc: F32 | None = None
-        region = self._region(samples)
-        if region is not None:
+        for tile_samples, region in self._tile_views(samples):
             offset = (region[0] + 0.5, region[1] + 0.5)  # remap samples at pixel centres: u − 0.5
-            for s in samples:
+            for s in tile_samples:
                 bands = self._band_of_row if len(s.homographies) > 1 else self._one_band
                 mp = ray_map(self._rays_ss, bands, s.homographies, offset)
                 cuts = np.flatnonzero(np.diff(s.row_index)) + 1

@@ -10,13 +10,14 @@ from typing import TextIO
 import numpy as np
 import yaml
 
+from ipt.calib.floor import HEADER
 from ipt.config.camera_info import save_camera_info
 from ipt.config.models import ArenaConfig
 from ipt.errors import IptError
 from ipt.fileio import output_group, write_text_atomic
 from ipt.geometry import quat_wxyz_from_matrix
 from ipt.sender.content import Scene
-from ipt.sim.arena import SimulatedArena
+from ipt.sim.arena import SimulatedArena, survey_points
 from ipt.sim.config import SimConfig
 from ipt.sim.render import camera_info_of
 from ipt.tagmap import TagMap
@@ -28,6 +29,7 @@ CAMERA_NAME = "camera.yaml"
 TRUTH_NAME = "groundtruth.tum"
 ARENA_NAME = "arena.yaml"
 SETTINGS_NAME = "sim.json"
+SURVEY_NAME = "survey.csv"
 
 
 class SimError(IptError):
@@ -46,7 +48,8 @@ def simulate_to_folder(
 ) -> int:
     """Render ``seconds`` of flight into ``out_dir``; returns the number of frames.
 
-    The five files (frames.mkv, camera.yaml, groundtruth.tum, sim.json, arena.yaml) are written beside
+    The five files (frames.mkv, camera.yaml, groundtruth.tum, sim.json, arena.yaml; and survey.csv for a
+    keystoned flight) are written beside
     their names and put in place together when the run ends (:func:`ipt.fileio.output_group`): a failure
     in any of them (a full disk, an error, a stop signal) leaves none of them and no temporary file, so an
     interrupted run never leaves a folder that looks finished. A previous run's files are removed first.
@@ -57,7 +60,7 @@ def simulate_to_folder(
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise SimError(f"{out_dir}: cannot create the output folder ({exc.strerror})") from None
-    for name in (VIDEO_NAME, CAMERA_NAME, TRUTH_NAME, ARENA_NAME, SETTINGS_NAME):
+    for name in (VIDEO_NAME, CAMERA_NAME, TRUTH_NAME, ARENA_NAME, SETTINGS_NAME, SURVEY_NAME):
         # A previous run's files would look like this run's result if we stopped half way.
         try:
             (out_dir / name).unlink(missing_ok=True)
@@ -85,6 +88,14 @@ def simulate_to_folder(
     write_tum(out_dir / TRUTH_NAME, Trajectory.from_arrays(np.array(times), np.array(positions), np.array(quats)))
     write_text_atomic(out_dir / SETTINGS_NAME, sim.model_dump_json(indent=1) + "\n")
     flown = "# The arena this flight was rendered with (the --config arena with the flight's changes).\n"
+    survey = survey_points(world.arena, sim)
+    if survey:
+        flown += (
+            "# The projector's image is keystoned on the floor (sim.json: keystone): this is the layout the\n"
+            f"# receiver is told, not where the pixels land. {SURVEY_NAME} is a survey of it for ipt calibrate arena.\n"
+        )
+        rows = "".join(f"{u:g},{v:g},{x:.6f},{y:.6f}\n" for u, v, x, y in survey)
+        write_text_atomic(out_dir / SURVEY_NAME, ",".join(HEADER) + "\n" + rows)
     write_text_atomic(
         out_dir / ARENA_NAME, flown + yaml.safe_dump(world.arena.model_dump(mode="json"), sort_keys=False)
     )
