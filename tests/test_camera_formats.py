@@ -199,7 +199,10 @@ def test_the_pipeline_gives_the_same_poses_from_the_luma_as_from_rgb(
     assert len(common) >= len(from_rgb) - 2
     apart_mm = [1e3 * float(np.linalg.norm(from_grey[k].position_m - from_rgb[k].position_m)) for k in common]
     if fourcc == "MJPG":  # libjpeg's grey is the luma of its colour output to within rounding
-        assert max(apart_mm) < 0.5, f"poses from the luma up to {max(apart_mm):.2f} mm from those from RGB"
+        # Rounding moves a pixel by a level at most; most poses do not move, a few move by up to ~1 mm
+        # (single-frame poses are that sensitive: their own error is 1-2 mm).
+        assert float(np.median(apart_mm)) < 0.2, f"median {float(np.median(apart_mm)):.2f} mm"
+        assert max(apart_mm) < 1.5, f"poses from the luma up to {max(apart_mm):.2f} mm from those from RGB"
         return
     # YUYV: OpenCV's conversion to BGR rounds and clips each pixel's colour, which moves its luma by up to
     # 2 levels (0.2 on average) in a pattern that follows the modulated colours; single-frame poses move
