@@ -52,6 +52,7 @@ from ipt.receiver.detector import DetectorError, TagDetection, TagDetector
 from ipt.receiver.imagealign import AlignTarget, alignment_features, floor_warp_between, warp_image
 from ipt.receiver.motion import MotionTrack, floor_warp
 from ipt.receiver.pose import PoseEstimate, solve_pose
+from ipt.receiver.scales import DetectScale, ScaleChooser
 from ipt.receiver.track import (
     MapEdges,
     MaskRenderer,
@@ -180,6 +181,9 @@ class Pipeline:
         t = cfg.pose.track
         self.track_settings = TrackSettings(search_px=t.search_px * scale, min_inliers=t.min_inliers)
         self.detector = TagDetector(cfg.detector, known_ids=tag_map.by_id)
+        base = DetectScale(ksize_for(demod.blur_ksize, camera.width_px), cfg.detector.quad_decimate)
+        self.scales = ScaleChooser(tag_map, camera.fx_px, min(size), base)
+        """Filter and decimation sizes for AprilTag, from the height the camera was last seen at."""
         self.lookahead = demod.lookahead_frames if self.ipt else 0
         self._history: deque[_Frame] = deque(maxlen=HISTORY)
         self._pending: deque[_Frame] = deque()
@@ -503,6 +507,7 @@ class Pipeline:
             target.best = candidate
             target.rt = candidate.rt
             p = candidate.pose
+            self.scales.seen_at(float(p.position_m[2]))
             self._guide.add(target.time_us, p.position_m, p.r_arena_cam, float(np.linalg.norm(p.position_std_m)))
 
     def _lost(self, target: _Frame) -> bool:
@@ -582,11 +587,10 @@ class Pipeline:
 
     def _acquire(self, target: _Frame, other: _Frame, diff: PairDifference) -> _Candidate | None:
         """AprilTag on the pair's difference, then (tracking) the map's edges from its pose; None: no pose."""
-        ksize = ksize_for(self.cfg.demodulation.blur_ksize, self.camera.width_px)
         first = self._predicted_phase(target) or 1
-        for sign in (first, -first):
+        for scale, sign in ((s, sign) for s in self.scales.to_try() for sign in (first, -first)):
             self.detector_runs += 1
-            dets = self.detector.detect(binarise_difference(diff, sign, ksize))
+            dets = self.detector.detect(binarise_difference(diff, sign, scale.ksize), scale.decimate)
             if len(dets) < self.cfg.pose.min_tags:
                 continue
             target.phase, other.phase = sign, -sign
@@ -608,10 +612,12 @@ class Pipeline:
     def _verified(self, tracked: TrackResult, diff: PairDifference, t0: float) -> bool:
         """AprilTag's view of the frame agrees with the track (or sees too little to say)."""
         self._since_verify = 0
-        ksize = ksize_for(self.cfg.demodulation.blur_ksize, self.camera.width_px)
+        r_cam, _ = cv2.Rodrigues(tracked.rvec)
+        position = -r_cam.T @ tracked.tvec
+        scale = self.scales.at(float(position[2]))
         self.detector_runs += 1
         try:
-            dets = self.detector.detect(binarise_difference(diff, tracked.sign, ksize))
+            dets = self.detector.detect(binarise_difference(diff, tracked.sign, scale.ksize), scale.decimate)
         except DetectorError:
             self._detector_failed = True  # reported with the next result that comes out; the track goes on
             return True
@@ -622,8 +628,6 @@ class Pipeline:
         pose = solve_pose(dets, self.tag_map, self.pinhole, self.cfg.pose)
         if pose is None:
             return True
-        r_cam, _ = cv2.Rodrigues(tracked.rvec)
-        position = -r_cam.T @ tracked.tvec
         return float(np.linalg.norm(position - pose.position_m)) < 0.05
 
     # -- gates ----------------------------------------------------------------------------------------
