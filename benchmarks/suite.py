@@ -36,7 +36,14 @@ import cv2
 import numpy as np
 
 from ipt.config.camera_info import load_camera_info
-from ipt.config.models import PROFILES, ArenaConfig, PipelineConfig, load_arena_config, load_yaml_model
+from ipt.config.models import (
+    PROFILES,
+    ArenaConfig,
+    PipelineConfig,
+    load_arena_config,
+    load_yaml_model,
+    shipped_config_path,
+)
 from ipt.eval import evaluate
 from ipt.receiver.pipeline import Pipeline
 from ipt.sim.arena import scene_for
@@ -190,7 +197,9 @@ def main() -> int:
     p.add_argument("--seconds", type=float, default=8.0, help="length of each flight (default 8)")
     p.add_argument("--only", help="comma-separated flight names (default: every file in benchmarks/flights)")
     p.add_argument("--profiles", default=",".join(PROFILES), help="comma-separated receiver profiles")
-    p.add_argument("--arena", type=Path, help="arena YAML the flights' changes apply to (default: the shipped one)")
+    p.add_argument(
+        "--arena", type=Path, help="arena YAML the flights' changes apply to (default: the shipped one, with its pad)"
+    )
     p.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="where renderings are kept")
     p.add_argument("--markdown", type=Path, help="also write the Markdown table here")
     args = p.parse_args()
@@ -201,7 +210,7 @@ def main() -> int:
     if not profiles or any(s not in PROFILES for s in profiles):
         print(f"suite: --profiles must name some of {', '.join(PROFILES)}", file=sys.stderr)
         return 2
-    base = load_arena_config(args.arena) if args.arena else ArenaConfig()
+    base = load_arena_config(args.arena or shipped_config_path("arena.yaml"))
     args.cache.mkdir(parents=True, exist_ok=True)
     digest = _source_digest()
     results: dict[str, Any] = {"seconds": args.seconds, "flights": {}}
