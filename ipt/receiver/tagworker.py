@@ -149,8 +149,8 @@ def serve(shm_fd: int, settings: dict[str, float], requests: int, replies: int) 
                 mapped.close()
             mapped = mmap.mmap(shm_fd, size)
             pixels = np.frombuffer(mapped, dtype=np.uint8)
-        image = pixels[:n].reshape(height, width)
-        _write_all(replies, encode_detections(pupil_detect(det, image, decimate or settings["quad_decimate"])))
+        dets = pupil_detect(det, pixels[:n].reshape(height, width), decimate or settings["quad_decimate"])
+        _write_all(replies, encode_detections(dets))
 
 
 def main(argv: list[str] | None = None) -> int:
