@@ -435,8 +435,9 @@ class PoseConfig(StrictModel):
         "velocity fit over the last 0.15 s) put the camera at its capture time is rejected as doubtful. "
         "It catches the tilt/translation ambiguity of a view with few tags, where a 2° tilt error moves "
         "the position several centimetres. Until there are enough recent poses to predict from (the start, "
-        "after a gap), a pose goes out only if its own position uncertainty is within this bound. None turns "
-        "the gate off.",
+        "after a gap), a pose goes out only if its own position uncertainty is within this bound. Stated for "
+        "heights up to 0.8 m; above, the bound grows with the height (3 times at 2.4 m), as a pixel's floor "
+        "distance does. None turns the gate off.",
     )
     outlier_tag_px: float | None = Field(
         None,

@@ -52,7 +52,7 @@ from ipt.receiver.detector import DetectorError, TagDetection, TagDetector
 from ipt.receiver.imagealign import AlignTarget, alignment_features, floor_warp_between, warp_image
 from ipt.receiver.motion import MotionTrack, floor_warp
 from ipt.receiver.pose import PoseEstimate, solve_pose
-from ipt.receiver.scales import DetectScale, ScaleChooser
+from ipt.receiver.scales import DetectScale, ScaleChooser, gate_growth
 from ipt.receiver.track import (
     MapEdges,
     MaskRenderer,
@@ -636,13 +636,14 @@ class Pipeline:
         """Why ``pose`` disagrees with the recent motion (the reason counted), or None if it does not."""
         cfg = self.cfg.pose
         if cfg.max_prediction_error_m is not None:
+            bound_m = cfg.max_prediction_error_m * gate_growth(float(pose.position_m[2]))
             predicted = self._track.pose_at(t_us)
             if predicted is None:
                 # Nothing to check it against yet (the start, or after a gap): only a pose whose own
                 # uncertainty is within the same bound goes out; the rest only feed the track.
-                if float(np.linalg.norm(pose.position_std_m)) > cfg.max_prediction_error_m:
+                if float(np.linalg.norm(pose.position_std_m)) > bound_m:
                     return "unconfirmed"
-            elif float(np.linalg.norm(pose.position_m - predicted[0])) > cfg.max_prediction_error_m:
+            elif float(np.linalg.norm(pose.position_m - predicted[0])) > bound_m:
                 return "inconsistent"
         if cfg.max_speed_mps is not None and self._accepted:
             last_us, last = min(self._accepted, key=lambda a: abs(a[0] - t_us))

@@ -7,6 +7,9 @@ seen from 1 m are 4 px a cell too, and the same tags from 0.25 m are 17 px. So t
 size in the image: from the height of the current track when there is one, and from a short cycle of
 heights when the camera is lost.
 
+The pose gates' bound on the distance from the predicted position grows with the height in the same way
+(:func:`gate_growth`): a pixel covers more floor, and the noise of a pose from the map grows with it.
+
 Pure: the map's tag sizes, the camera's focal length and a height in; filter and decimation sizes out.
 """
 
@@ -29,6 +32,21 @@ WHOLE_TAG_SHARE = 0.9
 #: Heights (m) cycled through while lost with nothing to say which is likely: the pad, the paper's 0.8 m,
 #: a lab's 1.6 m and 2.5 m.
 SEARCH_HEIGHTS_M = (0.8, 2.5, 1.6, 0.3)
+
+
+#: Height (m) the pose gates' bounds are stated for (the paper's flights at 0.8 m).
+GATE_REFERENCE_HEIGHT_M = 0.8
+#: The gates' bounds grow at most this much (at 2.4 m and above).
+MAX_GATE_GROWTH = 3.0
+
+
+def gate_growth(height_m: float) -> float:
+    """The factor on the consistency gate's bound for a pose ``height_m`` above the floor: 1 up to the
+    reference height, then in proportion to the height (the ground distance of a pixel), at most
+    :data:`MAX_GATE_GROWTH`."""
+    if not math.isfinite(height_m):
+        return 1.0
+    return min(max(height_m / GATE_REFERENCE_HEIGHT_M, 1.0), MAX_GATE_GROWTH)
 
 
 @dataclass(frozen=True)
