@@ -189,7 +189,14 @@ def markdown(results: dict[str, Any]) -> str:
                 f"| {name} | `{profile}` | {r['yield_pct']:.1f} % | {_cell_mm(r['mae_mm'])} | {angles} | "
                 f"{r['poses_over_10cm']} ({worst}) | {r['frames_per_s']:.0f} |"
             )
-    return "\n".join(lines) + "\n"
+    banded = [
+        f"- {name} / `{profile}` by true height: "
+        + ", ".join(f"{k} m {v:.1f} %" for k, v in r["yield_by_height_pct"].items())
+        for name, flight in results["flights"].items()
+        for profile, r in flight["profiles"].items()
+        if len(r["yield_by_height_pct"]) > 1
+    ]
+    return "\n".join(lines) + "\n" + ("\n" + "\n".join(banded) + "\n" if banded else "")
 
 
 def main() -> int:
@@ -229,6 +236,9 @@ def main() -> int:
                 file=sys.stderr,
                 flush=True,
             )
+            if len(r["yield_by_height_pct"]) > 1:  # a flight through several heights (take-off): each band
+                bands = ", ".join(f"{k} m {v:.1f} %" for k, v in r["yield_by_height_pct"].items())
+                print(f"suite: {path.stem} / {profile}: yield by true height: {bands}", file=sys.stderr, flush=True)
         results["flights"][path.stem] = flight
     print(json.dumps(results, indent=1))
     table = markdown(results)
