@@ -20,7 +20,14 @@ from ipt.config.models import (
 )
 from ipt.receiver.detector import APRILTAG_TO_OPENCV_PX, TagDetector
 from ipt.receiver.pipeline import Pipeline
-from ipt.receiver.scales import DetectScale, ScaleChooser, scale_at_height, scale_for_cell, tag_cells_m
+from ipt.receiver.scales import (
+    DetectScale,
+    ScaleChooser,
+    gate_growth,
+    scale_at_height,
+    scale_for_cell,
+    tag_cells_m,
+)
 from ipt.receiver.track import MapEdges
 from ipt.sim.arena import SimulatedArena, scene_for
 from ipt.sim.config import SimConfig
@@ -182,3 +189,11 @@ def test_receiver_finds_poses_from_2_5_m() -> None:
     poses, worst_m = _pipeline_yield(ArenaConfig(), sim, 24, cfg)
     assert poses >= 12
     assert worst_m < 0.05
+
+
+def test_consistency_gate_grows_with_height_above_0_8_m() -> None:
+    assert gate_growth(0.25) == 1.0
+    assert gate_growth(0.8) == 1.0
+    assert gate_growth(1.6) == pytest.approx(2.0)
+    assert gate_growth(5.0) == 3.0
+    assert gate_growth(float("nan")) == 1.0
