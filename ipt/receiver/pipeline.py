@@ -473,9 +473,9 @@ class Pipeline:
         tracked: TrackResult | None = None
         if self.tracking and guess is not None:
             init, close = guess
-            tracked = self._track_from(diff, init if close else self._coarse(diff, init))
+            tracked = self._track_from(diff, init if close else self._coarse(diff, init), target.signal)
             if tracked is None and close:  # the partner's pose or the pair's homography was off: search
-                tracked = self._track_from(diff, self._coarse(diff, init))
+                tracked = self._track_from(diff, self._coarse(diff, init), target.signal)
             t0 = self._lap("track", t0)
             if tracked is None:
                 reason = "lost"
@@ -520,7 +520,11 @@ class Pipeline:
         rt = (tracked.rvec, tracked.tvec)
         return _Candidate(pose, rt, len(tracked.tags), "track", partner, tracked.inlier_fraction)
 
-    def _track_from(self, diff: PairDifference, init: tuple[F64, F64]) -> TrackResult | None:
+    def _track_from(self, diff: PairDifference, init: tuple[F64, F64], lit: U8 | None = None) -> TrackResult | None:
+        """The pose from the map's edges on ``diff`` from ``init``; only where ``lit`` (the target frame's
+        signal mask) too, if given: samples in the drone's shadow find no step, and counted as tried they
+        would sink the inlier fraction of a right pose once the shadow fills most of the view (a landing
+        drone)."""
         assert self.edges is not None
         if diff.noise is None:
             diff.noise = slope_noise(diff.diff, diff.valid)
@@ -532,7 +536,7 @@ class Pipeline:
             init[1],
             self.track_settings,
             None,
-            diff.valid,
+            diff.valid if lit is None else np.minimum(diff.valid, lit),
             noise=diff.noise,
         )
         t = self.cfg.pose.track
@@ -602,7 +606,7 @@ class Pipeline:
             rvec, _ = cv2.Rodrigues(r_cam)
             start = (np.asarray(rvec, np.float64).reshape(3), -r_cam @ pose.position_m)
             if self.tracking:
-                refined = self._track_from(diff, self._coarse(diff, start))
+                refined = self._track_from(diff, self._coarse(diff, start), target.signal)
                 if refined is not None:
                     self._since_verify = 0
                     return self._candidate(refined, other.index)
