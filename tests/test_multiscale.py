@@ -141,12 +141,16 @@ def test_scales_follow_the_cell_size_in_the_image() -> None:
     assert ksizes[0] > ksizes[-1]
 
 
-def test_chooser_starts_from_the_last_height_and_cycles_the_rest(shipped_map: TagMap) -> None:
+def test_chooser_tries_both_tag_sizes_and_cycles_the_rest(shipped_map: TagMap) -> None:
     chooser = ScaleChooser(shipped_map, 460.0, 360, BASE)
+    both = chooser.sizes_at(0.8)  # over the pad's edge at 0.8 m: the big tags' scale and the small ones'
+    assert len(both) == 2
+    assert both[0] == BASE
+    assert both[1].ksize < BASE.ksize
     cycle = [tuple(chooser.to_try()) for _ in range(6)]
-    assert all(len(c) == 1 for c in cycle)
-    assert len({c[0] for c in cycle}) >= 3, "lost without a height: several scales in turn"
-    chooser.seen_at(2.5)
+    assert all(c[:2] == tuple(both) and len(c) == 3 for c in cycle), "before any pose: 0.8 m, and one more"
+    assert len({c[2] for c in cycle}) >= 2, "lost without a height: other scales in turn"
+    chooser.seen_at(2.5)  # the small tags' 1.7 px cells are not worth a run
     tries = chooser.to_try()
     assert tries[0] == chooser.at(2.5)
     assert len(tries) == 2

@@ -29,6 +29,10 @@ CELL_PX_PER_DECIMATION = 3.0
 #: A tag size is used for the scale only if its whole tag (quiet zone included) fits in this share of the
 #: image's shorter side: a bigger tag is rarely seen whole.
 WHOLE_TAG_SHARE = 0.9
+#: Cells narrower than this (pixels) are not worth a detector run.
+MIN_DECODE_CELL_PX = 3.0
+#: The height assumed before the first pose (the paper's flights).
+START_HEIGHT_M = 0.8
 #: Heights (m) cycled through while lost with nothing to say which is likely: the pad, the paper's 0.8 m,
 #: a lab's 1.6 m and 2.5 m.
 SEARCH_HEIGHTS_M = (0.8, 2.5, 1.6, 0.3)
@@ -117,12 +121,26 @@ class ScaleChooser:
         if math.isfinite(height_m) and height_m > 0:
             self.height_m = height_m
 
+    def sizes_at(self, height_m: float) -> list[DetectScale]:
+        """A scale for each tag size of the map that can be decoded from ``height_m`` (whole in the image,
+        cells of at least :data:`MIN_DECODE_CELL_PX`), the largest tags first: a view over a pad's edge
+        holds both sizes, and either may be the one whose tags are whole."""
+        h = max(height_m, 0.05)
+        out: list[DetectScale] = []
+        for c in self.cells_m:
+            cell_px = c * self.focal_px / h
+            if cell_px >= MIN_DECODE_CELL_PX and cell_px * TAG36H11_CELLS <= WHOLE_TAG_SHARE * self.short_side_px:
+                out.append(scale_for_cell(cell_px, self.base))
+        return self._unique(out)
+
     def to_try(self) -> list[DetectScale]:
-        """The scales for an acquisition attempt: the known height's first, then one from the cycle."""
-        first = self.at(self.height_m) if self.height_m is not None else None
-        others = [s for s in self._search if s != first]
-        out = [first] if first is not None else []
-        if others:
+        """The scales for an acquisition attempt: one per tag size at the known height (before any pose:
+        at :data:`START_HEIGHT_M`), and while that leaves room for fewer than two (or before any pose),
+        one more from the cycle of heights."""
+        height = self.height_m if self.height_m is not None else START_HEIGHT_M
+        out = self.sizes_at(height)[:2] or [self.at(height)]
+        others = [s for s in self._search if s not in out]
+        if (len(out) < 2 or self.height_m is None) and others:
             out.append(others[self._turn % len(others)])
             self._turn += 1
         return out
