@@ -209,6 +209,7 @@ def test_compiled_kernels_agree_with_their_python_source() -> None:
     # The kernels run as plain Python where numba cannot compile: both must measure the same steps.
     from ipt.receiver import trackkernels as tk
 
+    tk.ensure()
     if not tk.COMPILED:
         pytest.skip("numba cannot compile here: only the Python source runs")
     rng = np.random.default_rng(3)

@@ -178,7 +178,7 @@ class Pipeline:
         self.pinhole = replace(camera, distortion=(0.0, 0.0, 0.0, 0.0, 0.0)) if self.undistort is not None else camera
         self.edges = MapEdges.from_tag_map(tag_map) if self.tracking else None
         if self.tracking:
-            trackkernels.warm()  # before the first frame: a live camera must not wait for the compiler
+            trackkernels.warm_in_background()  # ready before the first track: a live camera must not wait
         self.masks = MaskRenderer(tag_map.render_mask(), pixel_to_arena(tag_map)) if self.tracking else None
         scale = camera.width_px / 640
         t = cfg.pose.track

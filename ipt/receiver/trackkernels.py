@@ -10,6 +10,7 @@ memory), the same functions run as plain Python: correct, only slower.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -22,7 +23,25 @@ I64 = npt.NDArray[np.int64]
 U8 = npt.NDArray[np.uint8]
 
 COMPILED = True
-"""Whether the kernels below are compiled (False: numba is unavailable and they run as Python)."""
+"""Whether the kernels below are compiled (False: numba is unavailable and they run as Python); known once
+:func:`ensure` has run."""
+
+_lock = threading.Lock()
+_ready = threading.Event()
+
+
+class _Kernel:
+    """A kernel, compiled on first use (or by :func:`ensure`, e.g. in :func:`warm_in_background`), so that
+    importing this module does not import numba (a quarter of a second) on a daemon's start-up path."""
+
+    def __init__(self, fn: Callable[..., Any]) -> None:
+        self.py_func = fn
+        self.compiled: Any = None
+
+    def __call__(self, *args: Any) -> Any:
+        if self.compiled is None:
+            ensure()
+        return self.compiled(*args)
 
 
 def _jit(fn: Callable[..., Any]) -> Any:
@@ -39,6 +58,19 @@ def _jit(fn: Callable[..., Any]) -> Any:
         return numba.njit(nogil=True)(fn)
 
 
+def ensure() -> None:
+    """Compile the kernels (or load them from numba's disk cache), once per process."""
+    global bilinear
+    with _lock:
+        if _ready.is_set():
+            return
+        # The kernels call bilinear: it must be compiled first, and be this module's global when they are.
+        bilinear = _jit(_bilinear)
+        for kernel in (measure, peaks, band_signs, cell_agreement):
+            kernel.compiled = _jit(kernel.py_func)
+        _ready.set()
+
+
 def _bilinear(image: F32, x: float, y: float) -> float:
     """``image`` at (x, y), bilinear, coordinates clamped to the image (a replicated border)."""
     h, w = image.shape
@@ -53,7 +85,7 @@ def _bilinear(image: F32, x: float, y: float) -> float:
     return float(top * (1.0 - fy) + bottom * fy)
 
 
-bilinear = _jit(_bilinear)
+bilinear: Any = _bilinear  # compiled by ensure()
 
 
 def _measure(
@@ -152,7 +184,7 @@ def _measure(
     return idx[:count], raw[:count], band[:count], a_rows[:count], place[:count]
 
 
-measure = _jit(_measure)
+measure = _Kernel(_measure)
 
 
 def _peaks(raw: F32, band: I64, band_sign: F64, threshold: F64) -> tuple[F64, npt.NDArray[np.bool_]]:
@@ -184,7 +216,7 @@ def _peaks(raw: F32, band: I64, band_sign: F64, threshold: F64) -> tuple[F64, np
     return offsets, strong
 
 
-peaks = _jit(_peaks)
+peaks = _Kernel(_peaks)
 
 
 def _band_signs(raw: F32, band: I64, bands: int) -> F64:
@@ -216,7 +248,7 @@ def _band_signs(raw: F32, band: I64, bands: int) -> F64:
     return out
 
 
-band_signs = _jit(_band_signs)
+band_signs = _Kernel(_band_signs)
 
 
 def _cell_agreement(
@@ -275,7 +307,7 @@ def _cell_agreement(
     return agree / clear if clear >= 20 else 0.0
 
 
-cell_agreement = _jit(_cell_agreement)
+cell_agreement = _Kernel(_cell_agreement)
 
 
 def warm() -> None:
@@ -291,3 +323,18 @@ def warm() -> None:
     peaks(np.zeros((1, 4), np.float32), np.zeros(1, np.int64), np.ones(2), np.ones(1))
     band_signs(np.zeros((1, 4), np.float32), np.zeros(1, np.int64), 2)
     cell_agreement(image, k, rt, t, one, np.zeros(1, np.int64), np.ones(1), np.ones(1, np.bool_), np.ones(2), no_mask)
+
+
+_warming = False
+
+
+def warm_in_background() -> None:
+    """Start :func:`warm` on a thread of its own (once per process): a daemon's start-up (sockets, the
+    camera, the AprilTag helper, the first frames, which AprilTag acquires) goes on meanwhile, and the first
+    track waits for it only if it is not done."""
+    global _warming
+    with _lock:
+        if _warming or _ready.is_set():
+            return
+        _warming = True
+    threading.Thread(target=warm, name="ipt-kernels", daemon=True).start()
