@@ -278,7 +278,6 @@ class Pipeline:
         self._pairs.clear()
         self._track.clear()
         self._guide.clear()
-        self.scales.forget()
 
     def _emit(self) -> list[FrameResult]:
         out = []
