@@ -148,18 +148,25 @@ def _format(value: float) -> str:
     return f"{value:.6g}"
 
 
+def arena_mapping(text: str, error: type[IptError]) -> dict[str, Any]:
+    """The mapping an arena YAML file's ``text`` holds (empty text: none), for an in-place edit; raises
+    ``error`` if it is not valid YAML or not a mapping."""
+    try:
+        original = yaml.safe_load(text) if text.strip() else {}
+    except yaml.YAMLError as exc:
+        raise error(f"the arena file is not valid YAML ({exc})") from None
+    if original is None:
+        original = {}
+    if not isinstance(original, dict):
+        raise error("the arena file is not a YAML mapping")
+    return original
+
+
 def update_screen_yaml(text: str, width_m: float, height_m: float) -> str:
     """``text`` (an arena YAML file) with ``screen.width_m`` and ``screen.height_m`` replaced, everything
     else (comments, order, other keys) as it was. Raises :class:`ArenaCalibrationError` if the result
     does not parse to the same mapping with the new numbers."""
-    try:
-        original = yaml.safe_load(text) if text.strip() else {}
-    except yaml.YAMLError as exc:
-        raise ArenaCalibrationError(f"the arena file is not valid YAML ({exc})") from None
-    if original is None:
-        original = {}
-    if not isinstance(original, dict):
-        raise ArenaCalibrationError("the arena file is not a YAML mapping")
+    original = arena_mapping(text, ArenaCalibrationError)
     values = {"width_m": _format(width_m), "height_m": _format(height_m)}
     lines = text.splitlines(keepends=True)
     head = next((i for i, line in enumerate(lines) if re.match(r"screen\s*:", line)), None)

@@ -28,6 +28,7 @@ import numpy as np
 import numpy.typing as npt
 import yaml
 
+from ipt.calib.arena import arena_mapping
 from ipt.config.models import ArenaConfig, FloorConfig, TileConfig, floor_homography_fits
 from ipt.errors import IptError
 from ipt.fileio import read_text_file
@@ -314,14 +315,7 @@ def _normalised_section(key: str, value: Any) -> Any:
 
 
 def _replace_section(text: str, key: str, block: str, value: Any) -> str:
-    try:
-        original = yaml.safe_load(text) if text.strip() else {}
-    except yaml.YAMLError as exc:
-        raise FloorCalibrationError(f"the arena file is not valid YAML ({exc})") from None
-    if original is None:
-        original = {}
-    if not isinstance(original, dict):
-        raise FloorCalibrationError("the arena file is not a YAML mapping")
+    original = arena_mapping(text, FloorCalibrationError)
     lines = text.splitlines(keepends=True)
     head = next((i for i, line in enumerate(lines) if re.match(rf"{key}\s*:", line)), None)
     if head is None:
