@@ -61,7 +61,7 @@ from typing import Any
 
 import yaml
 
-from ipt.config.models import ArenaConfig, load_arena_config, shipped_config_path
+from ipt.config.models import MIN_TAG_SIZE_PX, ArenaConfig, load_arena_config, shipped_config_path
 from ipt.protocol import CRC_OFFSET, PosePacket, encode_pose
 
 KEY = b"ipt-load-benchmark-key-0123456789"
@@ -79,7 +79,13 @@ def arena_for(width: int, height: int) -> dict[str, Any]:
     data: dict[str, Any] = load_arena_config(shipped_config_path("arena.yaml")).model_dump(mode="json")
     scale = min(width / data["projector"]["width_px"], height / data["projector"]["height_px"])
     data["projector"].update(width_px=width, height_px=height)
-    data["tag_map"]["tag_size_px"] = max(16, int(data["tag_map"]["tag_size_px"] * scale) // 8 * 8)
+    tm = data["tag_map"]
+    tm["tag_size_px"] = max(MIN_TAG_SIZE_PX, int(tm["tag_size_px"] * scale) // 8 * 8)
+    # Tags keep 8 projector px per bit: on a small projector fewer of them fit, and a pad's small tags none.
+    quiet_size = tm["tag_size_px"] * 10 // 8
+    tm.update(cols=min(tm["cols"], width // quiet_size), rows=min(tm["rows"], height // quiet_size))
+    if scale < 1:
+        tm["pads"] = []
     ArenaConfig.model_validate(data)
     return data
 

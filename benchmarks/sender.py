@@ -40,7 +40,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ipt.config.models import ArenaConfig, load_arena_config, shipped_config_path
+from ipt.config.models import MIN_TAG_SIZE_PX, ArenaConfig, load_arena_config, shipped_config_path
 from ipt.geometry import R_BODY_CAM_DOWNWARD, quat_wxyz_from_matrix, rot_z
 from ipt.protocol import PosePacket
 from ipt.sender.content import GeneratedScene, VideoScene
@@ -89,7 +89,13 @@ def arena_for(width: int, height: int, profile: str | None = None) -> ArenaConfi
         data["modulation"]["profile"] = profile
     scale = min(width / data["projector"]["width_px"], height / data["projector"]["height_px"])
     data["projector"].update(width_px=width, height_px=height)
-    data["tag_map"]["tag_size_px"] = max(16, int(data["tag_map"]["tag_size_px"] * scale) // 8 * 8)
+    tm = data["tag_map"]
+    tm["tag_size_px"] = max(MIN_TAG_SIZE_PX, int(tm["tag_size_px"] * scale) // 8 * 8)
+    # Tags keep 8 projector px per bit: on a small projector fewer of them fit, and a pad's small tags none.
+    quiet_size = tm["tag_size_px"] * 10 // 8
+    tm.update(cols=min(tm["cols"], width // quiet_size), rows=min(tm["rows"], height // quiet_size))
+    if scale < 1:
+        tm["pads"] = []
     return ArenaConfig.model_validate(data)
 
 

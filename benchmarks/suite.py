@@ -44,7 +44,14 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.config.camera_info import load_camera_info
-from ipt.config.models import PROFILES, ArenaConfig, PipelineConfig, load_arena_config, load_yaml_model
+from ipt.config.models import (
+    PROFILES,
+    ArenaConfig,
+    PipelineConfig,
+    load_arena_config,
+    load_yaml_model,
+    shipped_config_path,
+)
 from ipt.eval import evaluate
 from ipt.receiver.pipeline import Pipeline
 from ipt.sim.arena import scene_for, true_arena
@@ -242,7 +249,14 @@ def markdown(results: dict[str, Any]) -> str:
                 f"| {name} | `{profile}` | {r['yield_pct']:.1f} % | {_cell_mm(r['mae_mm'])} | {angles} | "
                 f"{r['poses_over_10cm']} ({worst}) | {r['frames_per_s']:.0f} |"
             )
-    return "\n".join(lines) + "\n"
+    banded = [
+        f"- {name} / `{profile}` by true height: "
+        + ", ".join(f"{k} m {v:.1f} %" for k, v in r["yield_by_height_pct"].items())
+        for name, flight in results["flights"].items()
+        for profile, r in flight["profiles"].items()
+        if len(r["yield_by_height_pct"]) > 1
+    ]
+    return "\n".join(lines) + "\n" + ("\n" + "\n".join(banded) + "\n" if banded else "")
 
 
 def main() -> int:
@@ -250,7 +264,9 @@ def main() -> int:
     p.add_argument("--seconds", type=float, default=8.0, help="length of each flight (default 8)")
     p.add_argument("--only", help="comma-separated flight names (default: every file in benchmarks/flights)")
     p.add_argument("--profiles", default=",".join(PROFILES), help="comma-separated receiver profiles")
-    p.add_argument("--arena", type=Path, help="arena YAML the flights' changes apply to (default: the shipped one)")
+    p.add_argument(
+        "--arena", type=Path, help="arena YAML the flights' changes apply to (default: the shipped one, with its pad)"
+    )
     p.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="where renderings are kept")
     p.add_argument("--markdown", type=Path, help="also write the Markdown table here")
     args = p.parse_args()
@@ -261,7 +277,7 @@ def main() -> int:
     if not profiles or any(s not in PROFILES for s in profiles):
         print(f"suite: --profiles must name some of {', '.join(PROFILES)}", file=sys.stderr)
         return 2
-    base = load_arena_config(args.arena) if args.arena else ArenaConfig()
+    base = load_arena_config(args.arena or shipped_config_path("arena.yaml"))
     args.cache.mkdir(parents=True, exist_ok=True)
     digest = _source_digest()
     results: dict[str, Any] = {"seconds": args.seconds, "flights": {}}
@@ -281,6 +297,9 @@ def main() -> int:
                 file=sys.stderr,
                 flush=True,
             )
+            if len(r["yield_by_height_pct"]) > 1:  # a flight through several heights (take-off): each band
+                bands = ", ".join(f"{k} m {v:.1f} %" for k, v in r["yield_by_height_pct"].items())
+                print(f"suite: {path.stem} / {profile}: yield by true height: {bands}", file=sys.stderr, flush=True)
         results["flights"][path.stem] = flight
         if sim.keystone is not None:
             # The same rendering scored with the arena calibrated from its survey (the row above is the

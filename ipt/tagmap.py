@@ -267,9 +267,20 @@ def pixel_to_arena(tag_map: TagMap) -> npt.NDArray[np.float64]:
     return np.asarray(h, np.float64)
 
 
+def _square_tag(arena: ArenaConfig, tag_id: int, left: float, top: float, s: float) -> TagPlacement:
+    """The tag whose black border square has its top-left corner at (left, top) projector px, side ``s``."""
+    px = ((left, top + s), (left + s, top + s), (left + s, top), (left, top))
+    corners_px = tuple((float(u), float(v)) for u, v in px)
+    # One tile's mapping for all four corners (the tile holding the tag's centre), so a tag stays a square.
+    tile = tile_of(arena, left + s / 2, top + s / 2)
+    corners_m = tuple(pixel_to_arena_m(arena, u, v, tile) for u, v in corners_px)
+    return TagPlacement(tag_id, corners_px, corners_m)
+
+
 def grid_tag_map(arena: ArenaConfig) -> TagMap:
-    """The evenly spaced grid of the arena config: ids left to right, then bottom to top (with several
-    projectors, the ids of tags that would cross a seam are left out)."""
+    """The arena config's map: the evenly spaced grid (ids left to right, then bottom to top; with several
+    projectors, the ids of tags that would cross a seam are left out), and the landing pads' small tags
+    (:func:`pad_tags`) in the grid cells their squares reach into."""
     tm, pr = arena.tag_map, arena.projector
     pitch_x = pr.width_px / tm.cols
     pitch_y = pr.height_px / tm.rows
@@ -279,9 +290,6 @@ def grid_tag_map(arena: ArenaConfig) -> TagMap:
         for col in range(tm.cols):
             left = round((col + 0.5) * pitch_x - s / 2)
             top = round(pr.height_px - (row + 0.5) * pitch_y - s / 2)
-            px = ((left, top + s), (left + s, top + s), (left + s, top), (left, top))
-            corners_px = tuple((float(u), float(v)) for u, v in px)
-            tile = None
             if arena.projectors is not None:
                 # Kept out of the seams: a tag (with its quiet zone) drawn by two projectors that disagree on
                 # the floor would be a broken tag.
@@ -290,9 +298,44 @@ def grid_tag_map(arena: ArenaConfig) -> TagMap:
                 box = [(u, v) for u in (left - q, left + s + q) for v in (top - q, top + s + q)]
                 if tile is None or not all(arena.projectors[tile].contains(u, v) for u, v in box):
                     continue
-            corners_m = tuple(pixel_to_arena_m(arena, u, v, tile) for u, v in corners_px)
-            tags.append(TagPlacement(tm.first_id + row * tm.cols + col, corners_px, corners_m))
+            tags.append(_square_tag(arena, tm.first_id + row * tm.cols + col, left, top, s))
+    small = pad_tags(arena)
+    if small:
+        gone = set()
+        for pad in tm.pads:
+            (col0, col1, row0, row1), _ = arena.pad_grid(pad)
+            gone |= {tm.first_id + row * tm.cols + col for row in range(row0, row1) for col in range(col0, col1)}
+        tags = [t for t in tags if t.tag_id not in gone] + [t for group in small for t in group]
     return TagMap(pr.width_px, pr.height_px, tuple(tags))
+
+
+def pad_tags(arena: ArenaConfig) -> list[tuple[TagPlacement, ...]]:
+    """The small tags of each landing pad of the arena config: rows bottom to top, left to right, ids
+    counting on from the grid's last."""
+    tm = arena.tag_map
+    next_id = tm.first_id + tm.rows * tm.cols
+    out = []
+    for pad in tm.pads:
+        _, (cols, rows, left0, top0) = arena.pad_grid(pad)
+        s = pad.tag_size_px
+        quiet = s // 8
+        pitch = s + 2 * quiet + pad.gap_px
+        bottom0 = top0 + rows * pitch - pad.gap_px  # the block's bottom edge
+        group = []
+        for row in range(rows):
+            for col in range(cols):
+                top = bottom0 - (row + 1) * pitch + pad.gap_px + quiet
+                group.append(_square_tag(arena, next_id, left0 + col * pitch + quiet, top, s))
+                next_id += 1
+        out.append(tuple(group))
+    return out
+
+
+def _outer_px(tag: TagPlacement) -> npt.NDArray[np.float64]:
+    """The four corners of ``tag``'s quiet zone in projector pixels (its border square grown by a cell)."""
+    c = np.asarray(tag.corners_px, np.float64)
+    centre = c.mean(axis=0)
+    return np.asarray(centre + (c - centre) * (TAG36H11_CELLS / _BORDER_CELLS), np.float64)
 
 
 def export_map(tag_map: TagMap, image_path: str | Path, layout_path: str | Path) -> None:
@@ -369,4 +412,44 @@ def load_layout(path: str | Path) -> TagMap:
         corners_px = tuple(_float_list(p, f"{where}.corners_px", c, 2) for c in cpx)
         corners_m = tuple(_float_list(p, f"{where}.corners_m", c, 3) for c in cm)
         tags.append(TagPlacement(tid, corners_px, corners_m))  # type: ignore[arg-type]
-    return TagMap(w, h, tuple(tags))
+    tm = TagMap(w, h, tuple(tags))
+    problem = layout_problem(tm)
+    if problem is not None:
+        raise TagMapError(f"{p}: {problem}")
+    return tm
+
+
+MIN_BIT_PX = 8
+"""Fewest projector pixels per bit (code cell) a tag of a map may have (``MIN_TAG_SIZE_PX`` / 8)."""
+
+
+def layout_problem(tag_map: TagMap) -> str | None:
+    """What makes ``tag_map`` undrawable or undecodable, or None: a tag off the projector image, a tag
+    with fewer than :data:`MIN_BIT_PX` projector pixels per bit, or two tags (quiet zones included) that
+    overlap."""
+    tags = tag_map.tags
+    outers = [_outer_px(t) for t in tags]
+    for t, outer in zip(tags, outers, strict=True):
+        c = np.asarray(t.corners_px, np.float64)
+        side = float(np.linalg.norm(np.roll(c, -1, axis=0) - c, axis=1).min())
+        if side < MIN_BIT_PX * _BORDER_CELLS:
+            return (
+                f"tag {t.tag_id} has {side / _BORDER_CELLS:.1f} projector px per bit, fewer than {MIN_BIT_PX} "
+                f"(a border side of at least {MIN_BIT_PX * _BORDER_CELLS} px)"
+            )
+        if outer.min() < 0 or (outer[:, 0] > tag_map.width_px).any() or (outer[:, 1] > tag_map.height_px).any():
+            size = f"{tag_map.width_px}x{tag_map.height_px}"
+            return f"tag {t.tag_id} (with its quiet zone) is off the {size} projector image"
+    boxes = np.array([[o[:, 0].min(), o[:, 1].min(), o[:, 0].max(), o[:, 1].max()] for o in outers])
+    for i in range(len(tags)):
+        near = np.flatnonzero(
+            (boxes[i + 1 :, 0] < boxes[i, 2])
+            & (boxes[i, 0] < boxes[i + 1 :, 2])
+            & (boxes[i + 1 :, 1] < boxes[i, 3])
+            & (boxes[i, 1] < boxes[i + 1 :, 3])
+        )
+        for j in near + i + 1:
+            area, _ = cv2.intersectConvexConvex(outers[i].astype(np.float32), outers[j].astype(np.float32))
+            if area > 1.0:  # more than a pixel: shared edges and rounding are not overlaps
+                return f"tags {tags[i].tag_id} and {tags[j].tag_id} overlap (quiet zones included)"
+    return None

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from ipt.config.models import ArenaConfig
+from ipt.config.models import ArenaConfig, load_arena_config, shipped_config_path
 from ipt.sender.content import GeneratedScene
 from ipt.sim.config import SimConfig
 from ipt.sim.run import simulate_to_folder
@@ -22,7 +22,9 @@ def short_flight(tmp_path_factory: pytest.TempPathFactory) -> Path:
     No shadow, vibration or moving content: the tests that use it check the receiver's mechanics (files,
     sockets, timing), not its robustness, which the realistic flights of benchmarks/flights/ measure."""
     out = tmp_path_factory.mktemp("flight")
-    simulate_to_folder(ArenaConfig(), SimConfig.smooth(), GeneratedScene(1920, 2160), out, 0.5, progress=None)
+    # The shipped arena (its landing pad included), which the daemon and the CLIs use by default.
+    arena = load_arena_config(shipped_config_path("arena.yaml"))
+    simulate_to_folder(arena, SimConfig.smooth(), GeneratedScene(1920, 2160), out, 0.5, progress=None)
     return out
 
 

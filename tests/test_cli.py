@@ -97,20 +97,21 @@ def exported(tmp_path_factory: pytest.TempPathFactory) -> Exported:
 
 def test_map_export_then_check(exported: Exported, tmp_path: Path) -> None:
     assert exported.proc.returncode == 0, exported.proc.stderr
-    assert "81 tags" in exported.proc.stdout
+    assert "107 tags" in exported.proc.stdout
     png = cv2.imread(str(exported.image), cv2.IMREAD_UNCHANGED)
     assert png is not None
     assert png.shape == (2160, 1920)
     assert png.dtype == np.uint8
     data = json.loads(exported.layout.read_text(encoding="utf-8"))
     assert data["projector"] == {"width_px": 1920, "height_px": 2160}
-    assert sorted(t["id"] for t in data["tags"]) == list(range(81))
+    grid = set(range(81)) - {10, 11, 19, 20, 28, 29}  # the pad's small tags take these cells
+    assert sorted(t["id"] for t in data["tags"]) == sorted(grid | set(range(81, 81 + 32)))
     assert sorted(p.name for p in exported.image.parent.iterdir()) == ["layout.json", "map.png"]
 
     check = _run([*IPT, "map", "check", "--layout", str(exported.layout), "--image", str(exported.image)], tmp_path)
     assert check.returncode == 0, check.stderr
-    assert "81/81" in check.stdout
-    assert "81 tags, ids unique" in check.stdout
+    assert "107/107" in check.stdout
+    assert "107 tags, ids unique" in check.stdout
     worst = float(check.stdout.split("largest corner difference")[1].split("px")[0])
     assert worst < 0.5
 
@@ -140,7 +141,7 @@ def test_map_check_reports_missing_tags_with_exit_1(exported: Exported, tmp_path
     cv2.imwrite(str(blank), np.full((2160, 1920), 127, np.uint8))
     proc = _run([*IPT, "map", "check", "--layout", str(layout), "--image", str(blank)], tmp_path)
     assert proc.returncode == 1
-    assert "0/81" in proc.stdout
+    assert "0/107" in proc.stdout
     assert "Traceback" not in proc.stderr
 
 

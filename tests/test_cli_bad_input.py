@@ -21,6 +21,7 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -34,7 +35,7 @@ from ipt.tagmap import grid_tag_map
 MODULES = {"ipt": "ipt.cli", "ipt-receiver": "ipt.receiver.cli", "ipt-sender": "ipt.sender.cli"}
 TIMEOUT_S = 90.0
 
-TINY_ARENA = {
+TINY_ARENA: dict[str, Any] = {
     "projector": {"width_px": 320, "height_px": 288, "rate_hz": 60},
     "screen": {"width_m": 1.0, "height_m": 0.9},
     "tag_map": {"rows": 2, "cols": 2, "tag_size_px": 64},
@@ -80,6 +81,21 @@ CASES = [
        "folder", "cannot write", "Is a directory"),
     _c("map-export-layout-is-folder", "ipt map export --config {z}/arena.yaml --image {z}/o.png --layout {z}/folder",
        "folder", "cannot write"),
+    # --- ipt map export: an arena whose landing pad leaves the screen or has tags too small to decode
+    _c("map-export-pad-off-screen", "ipt map export --config {z}/pad-off.yaml --image {z}/o.png --layout {z}/o.json",
+       "pad-off.yaml", "landing pad 'edge'", "off the screen"),
+    _c("map-export-pad-small-tags", "ipt map export --config {z}/pad-bits.yaml --image {z}/o.png --layout "
+       "{z}/o.json", "pad-bits.yaml", "6 projector px per bit"),
+    _c("map-export-grid-small-tags", "ipt map export --config {z}/grid-bits.yaml --image {z}/o.png --layout "
+       "{z}/o.json", "grid-bits.yaml", "7 projector px per bit"),
+    # --- ipt map check: a layout whose tags overlap, repeat an id, are too small or leave the screen
+    _c("map-check-layout-overlap", "ipt map check --layout {z}/overlap.json", "overlap.json", "tags 0 and 1 overlap"),
+    _c("map-check-layout-duplicate", "ipt map check --layout {z}/duplicate.json", "duplicate.json",
+       "duplicate id 0"),
+    _c("map-check-layout-small-bits", "ipt map check --layout {z}/small-bits.json", "small-bits.json",
+       "tag 2 has 7.0 projector px per bit"),
+    _c("map-check-layout-off-screen", "ipt map check --layout {z}/off-screen.json", "off-screen.json",
+       "tag 3", "off the 320x288 projector image"),
     # --- ipt map check: the layout and the image
     _c("map-check-layout-missing", "ipt map check --layout {z}/missing.json", "missing.json", "no such file"),
     _c("map-check-layout-folder", "ipt map check --layout {z}/folder", "folder", "is a directory"),
@@ -216,7 +232,8 @@ QUICK = {
     "map-export-image-no-folder", "map-check-layout-deep", "map-check-layout-binary", "sim-settings-yaml-date",
     "eval-truth-folder", "eval-json-is-folder", "demo-config-camera", "replay-output-is-folder",
     "replay-camera-huge-int", "run-config-nul-path", "run-config-bool-tag", "run-key-folder", "run-source-empty",
-    "sender-config-deep", "sender-image-fake-png", "sender-key-missing",
+    "sender-config-deep", "sender-image-fake-png", "sender-key-missing", "map-check-layout-overlap",
+    "map-export-pad-off-screen",
 }  # fmt: skip
 """One case per program and kind of mistake, for a quick run (``-m "not slow"``); the rest are marked slow."""
 
@@ -234,6 +251,7 @@ def _prepare(z: Path) -> None:
     save_camera_info(CAMERA, z / "camera.yaml")
     layout = grid_tag_map(ArenaConfig.model_validate(TINY_ARENA)).layout_dict()
     (z / "layout.json").write_text(json.dumps(layout), encoding="utf-8")
+    _prepare_maps(z, layout)
     (z / "deep.json").write_text("[" * 100_000 + "]" * 100_000, encoding="utf-8")
     (z / "deep.yaml").write_text("projector: " + "[" * 5000 + "]" * 5000 + "\n", encoding="utf-8")
     (z / "date.yaml").write_text("seed: 2024-13-01\n", encoding="utf-8")
@@ -251,6 +269,34 @@ def _prepare(z: Path) -> None:
     (z / "key-folder.yaml").write_text(base + "auth_key_file: folder\n", encoding="utf-8")
     (z / "key-missing.yaml").write_text(base + "auth_key_file: missing.key\n", encoding="utf-8")
     (z / "key-empty.yaml").write_text(base + "auth_key_file: empty.key\n", encoding="utf-8")
+
+
+def _prepare_maps(z: Path, layout: dict[str, Any]) -> None:
+    """Arenas and layouts that draw no usable map."""
+
+    def moved(tag: dict[str, Any], du: float, dv: float, scale: float = 1.0) -> dict[str, Any]:
+        c = np.asarray(tag["corners_px"], np.float64)
+        c = c.mean(axis=0) + (c - c.mean(axis=0)) * scale + (du, dv)
+        return {**tag, "corners_px": c.tolist()}
+
+    tags = layout["tags"]
+    bad = {
+        "overlap": [tags[0], moved(tags[1], -150.0, 0.0), *tags[2:]],
+        "duplicate": [tags[0], {**tags[1], "id": 0}, *tags[2:]],
+        "small-bits": [*tags[:2], moved(tags[2], 0.0, 0.0, 56 / 64), tags[3]],
+        "off-screen": [*tags[:3], moved(tags[3], 60.0, 0.0)],
+    }
+    for name, t in bad.items():
+        (z / f"{name}.json").write_text(json.dumps({**layout, "tags": t}), encoding="utf-8")
+    pad = {"name": "edge", "centre_m": [0.45, 0.0], "size_m": 0.3}
+    arenas = {
+        "pad-off": {"pads": [pad]},
+        "pad-bits": {"pads": [{**pad, "centre_m": [0.0, 0.0], "tag_size_px": 48}]},
+        "grid-bits": {"tag_size_px": 56},
+    }
+    for name, changes in arenas.items():
+        arena = {**TINY_ARENA, "tag_map": {**TINY_ARENA["tag_map"], **changes}}
+        (z / f"{name}.yaml").write_text(yaml.safe_dump(arena), encoding="utf-8")
 
 
 def _run(case: Case, z: Path) -> subprocess.CompletedProcess[str]:

@@ -17,7 +17,6 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from ipt.config.models import shipped_config_path
 from ipt.config.receiver import ReceiverConfig
 from ipt.receiver.capture import CapturedFrame, CaptureError
 from ipt.receiver.daemon import DaemonStats, ResultHook, run_daemon
@@ -86,7 +85,7 @@ def flight_frames(short_flight: Path) -> list[npt.NDArray[np.uint8]]:
 
 def _config(short_flight: Path, send: list[str]) -> ReceiverConfig:
     return ReceiverConfig(
-        arena=shipped_config_path("arena.yaml"), camera=short_flight / "camera.yaml", send=send, stats_interval_s=0.5
+        arena=short_flight / "arena.yaml", camera=short_flight / "camera.yaml", send=send, stats_interval_s=0.5
     )
 
 

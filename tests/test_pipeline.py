@@ -9,14 +9,13 @@ import numpy as np
 import pytest
 
 from ipt.config.camera_info import load_camera_info
-from ipt.config.models import ArenaConfig, ConfigError, DemodulationConfig, PipelineConfig
+from ipt.config.models import ConfigError, DemodulationConfig, PipelineConfig, load_arena_config
 from ipt.receiver.pipeline import FrameResult, Pipeline, _Frame
 from ipt.receiver.pose import PoseEstimate
 from ipt.tagmap import grid_tag_map
 from ipt.tum import read_tum
 from ipt.videoio import open_frames
 
-ARENA = ArenaConfig()
 FPS = 120.0
 
 
@@ -31,7 +30,8 @@ def frames(short_flight: Path) -> list[np.ndarray]:
 
 
 def _pipeline(short_flight: Path, cfg: PipelineConfig) -> Pipeline:
-    return Pipeline(grid_tag_map(ARENA), load_camera_info(short_flight / "camera.yaml"), cfg, 60.0)
+    arena = load_arena_config(short_flight / "arena.yaml")
+    return Pipeline(grid_tag_map(arena), load_camera_info(short_flight / "camera.yaml"), cfg, 60.0)
 
 
 def _run(p: Pipeline, frames: list[np.ndarray]) -> list[FrameResult]:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from ipt.config.camera_info import load_camera_info
-from ipt.config.models import ArenaConfig, DetectorConfig, PipelineConfig, PoseConfig
+from ipt.config.models import ArenaConfig, DetectorConfig, PipelineConfig, PoseConfig, load_arena_config
 from ipt.eval import evaluate
 from ipt.geometry import R_BODY_CAM_DOWNWARD, rotation_angle_rad
 from ipt.receiver.detector import TagDetector
@@ -120,10 +120,11 @@ def test_sim_writes_video_camera_and_truth(short_flight: Path) -> None:
 
 @pytest.mark.slow
 def test_replayed_flight_meets_the_core_targets(short_flight: Path, tmp_path: Path) -> None:
-    tm = grid_tag_map(ARENA)
+    arena = load_arena_config(short_flight / "arena.yaml")
+    tm = grid_tag_map(arena)
     poses = tmp_path / "poses.tum"
     summary = replay(
-        ARENA, tm, short_flight / "camera.yaml", short_flight / "frames.mkv", poses, 120.0, PipelineConfig(), None
+        arena, tm, short_flight / "camera.yaml", short_flight / "frames.mkv", poses, 120.0, PipelineConfig(), None
     )
     assert summary.frames == 60
     report = evaluate(read_tum(short_flight / "groundtruth.tum"), read_tum(poses))

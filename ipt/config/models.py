@@ -144,8 +144,43 @@ class TileConfig(StrictModel):
         return self.x_px <= u_px <= self.x_px + self.width_px and self.y_px <= v_px <= self.y_px + self.height_px
 
 
+MIN_TAG_SIZE_PX = 64
+"""Smallest side of a tag's black border square in projector pixels: 8 pixels per bit (tag36h11 is 8 cells
+across its border). Smaller cells blur into their neighbours through the projector's and camera's optics."""
+
+
+class LandingPadConfig(StrictModel):
+    """A square of small tags around a landing pad: what a camera 0.25 m above the floor can decode.
+
+    The big tags of the grid whose quiet zone reaches into the square are left out, and small tags (ids
+    after the grid's) fill it in rows, so that a drone on the pad sees several whole tags and one at 0.5 m
+    sees both sizes."""
+
+    name: str = Field(min_length=1, max_length=64, description="The pad's name (in messages).")
+    centre_m: tuple[float, float] = Field(description="Centre of the pad in arena metres (x, y; ENU).")
+    size_m: float = Field(0.8, gt=0, le=100, description="Side of the square of small tags, metres.")
+    tag_size_px: int = Field(
+        64,
+        ge=8,
+        description="Side of a small tag's black border square in projector pixels: a multiple of 8, at "
+        f"least {MIN_TAG_SIZE_PX} (8 projector pixels per bit). A quiet zone one cell wide surrounds it.",
+    )
+    gap_px: int = Field(8, ge=0, le=1024, description="Projector pixels between the quiet zones of two small tags.")
+
+    @model_validator(mode="after")
+    def _check(self) -> LandingPadConfig:
+        if self.tag_size_px % 8:
+            raise ValueError(f"tag_size_px must be a multiple of 8, got {self.tag_size_px}")
+        if self.tag_size_px < MIN_TAG_SIZE_PX:
+            raise ValueError(
+                f"landing pad '{self.name}': tags of {self.tag_size_px} px have {self.tag_size_px // 8} projector "
+                f"px per bit, fewer than 8 (tag_size_px must be at least {MIN_TAG_SIZE_PX})"
+            )
+        return self
+
+
 class TagMapConfig(StrictModel):
-    """The grid of AprilTags hidden in the video (the paper's Fig. 3)."""
+    """The grid of AprilTags hidden in the video (the paper's Fig. 3), and the landing pads' small tags."""
 
     family: Literal["tag36h11"] = Field("tag36h11", description="AprilTag family; only tag36h11 is supported.")
     rows: int = Field(9, ge=1, le=64, description="Number of tag rows, counted bottom to top.")
@@ -157,13 +192,27 @@ class TagMapConfig(StrictModel):
         "8 cells across its border). A white quiet zone one cell wide surrounds it.",
     )
     first_id: int = Field(0, ge=0, description="Id of the bottom-left tag; ids grow left to right, then up.")
+    pads: tuple[LandingPadConfig, ...] = Field(
+        (),
+        max_length=16,
+        description="Landing pads: squares of small tags in place of the big ones (ids after the grid's, pad "
+        "by pad, each pad's rows bottom to top, left to right). None: the paper's grid alone.",
+    )
 
     @model_validator(mode="after")
     def _check(self) -> TagMapConfig:
         if self.tag_size_px % 8:
             raise ValueError(f"tag_size_px must be a multiple of 8, got {self.tag_size_px}")
+        if self.tag_size_px < MIN_TAG_SIZE_PX:
+            raise ValueError(
+                f"tags of {self.tag_size_px} px have {self.tag_size_px // 8} projector px per bit, fewer than 8 "
+                f"(tag_size_px must be at least {MIN_TAG_SIZE_PX})"
+            )
         if self.first_id + self.rows * self.cols > 587:
             raise ValueError("tag36h11 has 587 ids: first_id + rows * cols must not exceed 587")
+        names = [p.name for p in self.pads]
+        if len(set(names)) != len(names):
+            raise ValueError("two landing pads have the same name")
         return self
 
 
@@ -238,7 +287,55 @@ class ArenaConfig(StrictModel):
             raise ValueError(
                 f"{tm.rows} rows of {tm.tag_size_px} px tags (plus quiet zone) do not fit in {pr.height_px} px"
             )
+        self._check_pads()
         return self
+
+    def pad_grid(self, pad: LandingPadConfig) -> tuple[tuple[int, int, int, int], tuple[int, int, float, float]]:
+        """Where the small tags of ``pad`` go: the grid's cells (col0, col1, row0, row1: half-open ranges,
+        rows counted bottom to top) whose big tags they replace, every cell the pad's square reaches into;
+        and (cols, rows, left_px, top_px) of the small tags that fill those cells, the block centred in
+        them, left/top the projector pixel edges of its top-left quiet zone."""
+        pr, sc, tm = self.projector, self.screen, self.tag_map
+        px_per_m_x, px_per_m_y = pr.width_px / sc.width_m, pr.height_px / sc.height_m
+        pitch_x, pitch_y = pr.width_px / tm.cols, pr.height_px / tm.rows
+        half = pad.size_m / 2
+        u0 = pr.width_px / 2 + (pad.centre_m[0] - half) * px_per_m_x
+        u1 = pr.width_px / 2 + (pad.centre_m[0] + half) * px_per_m_x
+        y0 = pr.height_px / 2 + (pad.centre_m[1] - half) * px_per_m_y  # pixels up from the bottom edge
+        y1 = pr.height_px / 2 + (pad.centre_m[1] + half) * px_per_m_y
+        col0, col1 = max(0, math.floor(u0 / pitch_x)), min(tm.cols, math.ceil(u1 / pitch_x))
+        row0, row1 = max(0, math.floor(y0 / pitch_y)), min(tm.rows, math.ceil(y1 / pitch_y))
+        pitch = pad.tag_size_px * 10 // 8 + pad.gap_px
+        hole_w, hole_h = (col1 - col0) * pitch_x, (row1 - row0) * pitch_y
+        cols, rows = int((hole_w - pad.gap_px) // pitch), int((hole_h - pad.gap_px) // pitch)
+        block_w, block_h = cols * pitch - pad.gap_px, rows * pitch - pad.gap_px
+        left = round(col0 * pitch_x + (hole_w - block_w) / 2)
+        top = round(pr.height_px - row1 * pitch_y + (hole_h - block_h) / 2)
+        return (col0, col1, row0, row1), (max(cols, 0), max(rows, 0), float(left), float(top))
+
+    def _check_pads(self) -> None:
+        """Every pad on the screen, no two overlapping, enough tag36h11 ids for their tags."""
+        half_w, half_h = self.screen.width_m / 2, self.screen.height_m / 2
+        squares: list[tuple[float, float, float]] = []
+        n_small = 0
+        for pad in self.tag_map.pads:
+            x, y = pad.centre_m
+            s = pad.size_m / 2
+            if not (-half_w <= x - s and x + s <= half_w and -half_h <= y - s and y + s <= half_h):
+                raise ValueError(
+                    f"landing pad '{pad.name}' ({pad.size_m:g} m square at {x:g}, {y:g}) is off the screen "
+                    f"(x within ±{half_w:g} m, y within ±{half_h:g} m)"
+                )
+            cols, rows, _, _ = self.pad_grid(pad)[1]
+            if min(cols, rows) < 1:
+                raise ValueError(f"landing pad '{pad.name}': not one of its tags fits in the grid cells it covers")
+            for other, (ox, oy, os_) in zip(self.tag_map.pads, squares, strict=False):
+                if abs(x - ox) < s + os_ and abs(y - oy) < s + os_:
+                    raise ValueError(f"landing pads '{other.name}' and '{pad.name}' overlap")
+            squares.append((x, y, s))
+            n_small += cols * rows
+        if n_small and self.tag_map.first_id + self.tag_map.rows * self.tag_map.cols + n_small > 587:
+            raise ValueError(f"tag36h11 has 587 ids: the grid and the landing pads' {n_small} small tags need more")
 
 
     def _check_tiles(self) -> None:
@@ -487,8 +584,9 @@ class PoseConfig(StrictModel):
         "velocity fit over the last 0.15 s) put the camera at its capture time is rejected as doubtful. "
         "It catches the tilt/translation ambiguity of a view with few tags, where a 2° tilt error moves "
         "the position several centimetres. Until there are enough recent poses to predict from (the start, "
-        "after a gap), a pose goes out only if its own position uncertainty is within this bound. None turns "
-        "the gate off.",
+        "after a gap), a pose goes out only if its own position uncertainty is within this bound. Stated for "
+        "heights up to 0.8 m; above, the bound grows with the height (3 times at 2.4 m), as a pixel's floor "
+        "distance does. None turns the gate off.",
     )
     outlier_tag_px: float | None = Field(
         None,

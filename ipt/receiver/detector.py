@@ -114,8 +114,11 @@ def pupil_settings(det: Any) -> dict[str, float]:
     }
 
 
-def pupil_detect(det: Any, gray: npt.NDArray[np.uint8]) -> list[RawDetection]:
-    """Every tag36h11 decode the C detector finds in ``gray``, unfiltered."""
+def pupil_detect(det: Any, gray: npt.NDArray[np.uint8], decimate: float | None = None) -> list[RawDetection]:
+    """Every tag36h11 decode the C detector finds in ``gray``, unfiltered; with ``decimate``, quads are
+    looked for at that decimation from now on (the C detector reads it on every call)."""
+    if decimate is not None:
+        det.tag_detector_ptr.contents.quad_decimate = decimate
     return [
         (int(d.tag_id), int(d.hamming), float(d.decision_margin), np.asarray(d.corners, dtype=np.float64).reshape(4, 2))
         for d in det.detect(gray)
@@ -125,7 +128,7 @@ def pupil_detect(det: Any, gray: npt.NDArray[np.uint8]) -> list[RawDetection]:
 class Backend(Protocol):
     """Where the C detector runs: :class:`InlineBackend` or :class:`ipt.receiver.tagworker.ProcessBackend`."""
 
-    def detect_raw(self, gray: npt.NDArray[np.uint8]) -> list[RawDetection]: ...
+    def detect_raw(self, gray: npt.NDArray[np.uint8], decimate: float | None = None) -> list[RawDetection]: ...
 
     def settings(self) -> dict[str, float]: ...
 
@@ -137,10 +140,11 @@ class InlineBackend:
 
     def __init__(self, settings: dict[str, float]) -> None:
         self.det = make_pupil_detector(settings)
+        self.made_decimate = settings["quad_decimate"]
         self._finalizer = weakref.finalize(self, free_pupil_detector, self.det)
 
-    def detect_raw(self, gray: npt.NDArray[np.uint8]) -> list[RawDetection]:
-        return pupil_detect(self.det, gray)
+    def detect_raw(self, gray: npt.NDArray[np.uint8], decimate: float | None = None) -> list[RawDetection]:
+        return pupil_detect(self.det, gray, decimate or self.made_decimate)
 
     def settings(self) -> dict[str, float]:
         return pupil_settings(self.det)
@@ -183,15 +187,16 @@ class TagDetector:
         with self._lock:
             return self.backend.settings()
 
-    def detect(self, gray: npt.NDArray[np.uint8]) -> tuple[TagDetection, ...]:
-        """Decode the tags in an 8-bit single-channel image."""
+    def detect(self, gray: npt.NDArray[np.uint8], decimate: float | None = None) -> tuple[TagDetection, ...]:
+        """Decode the tags in an 8-bit single-channel image; ``decimate`` overrides the configured
+        ``quad_decimate`` for this call (small tags in the image need less)."""
         if gray.ndim != 2 or gray.dtype != np.uint8:
             raise DetectorError(f"expected an H×W uint8 image, got {gray.shape} {gray.dtype}")
         out = []
         h, w = gray.shape
         m = self.cfg.border_margin_px
         with self._lock:
-            raw = self.backend.detect_raw(np.ascontiguousarray(gray))
+            raw = self.backend.detect_raw(np.ascontiguousarray(gray), decimate)
         for tag_id, hamming, margin, corners_at in raw:
             if hamming > self.cfg.max_hamming:
                 continue

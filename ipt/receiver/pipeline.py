@@ -53,6 +53,7 @@ from ipt.receiver.framecheck import RESTARTS, frame_problem
 from ipt.receiver.imagealign import AlignTarget, alignment_features, floor_warp_between, warp_image
 from ipt.receiver.motion import MotionTrack, floor_warp
 from ipt.receiver.pose import PoseEstimate, solve_pose
+from ipt.receiver.scales import DetectScale, ScaleChooser, gate_growth
 from ipt.receiver.track import (
     MapEdges,
     MaskRenderer,
@@ -185,6 +186,9 @@ class Pipeline:
             search_px=t.search_px * scale, min_inliers=t.min_inliers, rolling_shutter=t.rolling_shutter
         )
         self.detector = TagDetector(cfg.detector, known_ids=tag_map.by_id)
+        base = DetectScale(ksize_for(demod.blur_ksize, camera.width_px), cfg.detector.quad_decimate)
+        self.scales = ScaleChooser(tag_map, camera.fx_px, min(size), base)
+        """Filter and decimation sizes for AprilTag, from the height the camera was last seen at."""
         self.lookahead = demod.lookahead_frames if self.ipt else 0
         self._history: deque[_Frame] = deque(maxlen=HISTORY)
         self._pending: deque[_Frame] = deque()
@@ -474,9 +478,9 @@ class Pipeline:
         tracked: TrackResult | None = None
         if self.tracking and guess is not None:
             init, close = guess
-            tracked = self._track_from(diff, init if close else self._coarse(diff, init))
+            tracked = self._track_from(diff, init if close else self._coarse(diff, init), target.signal)
             if tracked is None and close:  # the partner's pose or the pair's homography was off: search
-                tracked = self._track_from(diff, self._coarse(diff, init))
+                tracked = self._track_from(diff, self._coarse(diff, init), target.signal)
             t0 = self._lap("track", t0)
             if tracked is None:
                 reason = "lost"
@@ -508,6 +512,7 @@ class Pipeline:
             target.best = candidate
             target.rt = candidate.rt
             p = candidate.pose
+            self.scales.seen_at(float(p.position_m[2]))
             self._guide.add(target.time_us, p.position_m, p.r_arena_cam, float(np.linalg.norm(p.position_std_m)))
 
     def _lost(self, target: _Frame) -> bool:
@@ -520,7 +525,11 @@ class Pipeline:
         rt = (tracked.rvec, tracked.tvec)
         return _Candidate(pose, rt, len(tracked.tags), "track", partner, tracked.inlier_fraction)
 
-    def _track_from(self, diff: PairDifference, init: tuple[F64, F64]) -> TrackResult | None:
+    def _track_from(self, diff: PairDifference, init: tuple[F64, F64], lit: U8 | None = None) -> TrackResult | None:
+        """The pose from the map's edges on ``diff`` from ``init``; only where ``lit`` (the target frame's
+        signal mask) too, if given: samples in the drone's shadow find no step, and counted as tried they
+        would sink the inlier fraction of a right pose once the shadow fills most of the view (a landing
+        drone)."""
         assert self.edges is not None
         if diff.noise is None:
             diff.noise = slope_noise(diff.diff, diff.valid)
@@ -532,7 +541,7 @@ class Pipeline:
             init[1],
             self.track_settings,
             None,
-            diff.valid,
+            diff.valid if lit is None else np.minimum(diff.valid, lit),
             noise=diff.noise,
         )
         t = self.cfg.pose.track
@@ -587,11 +596,10 @@ class Pipeline:
 
     def _acquire(self, target: _Frame, other: _Frame, diff: PairDifference) -> _Candidate | None:
         """AprilTag on the pair's difference, then (tracking) the map's edges from its pose; None: no pose."""
-        ksize = ksize_for(self.cfg.demodulation.blur_ksize, self.camera.width_px)
         first = self._predicted_phase(target) or 1
-        for sign in (first, -first):
+        for scale, sign in ((s, sign) for s in self.scales.to_try() for sign in (first, -first)):
             self.detector_runs += 1
-            dets = self.detector.detect(binarise_difference(diff, sign, ksize))
+            dets = self.detector.detect(binarise_difference(diff, sign, scale.ksize), scale.decimate)
             if len(dets) < self.cfg.pose.min_tags:
                 continue
             target.phase, other.phase = sign, -sign
@@ -603,7 +611,7 @@ class Pipeline:
             rvec, _ = cv2.Rodrigues(r_cam)
             start = (np.asarray(rvec, np.float64).reshape(3), -r_cam @ pose.position_m)
             if self.tracking:
-                refined = self._track_from(diff, self._coarse(diff, start))
+                refined = self._track_from(diff, self._coarse(diff, start), target.signal)
                 if refined is not None:
                     self._since_verify = 0
                     return self._candidate(refined, other.index)
@@ -613,10 +621,12 @@ class Pipeline:
     def _verified(self, tracked: TrackResult, diff: PairDifference, t0: float) -> bool:
         """AprilTag's view of the frame agrees with the track (or sees too little to say)."""
         self._since_verify = 0
-        ksize = ksize_for(self.cfg.demodulation.blur_ksize, self.camera.width_px)
+        r_cam, _ = cv2.Rodrigues(tracked.rvec)
+        position = -r_cam.T @ tracked.tvec
+        scale = self.scales.at(float(position[2]))
         self.detector_runs += 1
         try:
-            dets = self.detector.detect(binarise_difference(diff, tracked.sign, ksize))
+            dets = self.detector.detect(binarise_difference(diff, tracked.sign, scale.ksize), scale.decimate)
         except DetectorError:
             self._detector_failed = True  # reported with the next result that comes out; the track goes on
             return True
@@ -627,8 +637,6 @@ class Pipeline:
         pose = solve_pose(dets, self.tag_map, self.pinhole, self.cfg.pose)
         if pose is None:
             return True
-        r_cam, _ = cv2.Rodrigues(tracked.rvec)
-        position = -r_cam.T @ tracked.tvec
         return float(np.linalg.norm(position - pose.position_m)) < 0.05
 
     # -- gates ----------------------------------------------------------------------------------------
@@ -637,13 +645,14 @@ class Pipeline:
         """Why ``pose`` disagrees with the recent motion (the reason counted), or None if it does not."""
         cfg = self.cfg.pose
         if cfg.max_prediction_error_m is not None:
+            bound_m = cfg.max_prediction_error_m * gate_growth(float(pose.position_m[2]))
             predicted = self._track.pose_at(t_us)
             if predicted is None:
                 # Nothing to check it against yet (the start, or after a gap): only a pose whose own
                 # uncertainty is within the same bound goes out; the rest only feed the track.
-                if float(np.linalg.norm(pose.position_std_m)) > cfg.max_prediction_error_m:
+                if float(np.linalg.norm(pose.position_std_m)) > bound_m:
                     return "unconfirmed"
-            elif float(np.linalg.norm(pose.position_m - predicted[0])) > cfg.max_prediction_error_m:
+            elif float(np.linalg.norm(pose.position_m - predicted[0])) > bound_m:
                 return "inconsistent"
         if cfg.max_speed_mps is not None and self._accepted:
             last_us, last = min(self._accepted, key=lambda a: abs(a[0] - t_us))

@@ -13,7 +13,8 @@ The image crosses in shared memory (a ``memfd`` both processes map); the request
 cross the helper's stdin and stdout as little-endian binary::
 
     helper -> parent, once ready:  b"IPTW", u32 n, n bytes of JSON (the settings the C detector holds)
-    parent -> helper, per image:   u32 height, u32 width   (the image, row-major, is in shared memory)
+    parent -> helper, per image:   u32 height, u32 width, f64 quad_decimate (0: as made)
+                                   (the image, row-major, is in shared memory)
     helper -> parent, per image:   u32 count, count x (i32 id, i32 hamming, f64 margin, 8 x f64 corners)
 
 A helper ends when its stdin closes: when the parent closes it, exits, or is killed. The parent decides
@@ -52,7 +53,7 @@ from ipt.receiver.detector import (
 
 MAGIC: Final = b"IPTW"
 _U32: Final = struct.Struct("<I")
-_REQUEST: Final = struct.Struct("<II")
+_REQUEST: Final = struct.Struct("<IId")
 _RECORD: Final = struct.Struct("<iid8d")
 
 START_TIMEOUT_S: Final = 60.0
@@ -137,7 +138,7 @@ def serve(shm_fd: int, settings: dict[str, float], requests: int, replies: int) 
     pixels: npt.NDArray[np.uint8] = np.zeros(0, dtype=np.uint8)
     while True:
         try:
-            height, width = _REQUEST.unpack(_read_exact(requests, _REQUEST.size, None))
+            height, width, decimate = _REQUEST.unpack(_read_exact(requests, _REQUEST.size, None))
         except EOFError:
             return
         n = height * width
@@ -148,7 +149,8 @@ def serve(shm_fd: int, settings: dict[str, float], requests: int, replies: int) 
                 mapped.close()
             mapped = mmap.mmap(shm_fd, size)
             pixels = np.frombuffer(mapped, dtype=np.uint8)
-        _write_all(replies, encode_detections(pupil_detect(det, pixels[:n].reshape(height, width))))
+        dets = pupil_detect(det, pixels[:n].reshape(height, width), decimate or settings["quad_decimate"])
+        _write_all(replies, encode_detections(dets))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -392,7 +394,7 @@ class ProcessBackend:
         self._mapped = mmap.mmap(fd, size)
         self._pixels = np.frombuffer(self._mapped, dtype=np.uint8)
 
-    def detect_raw(self, gray: npt.NDArray[np.uint8]) -> list[RawDetection]:
+    def detect_raw(self, gray: npt.NDArray[np.uint8], decimate: float | None = None) -> list[RawDetection]:
         if not self._finalizer.alive:
             raise DetectorError("the detector was closed")
         height, width = gray.shape
@@ -401,7 +403,7 @@ class ProcessBackend:
         self._pixels[:n] = gray.reshape(-1)
         helper = self._helper()
         try:
-            _write_all(helper.requests, _REQUEST.pack(height, width))
+            _write_all(helper.requests, _REQUEST.pack(height, width, decimate or 0.0))
             deadline = time.monotonic() + self.reply_timeout_s
             (count,) = _U32.unpack(_read_exact(helper.replies, _U32.size, deadline))
             dets = decode_detections(count, _read_exact(helper.replies, count * _RECORD.size, deadline))

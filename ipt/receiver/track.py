@@ -33,6 +33,9 @@ I64 = npt.NDArray[np.int64]
 
 #: Where along each cell edge it is sampled (fractions of the edge).
 SAMPLE_FRACTIONS = (0.25, 0.75)
+#: Tags whose cells would be narrower than this in the image are left out: the difference's smoothing
+#: blurs their edges into each other (a landing pad's small tags seen from high up).
+MIN_CELL_PX = 2.5
 
 
 @dataclass(frozen=True)
@@ -60,6 +63,8 @@ class MapEdges:
     """(M,) the mask there: +1 white, -1 black."""
     cell_tag: I64
     """(M,) index of the cell's tag."""
+    tag_cell_m: F64 | None = None
+    """(T,) the cell side of each tag (a map of several tag sizes), metres; None: all :attr:`cell_m`."""
 
     @classmethod
     def from_tag_map(cls, tag_map: TagMap) -> MapEdges:
@@ -125,6 +130,7 @@ class MapEdges:
             np.concatenate(cell_pts),
             np.concatenate(cell_vals),
             np.concatenate(cell_owner),
+            np.asarray(cells, np.float64),
         )
 
 
@@ -211,6 +217,8 @@ def _select(edges: MapEdges, camera_matrix: F64, r: F64, t: F64, size: tuple[int
     uv[ahead] = (k[:2, :2] @ (centres[ahead, :2] / depth[ahead, None]).T).T + k[:2, 2]
     reach = k[0, 0] * edges.tag_radius_m / np.maximum(depth, 0.05)
     near = ahead & (uv[:, 0] > -reach) & (uv[:, 0] < w + reach) & (uv[:, 1] > -reach) & (uv[:, 1] < h + reach)
+    if edges.tag_cell_m is not None:
+        near &= k[0, 0] * edges.tag_cell_m / np.maximum(depth, 0.05) >= MIN_CELL_PX
     chosen = np.flatnonzero(near[edges.tag])
     if len(chosen) > most:
         chosen = chosen[np.linspace(0, len(chosen) - 1, most).astype(np.int64)]
