@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from ipt.config.camera_info import load_camera_info
-from ipt.config.models import ArenaConfig, PipelineConfig
+from ipt.config.models import PipelineConfig, load_arena_config
 from ipt.receiver.pipeline import FrameResult, Pipeline
 from ipt.tagmap import grid_tag_map
 from ipt.tum import read_tum
@@ -53,7 +53,7 @@ def test_bad_frames_give_no_pose_a_counted_reason_and_the_flight_goes_on(
 ) -> None:
     bad = _spoiled(frames)
     camera = load_camera_info(short_flight / "camera.yaml")
-    p = Pipeline(grid_tag_map(ArenaConfig()), camera, PipelineConfig(), 60.0)
+    p = Pipeline(grid_tag_map(load_arena_config(short_flight / "arena.yaml")), camera, PipelineConfig(), 60.0)
     out: list[FrameResult] = []
     try:
         for k, frame in enumerate(frames):
@@ -84,7 +84,7 @@ def test_bad_frames_give_no_pose_a_counted_reason_and_the_flight_goes_on(
 def test_a_gap_in_capture_times_is_named_and_pairing_starts_afresh(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]
     camera = load_camera_info(short_flight / "camera.yaml")
     cfg = PipelineConfig.model_validate({"demodulation": {"lookahead_frames": 0}})  # no later partners
-    p = Pipeline(grid_tag_map(ArenaConfig()), camera, cfg, 60.0)
+    p = Pipeline(grid_tag_map(load_arena_config(short_flight / "arena.yaml")), camera, cfg, 60.0)
     out: list[FrameResult] = []
     try:
         for k in range(30):  # frames 10..19 lost, and the flight resumes 0.3 s later than its frame times

