@@ -147,14 +147,17 @@ def test_chooser_tries_both_tag_sizes_and_cycles_the_rest(shipped_map: TagMap) -
     assert len(both) == 2
     assert both[0] == BASE
     assert both[1].ksize < BASE.ksize
-    cycle = [tuple(chooser.to_try()) for _ in range(6)]
-    assert all(c[:2] == tuple(both) and len(c) == 3 for c in cycle), "before any pose: 0.8 m, and one more"
-    assert len({c[2] for c in cycle}) >= 2, "lost without a height: other scales in turn"
+    tries = [chooser.to_try(frame) for frame in range(8)]
+    assert all(len(t) == 1 for t in tries), "one detector scale a frame: a lost frame stays cheap"
+    assert [t[0] for t in tries[:2]] == both, "before any pose: the scales of 0.8 m first"
+    assert len({t[0] for t in tries}) >= 3, "lost without a height: other scales in turn"
+    assert chooser.to_try(7) == tries[7], "every attempt on one frame (another partner) gets its scale"
     chooser.seen_at(2.5)  # the small tags' 1.7 px cells are not worth a run
-    tries = chooser.to_try()
-    assert tries[0] == chooser.at(2.5)
-    assert len(tries) == 2
+    tries = [chooser.to_try(frame)[0] for frame in range(8, 11)]
+    assert tries[0] == chooser.at(2.5), "after a pose, the next frame starts from its height"
     assert tries[1] != tries[0]
+    chooser.forget()
+    assert chooser.to_try(11)[0] == both[0], "a gap forgets the height: 0.8 m again"
 
 
 def test_track_leaves_out_tags_too_small_to_see(shipped_map: TagMap) -> None:

@@ -601,3 +601,13 @@ def test_luma_lightness_matches_cielab_on_grey_and_stays_close_on_colour() -> No
     colours = np.random.default_rng(4).integers(0, 256, (64, 64, 3), dtype=np.uint8)
     gap = np.abs(lightness(colours, "luma").astype(int) - lightness(colours, "cielab").astype(int))
     assert np.median(gap) <= 12
+
+
+def test_the_kept_grey_to_lightness_table_is_opencvs_conversion() -> None:
+    # The table is kept in the source so that a daemon's start-up skips OpenCV's first CIELAB conversion;
+    # it must stay exactly what that conversion gives for every grey level.
+    from ipt.receiver.demodulator import _LUMA_TO_L, _luma_to_lightness_table
+
+    assert _LUMA_TO_L.dtype == np.uint8
+    assert _LUMA_TO_L.shape == (256,)
+    np.testing.assert_array_equal(_LUMA_TO_L, _luma_to_lightness_table())

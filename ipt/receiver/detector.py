@@ -153,23 +153,32 @@ class InlineBackend:
         self._finalizer()
 
 
-def _isolated(cfg: DetectorConfig) -> Backend:
+def _isolated(cfg: DetectorConfig, wait: bool) -> Backend:
     """The C detector in a helper process where the system allows it (Linux), else in this one."""
     from ipt.receiver.tagworker import ProcessBackend, process_isolation_available
 
     if not process_isolation_available():
         return InlineBackend(c_settings(cfg))
-    return ProcessBackend(c_settings(cfg), recycle_mb=cfg.recycle_mb)
+    return ProcessBackend(c_settings(cfg), recycle_mb=cfg.recycle_mb, wait=wait)
 
 
 class TagDetector:
     """A configured tag36h11 detector that keeps only ids of the map and trustworthy decodes."""
 
-    def __init__(self, cfg: DetectorConfig, known_ids: Iterable[int] | None = None) -> None:
+    def __init__(self, cfg: DetectorConfig, known_ids: Iterable[int] | None = None, *, wait: bool = True) -> None:
+        """``wait=False``: a helper process may still be starting on return (see :meth:`wait_ready`)."""
         self.cfg = cfg
         self.known_ids = None if known_ids is None else frozenset(known_ids)
-        self.backend: Backend = InlineBackend(c_settings(cfg)) if cfg.isolation == "inline" else _isolated(cfg)
+        inline = cfg.isolation == "inline"
+        self.backend: Backend = InlineBackend(c_settings(cfg)) if inline else _isolated(cfg, wait)
         self._lock = threading.Lock()
+
+    def wait_ready(self) -> None:
+        """Return once the detector can take a frame; :class:`DetectorError` if its helper did not start."""
+        wait = getattr(self.backend, "wait_ready", None)
+        if wait is not None:
+            with self._lock:
+                wait()
 
     @property
     def isolated(self) -> bool:

@@ -168,6 +168,9 @@ class Pipeline:
     def __init__(self, tag_map: TagMap, camera: CameraInfo, cfg: PipelineConfig, projector_hz: float = 60.0) -> None:
         self.tag_map, self.camera, self.cfg = tag_map, camera, cfg
         self.projector_hz = projector_hz
+        # First: its helper process imports for a few tenths of a second while the rest is set up here (a
+        # restarted daemon's first pose comes that much sooner).
+        self.detector = TagDetector(cfg.detector, known_ids=tag_map.by_id, wait=False)
         demod = cfg.demodulation
         self.ipt = demod.alignment == "gradient"
         self.tracking = self.ipt and cfg.pose.method == "track"
@@ -185,7 +188,6 @@ class Pipeline:
         self.track_settings = TrackSettings(
             search_px=t.search_px * scale, min_inliers=t.min_inliers, rolling_shutter=t.rolling_shutter
         )
-        self.detector = TagDetector(cfg.detector, known_ids=tag_map.by_id)
         base = DetectScale(ksize_for(demod.blur_ksize, camera.width_px), cfg.detector.quad_decimate)
         self.scales = ScaleChooser(tag_map, camera.fx_px, min(size), base)
         """Filter and decimation sizes for AprilTag, from the height the camera was last seen at."""
@@ -205,6 +207,7 @@ class Pipeline:
         self.stage_seconds: dict[str, float] = defaultdict(float)
         """Processor time spent per stage, for benchmarks."""
         self.detector_runs = 0
+        self.detector.wait_ready()
 
     def close(self) -> None:
         """End the detector (and its helper process) now rather than when this object is collected."""
@@ -598,7 +601,7 @@ class Pipeline:
     def _acquire(self, target: _Frame, other: _Frame, diff: PairDifference) -> _Candidate | None:
         """AprilTag on the pair's difference, then (tracking) the map's edges from its pose; None: no pose."""
         first = self._predicted_phase(target) or 1
-        for scale, sign in ((s, sign) for s in self.scales.to_try() for sign in (first, -first)):
+        for scale, sign in ((s, sign) for s in self.scales.to_try(target.index) for sign in (first, -first)):
             self.detector_runs += 1
             dets = self.detector.detect(binarise_difference(diff, sign, scale.ksize), scale.decimate)
             if len(dets) < self.cfg.pose.min_tags:

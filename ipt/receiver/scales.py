@@ -93,15 +93,17 @@ def scale_at_height(
 
 
 class ScaleChooser:
-    """The scales to try for a frame: the one for the last known height first, and while that finds
-    nothing, one more from a cycle of heights per attempt."""
+    """The scale to try for each acquisition attempt: those for the last known height first, and while
+    they find nothing, the others from a cycle of heights, one an attempt."""
 
     def __init__(self, tag_map: TagMap, focal_px: float, short_side_px: int, base: DetectScale) -> None:
         self.cells_m = tag_cells_m(tag_map)
         self.focal_px, self.short_side_px, self.base = focal_px, short_side_px, base
         self.height_m: float | None = None
         """The last height a pose was found at (m), or None."""
-        self._turn = 0
+        self._turn = -1
+        """The place in the cycle of :meth:`to_try` (-1: the next frame starts it)."""
+        self._frame: int | None = None
         self._search = self._unique([self.at(h) for h in SEARCH_HEIGHTS_M])
 
     @staticmethod
@@ -120,10 +122,12 @@ class ScaleChooser:
         """A pose was found at ``height_m``: the next frames start from its scale."""
         if math.isfinite(height_m) and height_m > 0:
             self.height_m = height_m
+            self._turn = -1
 
     def forget(self) -> None:
         """After a gap or a jump in the video: the height is unknown again (search as at the start)."""
         self.height_m = None
+        self._turn = -1
 
     def sizes_at(self, height_m: float) -> list[DetectScale]:
         """A scale for each tag size of the map that can be decoded from ``height_m`` (whole in the image,
@@ -137,14 +141,17 @@ class ScaleChooser:
                 out.append(scale_for_cell(cell_px, self.base))
         return self._unique(out)
 
-    def to_try(self) -> list[DetectScale]:
-        """The scales for an acquisition attempt: one per tag size at the known height (before any pose:
-        at :data:`START_HEIGHT_M`), and while that leaves room for fewer than two (or before any pose),
-        one more from the cycle of heights."""
-        height = self.height_m if self.height_m is not None else START_HEIGHT_M
-        out = self.sizes_at(height)[:2] or [self.at(height)]
-        others = [s for s in self._search if s not in out]
-        if (len(out) < 2 or self.height_m is None) and others:
-            out.append(others[self._turn % len(others)])
+    def to_try(self, frame: int) -> list[DetectScale]:
+        """The scale for acquiring ``frame``. Frames take turns over a cycle: each tag size decodable at
+        the last known height (before any pose: :data:`START_HEIGHT_M`), then the search heights. Every
+        attempt on one frame (its partners, both polarities) gets the same scale, so that the partner whose
+        phase is right meets every scale in turn. One scale a frame keeps a lost receiver's frames as cheap
+        as the single-scale receiver's (a live camera must not drop frames while it searches); the cycle
+        starts again from the known height after every pose, so a track that slips is found again at
+        once."""
+        if frame != self._frame:
+            self._frame = frame
             self._turn += 1
-        return out
+        height = self.height_m if self.height_m is not None else START_HEIGHT_M
+        cycle = self._unique((self.sizes_at(height) or [self.at(height)]) + self._search)
+        return [cycle[self._turn % len(cycle)]]

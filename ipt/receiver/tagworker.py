@@ -238,7 +238,10 @@ class ProcessBackend:
         reply_timeout_s: float = REPLY_TIMEOUT_S,
         warm_calls: int = WARM_CALLS,
         check_every: int = CHECK_EVERY,
+        wait: bool = True,
     ) -> None:
+        """``wait=False`` returns while the helper still starts (imports take a few tenths of a second):
+        the caller does its own set-up meanwhile and calls :meth:`wait_ready`, or the first call waits."""
         if not process_isolation_available():
             raise DetectorError("the detector's helper process needs Linux (memfd_create); use isolation: inline")
         self._settings = dict(settings)
@@ -257,7 +260,13 @@ class ProcessBackend:
         self._current: _Helper | None = None
         self._spare: _Helper | None = None
         self._current = self._start()
-        self._wait_ready(self._current)
+        if wait:
+            self._wait_ready(self._current)
+
+    def wait_ready(self) -> None:
+        """Wait for the current helper's greeting; :class:`DetectorError` if it did not start."""
+        if self._current is not None and self._current.settings is None:
+            self._wait_ready(self._current)
 
     # -- helpers' lives ------------------------------------------------------------------------------
 
@@ -358,6 +367,8 @@ class ProcessBackend:
             if helper.settings is None:
                 self._wait_ready(helper)
             self._current = helper
+        elif self._current.settings is None:
+            self._wait_ready(self._current)
         return self._current
 
     def _after_call(self, helper: _Helper) -> None:
