@@ -506,7 +506,12 @@ class TrackConfig(StrictModel):
         description="How far (pixels at 640 wide) each edge sample looks along its normal for its step.",
     )
     min_inliers: int = Field(
-        60, ge=10, le=10000, description="Fewest edge samples on their steps for a pose (two tags' worth)."
+        30,
+        ge=10,
+        le=10000,
+        description="Fewest edge samples on their steps for a pose (about one tag's worth: the cell check and "
+        "the inlier fraction reject a wrong pose, and a view mostly in the drone's shadow or cut by a "
+        "content change has few samples left).",
     )
     min_inlier_fraction: float = Field(
         0.15,
