@@ -1,8 +1,8 @@
 """Frame sources of the receiver daemon and the hand-over of their frames to the event loop.
 
-A source (:class:`VideoCapture` for a video file or an image folder, :class:`SimCapture`,
-:class:`DeviceCapture` for a V4L2 camera through OpenCV, :class:`PiCamera2Capture` for a Raspberry Pi
-camera) is plain blocking code:
+A source (:class:`VideoCapture` for a video file or an image folder, :class:`DeviceCapture` for a V4L2
+camera through OpenCV, :class:`PiCamera2Capture` for a Raspberry Pi camera, or one handed in from outside,
+such as the simulator's :class:`ipt.sim.capture.SimCapture`) is plain blocking code:
 ``open()``, then ``read()`` until it returns ``None`` (end of a recording), then ``close()``. A
 :class:`CaptureThread` runs it on its own thread, so no blocking read ever happens on the event loop,
 and hands each :class:`CapturedFrame` to a bounded :class:`FrameQueue` that the asyncio side reads.
@@ -41,24 +41,18 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Generic, Protocol, TextIO, TypeVar
+from typing import Any, Generic, Protocol, TextIO, TypeVar
 
 import cv2
 import numpy as np
 import numpy.typing as npt
-from pydantic import ValidationError
 
-from ipt.config.camera_info import CameraInfo
-from ipt.config.models import MAX_RATE_HZ, MIN_CAMERA_RATE_HZ, ArenaConfig, ConfigError
+from ipt.config.models import MAX_RATE_HZ, MIN_CAMERA_RATE_HZ
 from ipt.config.receiver import CameraControls
 from ipt.errors import IptError
 from ipt.ratelimit import LogThrottle
 from ipt.receiver.pixelformats import RAW_LUMA_FORMATS, PixelFormatError, raw_luma
-from ipt.sim.config import SimCameraConfig, SimConfig
 from ipt.videoio import FrameSource, open_frames
-
-if TYPE_CHECKING:  # the simulator plays the projector, so it uses sender code: import it only when used
-    from ipt.sim.arena import SimulatedArena
 
 U8 = npt.NDArray[np.uint8]
 T = TypeVar("T")
@@ -330,93 +324,6 @@ class VideoCapture:
             self._last_skipped = self._source.last_skipped
             self._source.close()
             self._source = None
-
-
-def sim_camera_from(camera: CameraInfo, fps: float) -> SimCameraConfig:
-    """The simulator's camera with the intrinsics of ``camera`` (so the receiver's model is exact)."""
-    dist = list(camera.distortion)
-    if len(dist) < 5:
-        dist += [0.0] * (5 - len(dist))
-    if any(dist[5:]):
-        raise ConfigError(f"{camera.name}: the simulator models plumb_bob distortion (5 coefficients) only")
-    try:
-        return SimCameraConfig(
-            width_px=camera.width_px,
-            height_px=camera.height_px,
-            fx_px=camera.fx_px,
-            fy_px=camera.fy_px,
-            cx_px=camera.cx_px,
-            cy_px=camera.cy_px,
-            distortion=(dist[0], dist[1], dist[2], dist[3], dist[4]),
-            fps=fps,
-        )
-    except ValidationError as exc:
-        raise ConfigError(f"the simulated camera cannot run this way: {exc.errors()[0]['msg']}") from None
-
-
-class SimCapture:
-    """Frames rendered live by the simulated arena; frame ``k`` is captured at ``k / fps``.
-
-    Rendering is done on the capture thread (building the arena takes a moment, so ``open`` does it).
-    With ``realtime`` frames are paced to the frame rate and treated as live; a renderer slower than
-    the frame rate simply delivers frames later than their time (every frame is rendered, none skipped).
-    """
-
-    retry_open = False
-
-    def __init__(
-        self,
-        arena: ArenaConfig,
-        sim_cfg: SimConfig,
-        fps: float | None = None,
-        realtime: bool = False,
-        *,
-        clock: Clock = time.monotonic,
-        sleep: Sleep = time.sleep,
-        grey: bool = False,
-    ) -> None:
-        self.grey = grey
-        """Hand over H×W luma frames (a colour camera's converted on the capture thread)."""
-        rate = fps if fps is not None else sim_cfg.camera.fps
-        if rate != sim_cfg.camera.fps:
-            try:
-                camera = SimCameraConfig.model_validate({**sim_cfg.camera.model_dump(), "fps": rate})
-            except ValidationError as exc:
-                raise ConfigError(f"the simulated camera cannot run at {rate} FPS: {exc.errors()[0]['msg']}") from None
-            sim_cfg = sim_cfg.model_copy(update={"camera": camera})
-        self.arena, self.sim_cfg, self.fps = arena, sim_cfg, rate
-        self.name = "sim"
-        self.live = realtime
-        self._clock = clock
-        self._pacer = Pacer(rate, clock, sleep) if realtime else None
-        self._world: SimulatedArena | None = None
-        self._next = 0
-
-    def open(self) -> None:
-        """Build the simulated arena (content, modulator, renderer)."""
-        if self._world is not None:
-            return
-        from ipt.sim.arena import SimulatedArena, scene_for
-
-        self._world = SimulatedArena(self.arena, self.sim_cfg, scene_for(self.sim_cfg, self.arena))
-        self.notes = tuple(self._world.notes)  # the capture thread reports them once
-
-    def read(self) -> CapturedFrame | None:
-        """The next frame (the simulator never ends)."""
-        world = self._world
-        if world is None:
-            raise CaptureError("sim: read before open")
-        k = self._next
-        self._next += 1
-        image = world.render(k).image_rgb
-        if self.grey and image.ndim == 3:
-            image = np.asarray(cv2.cvtColor(image, cv2.COLOR_RGB2GRAY), dtype=np.uint8)
-        if self._pacer is not None:
-            self._pacer.wait(k)
-        return CapturedFrame(k, capture_time_us(k, self.fps), image, self._clock())
-
-    def close(self) -> None:
-        """Nothing to release: the arena is kept for a reopen."""
 
 
 V4L2_EXPOSURE_MANUAL = 1

@@ -57,19 +57,17 @@ from ipt.config.receiver import ReceiverConfig, read_auth_key
 from ipt.protocol import ProtocolError
 from ipt.receiver.capture import (
     CapturedFrame,
+    CaptureError,
     CaptureSource,
     CaptureThread,
     DeviceCapture,
     FrameQueue,
     PiCamera2Capture,
-    SimCapture,
     VideoCapture,
-    sim_camera_from,
 )
 from ipt.receiver.outputs import PacketMaker, UdpPoseSender
 from ipt.receiver.pipeline import FrameResult, Pipeline
 from ipt.receiver.rosoutputs import RosOutputs
-from ipt.sim.config import SimCameraConfig, SimConfig
 from ipt.tagmap import grid_tag_map
 
 if TYPE_CHECKING:
@@ -223,7 +221,10 @@ def _write(out: TextIO, line: str) -> None:
 
 
 def make_source(cfg: ReceiverConfig, arena: ArenaConfig, camera: CameraInfo, stop: threading.Event) -> CaptureSource:
-    """The frame source ``cfg.source`` describes; its pacing sleeps end early when ``stop`` is set."""
+    """The frame source ``cfg.source`` describes; its pacing sleeps end early when ``stop`` is set.
+
+    The simulated camera (``sim``) is not made here (the receiver does not import the simulator): the
+    command line makes it (:func:`ipt.sim.capture.sim_source`) and hands it to :func:`run_daemon`."""
     spec = cfg.source_spec
     grey = cfg.pipeline.luminance_only  # frames as luma, without a detour through RGB
     if spec.kind in ("video", "images") and spec.path is not None:
@@ -237,9 +238,7 @@ def make_source(cfg: ReceiverConfig, arena: ArenaConfig, camera: CameraInfo, sto
         return DeviceCapture(spec.device, w, h, cfg.fps, controls=cfg.camera_controls, grey=grey)
     if spec.kind == "picamera2" and spec.device is not None:
         return PiCamera2Capture(spec.device, w, h, cfg.fps, controls=cfg.camera_controls, grey=grey)
-    fps = cfg.fps if cfg.fps is not None else SimCameraConfig().fps
-    sim = SimConfig(camera=sim_camera_from(camera, fps))
-    return SimCapture(arena, sim, fps, cfg.realtime, sleep=stop.wait, grey=grey)
+    raise CaptureError(f"source {cfg.source}: the simulated camera is handed to the daemon by the command line")
 
 
 async def run_daemon(
@@ -252,6 +251,7 @@ async def run_daemon(
     source: CaptureSource | None = None,
     on_result: ResultHook | None = None,
     on_processed: ProcessedHook | None = None,
+    capture_stop: threading.Event | None = None,
 ) -> DaemonStats:
     """Run the receiver until ``stop`` is set (or SIGTERM/SIGINT), the recording ends or ``max_frames``
     frames were captured. Statistics go to ``stats_out`` (default: stderr). Configuration problems raise
@@ -263,12 +263,16 @@ async def run_daemon(
     kernel: with the frame, its :class:`FrameResult` (``None`` if processing raised) and the number of
     datagrams sent for it. A result may come a few frames after its frame was processed (the pipeline's
     ``lookahead_frames``); ``on_processed`` is called once each frame was processed and the results that
-    became final with it were delivered, with the datagrams sent for them."""
+    became final with it were delivered, with the datagrams sent for them. ``capture_stop`` is the event
+    that stops the capture thread (default: a new one): a source handed in paces its sleeps on it (as
+    :func:`make_source` does), so that they end at once at shutdown."""
     loop = asyncio.get_running_loop()
     stop_event = stop if stop is not None else asyncio.Event()
     unroute = signals.route_to_loop(loop, lambda _sig: stop_event.set()) if handle_signals else None
     try:
-        return await _run_daemon(cfg, stop_event, stats_out, max_frames, source, on_result, on_processed)
+        return await _run_daemon(
+            cfg, stop_event, stats_out, max_frames, source, on_result, on_processed, capture_stop or threading.Event()
+        )
     finally:
         if unroute is not None:
             unroute()
@@ -282,6 +286,7 @@ async def _run_daemon(
     source: CaptureSource | None,
     on_result: ResultHook | None,
     on_processed: ProcessedHook | None,
+    capture_stop: threading.Event,
 ) -> DaemonStats:
     out = stats_out if stats_out is not None else sys.stderr
     loop = asyncio.get_running_loop()
@@ -290,7 +295,6 @@ async def _run_daemon(
     camera = load_camera_info(cfg.camera)
     key = read_auth_key(cfg.auth_key_file) if cfg.auth_key_file is not None else None
     pipeline = Pipeline(grid_tag_map(arena), camera, cfg.pipeline, projector_hz=arena.projector.rate_hz)
-    capture_stop = threading.Event()
     if source is None:
         source = make_source(cfg, arena, camera, capture_stop)
 
@@ -535,10 +539,17 @@ def _loop_factory() -> Callable[[], asyncio.AbstractEventLoop] | None:
     return uvloop.new_event_loop
 
 
-def run(cfg: ReceiverConfig, *, max_frames: int | None = None) -> DaemonStats:
-    """Run the daemon on a fresh event loop (uvloop when installed) until it stops."""
+def run(
+    cfg: ReceiverConfig,
+    *,
+    max_frames: int | None = None,
+    source: CaptureSource | None = None,
+    capture_stop: threading.Event | None = None,
+) -> DaemonStats:
+    """Run the daemon on a fresh event loop (uvloop when installed) until it stops (``source`` and
+    ``capture_stop`` as for :func:`run_daemon`)."""
     with asyncio.Runner(loop_factory=_loop_factory()) as runner:
-        return runner.run(run_daemon(cfg, max_frames=max_frames))
+        return runner.run(run_daemon(cfg, max_frames=max_frames, source=source, capture_stop=capture_stop))
 
 
 __all__ = ["DaemonStats", "LatencyHistogram", "make_source", "run", "run_daemon"]
