@@ -39,10 +39,10 @@ import sys
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Coroutine, Hashable
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Final, TextIO, TypeVar
+from typing import Any, Final, TextIO
 
 import numpy as np
 import numpy.typing as npt
@@ -59,6 +59,7 @@ from ipt.protocol import PacketFilter, PosePacket
 from ipt.receiver.capture import CapturedFrame, CaptureError, capture_time_us
 from ipt.receiver.daemon import DaemonStats, run_daemon
 from ipt.receiver.pipeline import FrameResult
+from ipt.runtime import line_writer, run_loop
 from ipt.sender.content import Scene
 from ipt.sender.modulator import frames_per_input
 from ipt.sender.scene import ArScene
@@ -71,7 +72,6 @@ from ipt.tagmap import TagMap, grid_tag_map
 from ipt.tum import Trajectory, write_tum
 
 U8 = npt.NDArray[np.uint8]
-T = TypeVar("T")
 
 KEEP_FRAMES: Final = 8
 """Output frames the in-memory projector keeps (an exposure needs the newest one or two)."""
@@ -529,15 +529,6 @@ class _Status:
             self._pending_newline = False
 
 
-def _log_to(stream: TextIO) -> Callable[[str], None]:
-    def log(line: str) -> None:
-        with contextlib.suppress(OSError, ValueError):
-            stream.write(line + "\n")
-            stream.flush()
-
-    return log
-
-
 async def closed_loop(
     arena_path: Path,
     seconds: float,
@@ -615,7 +606,7 @@ async def closed_loop(
                 listen=(LISTEN_HOST, 0),
                 packet_filter=_CountingFilter(lockstep),
                 ar_scene=ArScene(arena),
-                log=_log_to(sender_log),
+                log=line_writer(sender_log),
                 install_signal_handlers=False,
                 stop=sender_stop,
                 overlay_clock=clock.now,
@@ -796,16 +787,6 @@ def write_results(run: DemoRun, out: Path) -> str | None:
     return format_table(report)
 
 
-def _run_loop(make: Callable[[], Coroutine[Any, Any, T]]) -> T:
-    """Run a coroutine on uvloop where it is available, else on asyncio's own loop."""
-    try:
-        import uvloop
-    except ImportError:
-        return asyncio.run(make())
-    with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
-        return runner.run(make())
-
-
 def run_demo(arena_path: Path, seconds: float, out: Path, seed: int = 0, sim: SimConfig | None = None) -> int:
     """``ipt demo``: the closed loop, then the paper's table on stdout and the results in ``out``.
 
@@ -820,7 +801,7 @@ def run_demo(arena_path: Path, seconds: float, out: Path, seed: int = 0, sim: Si
         f"(results -> {out})\nipt demo: the flight: {describe_flight(flight)}",
         flush=True,
     )
-    run = _run_loop(lambda: closed_loop(arena_path, seconds, out, seed, sim=flight, status=sys.stderr))
+    run = run_loop(closed_loop(arena_path, seconds, out, seed, sim=flight, status=sys.stderr))
     table = write_results(run, out)
     s = summary_dict(run)
     print(
