@@ -261,6 +261,6 @@ def test_no_import_cycle_among_module_level_imports() -> None:
 
 def test_no_import_cycle_in_the_receiver_counting_function_level_imports() -> None:
     """In the receiver, no cycle even when the imports inside functions are counted (the detector and its
-    helper process's module share the C wrapper, :mod:`ipt.receiver.apriltag`, instead of each other)."""
+    helper process's module share the C wrapper, :mod:`ipt.receiver.apriltag_c`, instead of each other)."""
     edges = [ImportEdge(e.source, e.target, e.line, True) for e in all_imports() if _under(e.source, "ipt.receiver")]
     assert import_cycles(edges) == []

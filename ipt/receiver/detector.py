@@ -7,10 +7,10 @@ Corner order is AprilTag's (see :mod:`ipt.tagmap`), which the tag map uses for i
 The C detector runs either here (``isolation: inline``) or in a helper process that
 :mod:`ipt.receiver.tagworker` manages (``isolation: process``, the default): pupil-apriltags 1.0.4's C
 code leaks memory on every call, and only ending the process gives it back. :class:`DetectorError` and
-:data:`RawDetection` come from :mod:`ipt.receiver.apriltag` and are re-exported here. Both give the same
+:data:`RawDetection` come from :mod:`ipt.receiver.apriltag_c` and are re-exported here. Both give the same
 detections; the filtering below (bit errors, ids, image border) is the same for both.
 
-The C library itself is called in :mod:`ipt.receiver.apriltag`, which both this module and the helper
+The C library itself is called in :mod:`ipt.receiver.apriltag_c`, which both this module and the helper
 process import (the helper does not import this module).
 """
 
@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from ipt.receiver.apriltag import (
+from ipt.receiver.apriltag_c import (
     DetectorError,
     RawDetection,
     free_pupil_detector,
