@@ -264,3 +264,43 @@ def test_no_import_cycle_in_the_receiver_counting_function_level_imports() -> No
     helper process's module share the C wrapper, :mod:`ipt.receiver.apriltag_c`, instead of each other)."""
     edges = [ImportEdge(e.source, e.target, e.line, True) for e in all_imports() if _under(e.source, "ipt.receiver")]
     assert import_cycles(edges) == []
+
+
+def _reason_literals(path: Path) -> set[str]:
+    """The texts a module gives as a frame's reason: the fifth argument of ``FrameResult(...)``, what is
+    assigned to ``reason`` (or unpacked into it), and what a ``..._problem`` or ``_doubtful`` function returns."""
+    found: set[str] = set()
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+
+    def text(node: ast.AST) -> None:
+        if isinstance(node, ast.Constant) and isinstance(node.value, str):
+            found.add(node.value)
+        elif isinstance(node, ast.IfExp):  # "first_frame" if ... else "no_tags"
+            text(node.body)
+            text(node.orelse)
+
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "FrameResult" and len(node.args) >= 5:
+            text(node.args[4])
+        elif isinstance(node, ast.Assign):
+            for target in node.targets:
+                if isinstance(target, ast.Name) and target.id == "reason":
+                    text(node.value)
+                elif isinstance(target, ast.Tuple) and isinstance(node.value, ast.Tuple):
+                    for t, v in zip(target.elts, node.value.elts, strict=False):
+                        if isinstance(t, ast.Name) and t.id == "reason":
+                            text(v)
+        elif isinstance(node, ast.FunctionDef) and (node.name.endswith("_problem") or node.name == "_doubtful"):
+            for ret in ast.walk(node):
+                if isinstance(ret, ast.Return) and ret.value is not None:
+                    text(ret.value)
+    return found
+
+
+def test_every_reason_the_receiver_gives_is_a_frame_reason() -> None:
+    from ipt.receiver.reasons import FrameReason
+
+    receiver = PACKAGE / "receiver"
+    found = set().union(*(_reason_literals(receiver / n) for n in ("pipeline.py", "gates.py", "framecheck.py")))
+    assert {"pose", "first_frame", "no_tags", "time_gap", "dark", "motion_jump"} <= found  # the scan finds them
+    assert found - {r.value for r in FrameReason} == set()
