@@ -36,10 +36,8 @@ import contextlib
 import json
 import math
 import sys
-import threading
 import time
-from collections import OrderedDict
-from collections.abc import Callable, Hashable
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Final, TextIO
@@ -52,342 +50,37 @@ from ipt import signals
 from ipt.config.camera_info import save_camera_info
 from ipt.config.models import ArenaConfig, load_arena_config
 from ipt.config.receiver import ReceiverConfig
-from ipt.errors import IptError
 from ipt.fileio import write_text_atomic
 from ipt.geometry import quat_wxyz_from_matrix
-from ipt.protocol import PacketFilter, PosePacket
-from ipt.receiver.capture import CapturedFrame, CaptureError, capture_time_us
+from ipt.receiver.capture import CapturedFrame
 from ipt.receiver.daemon import DaemonStats, run_daemon
 from ipt.receiver.pipeline import FrameResult
 from ipt.runtime import line_writer, run_loop
-from ipt.sender.content import Scene
 from ipt.sender.modulator import frames_per_input
 from ipt.sender.scene import ArScene
 from ipt.sender.server import SenderStats, run_sender
-from ipt.sim.arena import SimulatedArena, scene_for
-from ipt.sim.config import SimConfig, apply_arena_changes, describe_flight
-from ipt.sim.flight import FlightState
+from ipt.sim.arena import scene_for
+from ipt.sim.config import SimCameraConfig, SimConfig, apply_arena_changes, describe_flight
+from ipt.sim.lockstep import (
+    ClosedLoopArena,
+    ClosedLoopCapture,
+    DemoError,
+    Lockstep,
+    LockstepProjector,
+    SimClock,
+    _CountingFilter,
+)
 from ipt.sim.render import camera_info_of
 from ipt.tagmap import TagMap, grid_tag_map
 from ipt.tum import Trajectory, write_tum
 
 U8 = npt.NDArray[np.uint8]
 
-KEEP_FRAMES: Final = 8
-"""Output frames the in-memory projector keeps (an exposure needs the newest one or two)."""
 STATUS_EVERY_S: Final = 1.0
 """Wall-clock interval of the status line."""
-FRAME_TIMEOUT_S: Final = 120.0
-"""Longest wait for the sender to make one projector frame (it takes well under a second)."""
-RESULT_TIMEOUT_S: Final = 120.0
-"""Longest wait for the receiver to finish one camera frame."""
-PACKET_TIMEOUT_S: Final = 2.0
-"""Longest wait for the sender to take in a pose packet sent over loopback; later it counts as lost."""
 LISTEN_HOST: Final = "127.0.0.1"
 RESULT_NAMES: Final = ("summary.txt", "errors.png", "report.json", "poses.tum", "groundtruth.tum")
 """What a run writes in its results folder (besides camera.yaml and the two logs)."""
-
-
-class DemoError(IptError):
-    """The closed loop cannot run as asked, or one of its parts failed."""
-
-
-class _Stopped(Exception):
-    """The run is being stopped: the camera gives up the frame it was making."""
-
-
-# --- the simulated clock -----------------------------------------------------------------------------
-
-
-class SimClock:
-    """Simulated seconds: set by the camera before each frame, read by the sender's overlay."""
-
-    def __init__(self) -> None:
-        self._t = 0.0
-
-    def now(self) -> float:
-        return self._t
-
-    def set(self, t_s: float) -> None:
-        self._t = t_s
-
-
-# --- the projector: the sender's sink, and the gate on its content -----------------------------------
-
-
-class LockstepProjector:
-    """The sender's output frames, made when the simulated camera first needs them.
-
-    As a sink (:class:`ipt.sender.display.Sink`) it keeps the newest ``keep`` output frames by index;
-    not paced (the camera sets the pace), not threaded (``show`` only stores the frame). :meth:`gated`
-    wraps the sender's content so that its render thread takes input frame ``i`` only once
-    :meth:`frame` asked for an output frame of it. :meth:`stop` opens the gate for good and makes every
-    wait in :meth:`frame` give up.
-    """
-
-    name = "memory"
-    paced = False
-    threaded = False
-    close_timeout_s = 0.1
-
-    def __init__(self, per_input: int, keep: int = KEEP_FRAMES, frame_timeout_s: float = FRAME_TIMEOUT_S) -> None:
-        if per_input < 1 or keep < 2:
-            raise ValueError(f"need per_input >= 1 and keep >= 2, got {per_input}, {keep}")
-        self.per_input = per_input
-        self.keep = keep
-        self.frame_timeout_s = frame_timeout_s
-        self.frames_shown = 0
-        self.asked = -1
-        """Newest output frame the camera asked for."""
-        self._frames: OrderedDict[int, U8] = OrderedDict()
-        self._newest = -1
-        self._allowed_input = -1
-        self._stopped = False
-        self._cond = threading.Condition()
-
-    # -- the sender's side --
-
-    def show(self, frame_rgb: U8, index: int) -> None:
-        with self._cond:
-            self._frames[index] = frame_rgb
-            self._newest = max(self._newest, index)
-            while len(self._frames) > self.keep:
-                self._frames.popitem(last=False)
-            self.frames_shown += 1
-            self._cond.notify_all()
-
-    def close(self) -> None:
-        self.stop()
-
-    def abort(self) -> None:
-        self.stop()
-
-    @property
-    def quit_requested(self) -> bool:
-        return False
-
-    def gated(self, scene: Scene) -> Scene:
-        """``scene`` as the sender must see it: input frame ``i`` only once the camera needs it."""
-        return _GatedScene(scene, self)
-
-    def wait_input(self, input_index: int) -> None:
-        """Block (the sender's render thread) until input frame ``input_index`` may be made."""
-        with self._cond:
-            while not self._stopped and self._allowed_input < input_index:
-                self._cond.wait()
-
-    # -- the camera's side --
-
-    def frame(self, index: int) -> U8:
-        """Output frame ``index`` as the sender showed it; asks the sender for it and waits if need be."""
-        deadline = time.monotonic() + self.frame_timeout_s
-        with self._cond:
-            self.asked = max(self.asked, index)
-            if index // self.per_input > self._allowed_input:
-                self._allowed_input = index // self.per_input
-                self._cond.notify_all()
-            while True:
-                found = self._frames.get(index)
-                if found is not None:
-                    return found
-                if self._stopped:
-                    raise _Stopped
-                if index <= self._newest:
-                    raise DemoError(f"projector frame {index} is gone: only the newest {self.keep} are kept")
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise DemoError(
-                        f"the sender did not make projector frame {index} within {self.frame_timeout_s:g} s"
-                    )
-                self._cond.wait(left)
-
-    def shown(self, index: int) -> U8 | None:
-        """Output frame ``index`` if it is (still) kept; never waits."""
-        with self._cond:
-            return self._frames.get(index)
-
-    @property
-    def newest(self) -> int:
-        """Index of the newest frame shown (-1 before the first)."""
-        with self._cond:
-            return self._newest
-
-    def stop(self) -> None:
-        """Open the gate for good (the sender is stopping) and end every wait for a frame."""
-        with self._cond:
-            self._stopped = True
-            self._cond.notify_all()
-
-
-class _GatedScene:
-    """The sender's content, handed out only as fast as the simulated camera asks for it."""
-
-    def __init__(self, scene: Scene, projector: LockstepProjector) -> None:
-        self._scene, self._projector = scene, projector
-
-    def frame(self, index: int, rate_hz: float) -> U8:
-        self._projector.wait_input(index)
-        return self._scene.frame(index, rate_hz)
-
-
-# --- the drone's camera --------------------------------------------------------------------------------
-
-
-class _NoContent:
-    def frame(self, index: int, rate_hz: float) -> U8:
-        raise DemoError("the closed loop's floor shows the sender's output, not content of its own")
-
-
-class ClosedLoopArena(SimulatedArena):
-    """The simulated arena whose floor shows the sender's actual output frames."""
-
-    def __init__(
-        self, arena: ArenaConfig, sim: SimConfig, projector: LockstepProjector, tag_map: TagMap | None = None
-    ) -> None:
-        super().__init__(arena, sim, _NoContent(), tag_map)
-        self.projector = projector
-
-    def projector_crop(self, index: int, region: tuple[int, int, int, int]) -> U8:
-        """Region (x0, y0, x1, y1) of the sender's output frame ``index``, exactly as it was shown."""
-        x0, y0, x1, y1 = region
-        return np.ascontiguousarray(self.projector.frame(index)[y0:y1, x0:x1])
-
-
-class Lockstep:
-    """Holds the camera back until the receiver has finished the previous frame and the sender has
-    taken in its packet. Thread-safe: the event loop reports, the capture thread waits."""
-
-    def __init__(self, result_timeout_s: float = RESULT_TIMEOUT_S, packet_timeout_s: float = PACKET_TIMEOUT_S) -> None:
-        self.result_timeout_s = result_timeout_s
-        self.packet_timeout_s = packet_timeout_s
-        self.finished = -1
-        """Newest camera frame the receiver has finished."""
-        self.sent = 0
-        """Datagrams the receiver sent."""
-        self.seen = 0
-        """Datagrams the sender's listener took in (accepted or not)."""
-        self.lost = 0
-        """Datagrams not taken in within ``packet_timeout_s``."""
-        self._stopped = False
-        self._cond = threading.Condition()
-
-    def frame_done(self, index: int, sent: int) -> None:
-        with self._cond:
-            self.finished = max(self.finished, index)
-            self.sent += sent
-            self._cond.notify_all()
-
-    def packet_seen(self) -> None:
-        with self._cond:
-            self.seen += 1
-            self._cond.notify_all()
-
-    def stop(self) -> None:
-        with self._cond:
-            self._stopped = True
-            self._cond.notify_all()
-
-    def wait(self, index: int) -> None:
-        """Until frame ``index`` is finished and its packets are in; raises :class:`_Stopped` on stop."""
-        with self._cond:
-            deadline = time.monotonic() + self.result_timeout_s
-            while self.finished < index:
-                if self._stopped:
-                    raise _Stopped
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise DemoError(f"the receiver did not finish camera frame {index} in {self.result_timeout_s:g} s")
-                self._cond.wait(left)
-            deadline = time.monotonic() + self.packet_timeout_s
-            while self.seen + self.lost < self.sent:
-                if self._stopped:
-                    raise _Stopped
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    self.lost = self.sent - self.seen
-                    break
-                self._cond.wait(left)
-
-
-class _CountingFilter(PacketFilter):
-    """The sender's usual packet filter, telling the lockstep about every datagram it judged."""
-
-    def __init__(self, lockstep: Lockstep) -> None:
-        super().__init__(resync_after_s=10.0)
-        self._lockstep = lockstep
-
-    def accept(self, data: bytes, now: float | None = None, source: Hashable | None = None) -> PosePacket | None:
-        try:
-            return super().accept(data, now, source)
-        finally:
-            self._lockstep.packet_seen()
-
-
-class ClosedLoopCapture:
-    """The receiver daemon's capture source: camera frames of the closed loop, ``frames`` of them.
-
-    Frame ``k`` is rendered once frame ``k - 1`` went all the way round (see the module doc); its
-    capture time is ``k / fps``. The ground truth of each frame rendered is kept in :attr:`truth` until
-    the demo takes it. A failure ends the stream and is kept in :attr:`failure`.
-    """
-
-    live = False
-    retry_open = False
-
-    def __init__(
-        self,
-        arena: ArenaConfig,
-        sim: SimConfig,
-        projector: LockstepProjector,
-        lockstep: Lockstep,
-        clock: SimClock,
-        frames: int,
-        tag_map: TagMap | None = None,
-    ) -> None:
-        self.name = "sim (closed loop)"
-        self.arena, self.sim, self.projector, self.lockstep, self.clock = arena, sim, projector, lockstep, clock
-        self.frames = frames
-        self.fps = sim.camera.fps
-        self.tag_map = tag_map
-        self.truth: dict[int, FlightState] = {}
-        self.failure: str | None = None
-        self.started_s: float | None = None
-        """``time.monotonic()`` when the first frame was started (the set-up is done)."""
-        self.world: ClosedLoopArena | None = None
-        self._next = 0
-
-    def open(self) -> None:
-        if self.world is None:
-            self.world = ClosedLoopArena(self.arena, self.sim, self.projector, self.tag_map)
-
-    def read(self) -> CapturedFrame | None:
-        world = self.world
-        if world is None:
-            raise CaptureError("sim (closed loop): read before open")
-        k = self._next
-        if k >= self.frames or self.failure is not None:
-            return None
-        if self.started_s is None:
-            self.started_s = time.monotonic()
-        try:
-            if k > 0:
-                self.lockstep.wait(k - 1)
-            self.clock.set(k / self.fps)
-            frame = world.render(k)
-        except _Stopped:
-            return None
-        except DemoError as exc:
-            self.failure = str(exc)
-            return None
-        self.truth[k] = frame.truth
-        self._next = k + 1
-        return CapturedFrame(k, capture_time_us(k, self.fps), frame.image_rgb, time.monotonic())
-
-    def close(self) -> None:
-        """Nothing to release."""
-
-
-# --- what the run gave ---------------------------------------------------------------------------------
 
 
 @dataclass
@@ -550,7 +243,6 @@ async def closed_loop(
     if not seconds > 0 or not math.isfinite(seconds):
         raise DemoError(f"--seconds must be a positive number, got {seconds:g}")
     wall_start = time.monotonic()
-    loop = asyncio.get_running_loop()
     sim = (sim if sim is not None else SimConfig()).model_copy(update={"seed": seed})
     try:
         arena = apply_arena_changes(load_arena_config(arena_path), sim.arena)
@@ -560,6 +252,14 @@ async def closed_loop(
     count = max(1, round(seconds * cam.fps))
     tag_map = grid_tag_map(arena)
     per_input = frames_per_input(arena.modulation.input_rate_hz, arena.projector.rate_hz)
+    camera_path, flown_arena = _results_folder(out, arena, cam)
+    run = _ClosedLoop(arena, sim, count, tag_map, per_input, status, interrupt)
+    await run.fly(out, flown_arena, camera_path)
+    return run.result(seconds, cam.fps, wall_start, seed)
+
+
+def _results_folder(out: Path, arena: ArenaConfig, cam: SimCameraConfig) -> tuple[Path, Path]:
+    """Make ``out`` with the camera and the arena flown in it (their paths), without a previous run's results."""
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -570,123 +270,165 @@ async def closed_loop(
     save_camera_info(camera_info_of(cam), camera_path)
     flown_arena = out / "arena.yaml"
     write_text_atomic(flown_arena, yaml.safe_dump(arena.model_dump(mode="json"), sort_keys=False))
+    return camera_path, flown_arena
 
-    projector = LockstepProjector(per_input)
-    lockstep = Lockstep()
-    clock = SimClock()
-    source = ClosedLoopCapture(arena, sim, projector, lockstep, clock, count, tag_map)
-    flight = FlightLog(source, lockstep)
-    scene = projector.gated(scene_for(sim, arena))
-    interrupt = interrupt if interrupt is not None else asyncio.Event()
-    sender_stop, daemon_stop = asyncio.Event(), asyncio.Event()
-    listening: asyncio.Future[tuple[str, int]] = loop.create_future()
-    shower = _Status(status, count / cam.fps, cam.fps) if status is not None else None
 
-    def on_stop_signal(signum: int) -> None:
-        interrupt.set()  # Ctrl-C, SIGTERM or SIGHUP: stop flying and score what was flown (a second one waits)
+class _ClosedLoop:
+    """The parts of one closed-loop run and what they gave: :meth:`fly` runs the sender and the receiver
+    daemon until the flight ends or is interrupted, :meth:`result` says what happened."""
 
-    def on_listening(address: tuple[str, int]) -> None:
-        if not listening.done():
-            listening.set_result(address)
+    def __init__(
+        self,
+        arena: ArenaConfig,
+        sim: SimConfig,
+        count: int,
+        tag_map: TagMap,
+        per_input: int,
+        status: TextIO | None,
+        interrupt: asyncio.Event | None,
+    ) -> None:
+        loop = asyncio.get_running_loop()
+        cam = sim.camera
+        self.arena = arena
+        self.projector = projector = LockstepProjector(per_input)
+        self.lockstep = lockstep = Lockstep()
+        self.clock = clock = SimClock()
+        self.source = source = ClosedLoopCapture(arena, sim, projector, lockstep, clock, count, tag_map)
+        self.flight = FlightLog(source, lockstep)
+        self.scene = projector.gated(scene_for(sim, arena))
+        self.interrupt = interrupt if interrupt is not None else asyncio.Event()
+        self.sender_stop, self.daemon_stop = asyncio.Event(), asyncio.Event()
+        self.listening: asyncio.Future[tuple[str, int]] = loop.create_future()
+        self.shower = _Status(status, count / cam.fps, cam.fps) if status is not None else None
+        self.daemon_stats: DaemonStats | None = None
+        self.sender_stats: SenderStats | None = None
+        self.loop_start = self.loop_end = time.monotonic()
+        self.failure: BaseException | None = None
+        self.tasks: list[asyncio.Task[Any]] = []
 
-    daemon_stats: DaemonStats | None = None
-    sender_stats: SenderStats | None = None
-    loop_start = loop_end = time.monotonic()
-    failure: BaseException | None = None
-    with (
-        (out / "sender.log").open("w", encoding="utf-8") as sender_log,
-        (out / "receiver.log").open("w", encoding="utf-8") as receiver_log,
-    ):
-        sender_task = loop.create_task(
-            run_sender(
-                arena,
-                projector,
-                scene,
-                paced=False,
-                listen=(LISTEN_HOST, 0),
-                packet_filter=_CountingFilter(lockstep),
-                ar_scene=ArScene(arena),
-                log=line_writer(sender_log),
-                install_signal_handlers=False,
-                stop=sender_stop,
-                overlay_clock=clock.now,
-                on_listening=on_listening,
-            ),
-            name="ipt-demo-sender",
-        )
-        tasks: list[asyncio.Task[Any]] = []
-        unroute = signals.route_to_loop(loop, on_stop_signal)
-        try:
-            first: set[asyncio.Future[Any]] = {listening, sender_task}
-            await asyncio.wait(first, return_when=asyncio.FIRST_COMPLETED)
-            if not listening.done():
-                await sender_task  # raises what stopped it
-                raise DemoError("the sender stopped before it listened for pose packets")
-            host, port = listening.result()
-            cfg = ReceiverConfig(arena=flown_arena, camera=camera_path, send=[f"{host}:{port}"], stats_interval_s=5.0)
-            loop_start = time.monotonic()
-            daemon_task = loop.create_task(
-                run_daemon(
-                    cfg,
-                    stop=daemon_stop,
-                    stats_out=receiver_log,
-                    handle_signals=False,
-                    source=source,
-                    on_result=flight.on_result,
-                    on_processed=flight.on_processed,
+    def on_stop_signal(self, signum: int) -> None:
+        self.interrupt.set()  # Ctrl-C, SIGTERM or SIGHUP: stop flying and score what was flown (a second one waits)
+
+    def on_listening(self, address: tuple[str, int]) -> None:
+        if not self.listening.done():
+            self.listening.set_result(address)
+
+    async def fly(self, out: Path, flown_arena: Path, camera_path: Path) -> None:
+        """Run the sender, then the receiver daemon on the simulated camera, until the flight ends, the
+        run is interrupted or a part fails; then stop both in order. The logs go into ``out``."""
+        loop = asyncio.get_running_loop()
+        with (
+            (out / "sender.log").open("w", encoding="utf-8") as sender_log,
+            (out / "receiver.log").open("w", encoding="utf-8") as receiver_log,
+        ):
+            sender_task = loop.create_task(
+                run_sender(
+                    self.arena,
+                    self.projector,
+                    self.scene,
+                    paced=False,
+                    listen=(LISTEN_HOST, 0),
+                    packet_filter=_CountingFilter(self.lockstep),
+                    ar_scene=ArScene(self.arena),
+                    log=line_writer(sender_log),
+                    install_signal_handlers=False,
+                    stop=self.sender_stop,
+                    overlay_clock=self.clock.now,
+                    on_listening=self.on_listening,
                 ),
-                name="ipt-demo-receiver",
+                name="ipt-demo-sender",
             )
-            interrupted_task = loop.create_task(interrupt.wait())
-            tasks.append(interrupted_task)
-            if shower is not None:
-                tasks.append(loop.create_task(_report(shower, flight, lambda: source.started_s or loop_start)))
-            await asyncio.wait({daemon_task, sender_task, interrupted_task}, return_when=asyncio.FIRST_COMPLETED)
-            if not daemon_task.done():  # interrupted, or the sender failed: stop the camera and the receiver
-                lockstep.stop()
-                projector.stop()
-                daemon_stop.set()
+            unroute = signals.route_to_loop(loop, self.on_stop_signal)
             try:
-                daemon_stats = await daemon_task
+                await self._receive(sender_task, receiver_log, flown_arena, camera_path)
+            except BaseException as exc:
+                self.failure = exc
+                raise
             finally:
-                loop_end = time.monotonic()
-                loop_start = source.started_s or loop_start
-        except BaseException as exc:
-            failure = exc
-            raise
+                await self._stop(sender_task, unroute)
+
+    async def _receive(
+        self, sender_task: asyncio.Task[SenderStats], receiver_log: TextIO, flown_arena: Path, camera_path: Path
+    ) -> None:
+        """Once the sender listens, run the receiver daemon until the flight ends or is interrupted."""
+        loop = asyncio.get_running_loop()
+        first: set[asyncio.Future[Any]] = {self.listening, sender_task}
+        await asyncio.wait(first, return_when=asyncio.FIRST_COMPLETED)
+        if not self.listening.done():
+            await sender_task  # raises what stopped it
+            raise DemoError("the sender stopped before it listened for pose packets")
+        host, port = self.listening.result()
+        cfg = ReceiverConfig(arena=flown_arena, camera=camera_path, send=[f"{host}:{port}"], stats_interval_s=5.0)
+        self.loop_start = time.monotonic()
+        daemon_task = loop.create_task(
+            run_daemon(
+                cfg,
+                stop=self.daemon_stop,
+                stats_out=receiver_log,
+                handle_signals=False,
+                source=self.source,
+                on_result=self.flight.on_result,
+                on_processed=self.flight.on_processed,
+            ),
+            name="ipt-demo-receiver",
+        )
+        interrupted_task = loop.create_task(self.interrupt.wait())
+        self.tasks.append(interrupted_task)
+        if self.shower is not None:
+
+            def start() -> float:
+                return self.source.started_s or self.loop_start
+
+            self.tasks.append(loop.create_task(_report(self.shower, self.flight, start)))
+        await asyncio.wait({daemon_task, sender_task, interrupted_task}, return_when=asyncio.FIRST_COMPLETED)
+        if not daemon_task.done():  # interrupted, or the sender failed: stop the camera and the receiver
+            self.lockstep.stop()
+            self.projector.stop()
+            self.daemon_stop.set()
+        try:
+            self.daemon_stats = await daemon_task
         finally:
-            for task in tasks:
-                task.cancel()
-            await asyncio.gather(*tasks, return_exceptions=True)
-            lockstep.stop()
-            sender_stop.set()
-            projector.stop()
-            try:
-                sender_stats = await sender_task
-            except Exception as exc:
-                if failure is None:
-                    raise DemoError(f"the sender failed: {type(exc).__name__}: {exc}") from exc
-            finally:
-                unroute()
-                if shower is not None:
-                    shower.show(shower.line(flight, max(loop_end - loop_start, 1e-9)))
-                    shower.end()
-    if source.failure is not None:
-        raise DemoError(source.failure)
-    return DemoRun(
-        seconds_asked=seconds,
-        fps=cam.fps,
-        flight=flight,
-        projector_frames_used=projector.asked + 1,
-        daemon=daemon_stats,
-        sender=sender_stats,
-        lockstep=lockstep,
-        listen=listening.result() if listening.done() and not listening.cancelled() else None,
-        loop_wall_s=loop_end - loop_start,
-        total_wall_s=time.monotonic() - wall_start,
-        interrupted=interrupt.is_set(),
-        seed=seed,
-    )
+            self.loop_end = time.monotonic()
+            self.loop_start = self.source.started_s or self.loop_start
+
+    async def _stop(self, sender_task: asyncio.Task[SenderStats], unroute: Callable[[], None]) -> None:
+        """Stop the status line, the camera and the sender, and take the sender's totals."""
+        for task in self.tasks:
+            task.cancel()
+        await asyncio.gather(*self.tasks, return_exceptions=True)
+        self.lockstep.stop()
+        self.sender_stop.set()
+        self.projector.stop()
+        try:
+            self.sender_stats = await sender_task
+        except Exception as exc:
+            if self.failure is None:
+                raise DemoError(f"the sender failed: {type(exc).__name__}: {exc}") from exc
+        finally:
+            unroute()
+            if self.shower is not None:
+                self.shower.show(self.shower.line(self.flight, max(self.loop_end - self.loop_start, 1e-9)))
+                self.shower.end()
+
+    def result(self, seconds: float, fps: float, wall_start: float, seed: int) -> DemoRun:
+        """What the run gave (:class:`DemoError` if the simulated camera failed)."""
+        if self.source.failure is not None:
+            raise DemoError(self.source.failure)
+        listening = self.listening
+        return DemoRun(
+            seconds_asked=seconds,
+            fps=fps,
+            flight=self.flight,
+            projector_frames_used=self.projector.asked + 1,
+            daemon=self.daemon_stats,
+            sender=self.sender_stats,
+            lockstep=self.lockstep,
+            listen=listening.result() if listening.done() and not listening.cancelled() else None,
+            loop_wall_s=self.loop_end - self.loop_start,
+            total_wall_s=time.monotonic() - wall_start,
+            interrupted=self.interrupt.is_set(),
+            seed=seed,
+        )
 
 
 async def _report(shower: _Status, flight: FlightLog, start: Callable[[], float]) -> None:
@@ -821,3 +563,20 @@ def run_demo(arena_path: Path, seconds: float, out: Path, seed: int = 0, sim: Si
     if run.interrupted:
         return 128 + (signals.received() or 2)  # SIGINT unless a signal was noted
     return 0 if table is not None else 1
+
+
+__all__ = [
+    "ClosedLoopArena",
+    "ClosedLoopCapture",
+    "DemoError",
+    "DemoRun",
+    "FlightLog",
+    "Lockstep",
+    "LockstepProjector",
+    "SimClock",
+    "closed_loop",
+    "run_demo",
+    "summary_dict",
+    "summary_text",
+    "write_results",
+]
