@@ -174,6 +174,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
     sub.required = True
+    _add_replay(sub)
+    _add_run(sub)
+    return p
+
+
+def _add_replay(sub: argparse._SubParsersAction[Parser]) -> None:
+    """``ipt-receiver replay``."""
     r = sub.add_parser(
         "replay",
         help="localise every frame of a recording and write a TUM trajectory",
@@ -194,6 +201,10 @@ def build_parser() -> argparse.ArgumentParser:
         "gated poses) or 'paper' (the published pipeline: lag-1 pairs, integer shift, IPPE alone)",
     )
     r.set_defaults(func=_cmd_replay)
+
+
+def _add_run(sub: argparse._SubParsersAction[Parser]) -> None:
+    """``ipt-receiver run``."""
     d = sub.add_parser(
         "run",
         help="the receiver daemon: localise every camera frame and send UDP pose packets",
@@ -250,7 +261,6 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--realtime", action="store_true", help="pace sim/video to the frame rate (a live source)")
     d.add_argument("--max-frames", type=_positive_int, metavar="N", help="stop after N captured frames")
     d.set_defaults(func=_cmd_run)
-    return p
 
 
 def _main(argv: Sequence[str] | None) -> int:
