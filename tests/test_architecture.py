@@ -1,10 +1,19 @@
-"""The sender and the receiver run on different machines: neither may import the other."""
+"""The rooms of the package and who may import whom (docs/architecture.md).
+
+The sender and the receiver run on different machines: neither may import the other, and the receiver
+(which runs on the drone) does not import the simulator or the demo either. Two checks: which ``ipt``
+modules importing a module really loads (a subprocess), and a static scan of every import statement of
+every module (function-level ones included, which the first check cannot see until they run). The scan
+also finds import cycles."""
 
 from __future__ import annotations
 
+import ast
 import json
 import subprocess
 import sys
+from dataclasses import dataclass
+from pathlib import Path
 
 import pytest
 
@@ -38,3 +47,260 @@ def test_sender_does_not_import_the_receiver(module: str) -> None:
     loaded = _loaded_ipt_modules(module)
     assert module in loaded
     assert [m for m in loaded if m.startswith("ipt.receiver")] == []
+
+
+# --- the static scan: every import statement of every module, function-level ones included -----------
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "ipt"
+
+ALLOWED_RECEIVER_TO_SIM = {("ipt.receiver.cli", "ipt.sim.capture")}
+"""The one edge from the receiver to the simulator: ``ipt-receiver run --source sim`` makes the simulated camera
+in the command line (inside the function that does it, never at module level) and hands it to the daemon."""
+
+
+@dataclass(frozen=True)
+class ImportEdge:
+    """One import statement (or ``importlib.import_module("ipt...")`` call) of one module."""
+
+    source: str
+    """The importing module, e.g. ``ipt.receiver.daemon``."""
+    target: str
+    """The module imported: ``from ipt.a import b`` is ``ipt.a.b`` when that is a module, else ``ipt.a``."""
+    line: int
+    module_level: bool
+    """Run when the module is imported: not inside a function, not under ``if TYPE_CHECKING:``."""
+
+    def __str__(self) -> str:
+        kind = "module level" if self.module_level else "in a function or TYPE_CHECKING"
+        return f"{self.source}:{self.line} imports {self.target} ({kind})"
+
+
+def module_name(path: Path, root: Path) -> str:
+    """``ipt/receiver/capture.py`` → ``ipt.receiver.capture``; a package's ``__init__.py`` → the package."""
+    parts = list(path.relative_to(root).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _is_type_checking(test: ast.expr) -> bool:
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
+
+
+def scan_imports(source: str, module: str, is_package: bool, known: set[str]) -> list[ImportEdge]:
+    """Every import of ``ipt`` modules in ``source`` (the text of ``module``): ``import``, ``from ... import``
+    (relative ones resolved), and ``importlib.import_module`` / ``__import__`` with a literal name, at any depth."""
+    edges: list[ImportEdge] = []
+    package = module if is_package else module.rpartition(".")[0]
+
+    def resolve(base: str, names: list[str]) -> list[str]:
+        out = [f"{base}.{n}" for n in names if f"{base}.{n}" in known]
+        return out if len(out) == len(names) else [*out, base]
+
+    def add(targets: list[str], node: ast.AST, runtime: bool) -> None:
+        for target in targets:
+            if target == "ipt" or target.startswith("ipt."):
+                edges.append(ImportEdge(module, target, getattr(node, "lineno", 0), runtime))
+
+    def visit(node: ast.AST, runtime: bool) -> None:
+        if isinstance(node, ast.Import):
+            add([a.name for a in node.names], node, runtime)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                parts = package.split(".")
+                base = ".".join(parts[: len(parts) - node.level + 1])
+                base = f"{base}.{node.module}" if node.module else base
+            else:
+                base = node.module or ""
+            add(resolve(base, [a.name for a in node.names]), node, runtime)
+        elif isinstance(node, ast.Call):
+            func = node.func
+            name = func.attr if isinstance(func, ast.Attribute) else func.id if isinstance(func, ast.Name) else ""
+            if name in ("import_module", "__import__") and node.args:
+                arg = node.args[0]
+                if isinstance(arg, ast.Constant) and isinstance(arg.value, str):
+                    add([arg.value], node, runtime)
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda):
+            runtime = False  # runs when called, not when the module is imported
+        if isinstance(node, ast.If) and _is_type_checking(node.test):
+            for child in node.body:
+                visit(child, False)
+            for child in node.orelse:
+                visit(child, runtime)
+            visit(node.test, runtime)
+            return
+        for child in ast.iter_child_nodes(node):
+            visit(child, runtime)
+
+    visit(ast.parse(source), True)
+    return edges
+
+
+def all_imports(root: Path = PACKAGE) -> list[ImportEdge]:
+    """The import edges of every ``.py`` file of the package at ``root``."""
+    files = sorted(root.rglob("*.py"))
+    known = {module_name(p, root.parent) for p in files}
+    edges = []
+    for path in files:
+        name = module_name(path, root.parent)
+        edges += scan_imports(path.read_text(encoding="utf-8"), name, path.name == "__init__.py", known)
+    return edges
+
+
+def _under(module: str, *packages: str) -> bool:
+    return any(module == p or module.startswith(p + ".") for p in packages)
+
+
+def import_cycles(edges: list[ImportEdge]) -> list[list[str]]:
+    """The strongly connected components (more than one module, or a module importing itself) of the graph
+    of module-level imports: each is an import cycle."""
+    graph: dict[str, set[str]] = {}
+    for e in edges:
+        if e.module_level:
+            graph.setdefault(e.source, set()).add(e.target)
+            graph.setdefault(e.target, set())
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    cycles: list[list[str]] = []
+
+    def strong(v: str) -> None:  # Tarjan's algorithm
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                strong(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1 or v in graph[v]:
+                cycles.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            strong(v)
+    return cycles
+
+
+def test_the_scan_sees_every_kind_of_import() -> None:
+    """The scanner itself: an import in a function, under TYPE_CHECKING, a relative one and an
+    ``importlib.import_module`` string are all found (so a clean scan means something)."""
+    text = (
+        "from __future__ import annotations\n"
+        "import importlib\n"
+        "from typing import TYPE_CHECKING\n"
+        "from . import b\n"
+        "from .c import thing\n"
+        "if TYPE_CHECKING:\n"
+        "    from ipt.sim.arena import SimulatedArena\n"
+        "def f():\n"
+        "    import ipt.sender.content\n"
+        "    return importlib.import_module('ipt.sim.render')\n"
+    )
+    known = {"ipt.receiver.a", "ipt.receiver.b", "ipt.receiver.c", "ipt.sim.arena"}
+    edges = {(e.target, e.line, e.module_level) for e in scan_imports(text, "ipt.receiver.a", False, known)}
+    assert edges == {
+        ("ipt.receiver.b", 4, True),
+        ("ipt.receiver.c", 5, True),
+        ("ipt.sim.arena", 7, False),
+        ("ipt.sender.content", 9, False),
+        ("ipt.sim.render", 10, False),
+    }
+    assert import_cycles([ImportEdge("ipt.a", "ipt.b", 1, True), ImportEdge("ipt.b", "ipt.a", 1, True)]) == [
+        ["ipt.a", "ipt.b"]
+    ]
+    assert import_cycles([ImportEdge("ipt.a", "ipt.b", 1, True), ImportEdge("ipt.b", "ipt.a", 1, False)]) == []
+
+
+def test_the_scan_covers_the_package() -> None:
+    edges = all_imports()
+    sources = {e.source for e in edges}
+    assert {"ipt.receiver.daemon", "ipt.receiver.cli", "ipt.sender.server", "ipt.sim.demo"} <= sources
+    # the receiver's command line makes the simulated camera inside a function: the scan sees it
+    assert any(e.source == "ipt.receiver.cli" and e.target == "ipt.sim.capture" and not e.module_level for e in edges)
+
+
+def test_the_receiver_imports_neither_the_sender_nor_the_simulator_nor_the_demo() -> None:
+    """Statically, every import statement of ``ipt/receiver`` (function-level and TYPE_CHECKING ones
+    included), with the one edge of :data:`ALLOWED_RECEIVER_TO_SIM`, which must stay inside a function."""
+    bad = [
+        str(e)
+        for e in all_imports()
+        if _under(e.source, "ipt.receiver")
+        and _under(e.target, "ipt.sender", "ipt.sim", "ipt.demo")
+        and ((e.source, e.target) not in ALLOWED_RECEIVER_TO_SIM or e.module_level)
+    ]
+    assert bad == []
+
+
+def test_the_sender_does_not_import_the_receiver_statically() -> None:
+    bad = [str(e) for e in all_imports() if _under(e.source, "ipt.sender") and _under(e.target, "ipt.receiver")]
+    assert bad == [], "ipt/sender imports the receiver (the sender's half of issue 18 removes it)"
+
+
+def test_no_import_cycle_among_module_level_imports() -> None:
+    """No cycle in the graph of the imports run when a module is imported (module level, outside
+    ``if TYPE_CHECKING:``). Imports inside functions run later and may close a loop without harm, so
+    they are not counted; a cycle of module-level imports breaks or half-initialises a module depending
+    on which side is imported first."""
+    assert import_cycles(all_imports()) == []
+
+
+def test_no_import_cycle_in_the_receiver_counting_function_level_imports() -> None:
+    """In the receiver, no cycle even when the imports inside functions are counted (the detector and its
+    helper process's module share the C wrapper, :mod:`ipt.receiver.apriltag_c`, instead of each other)."""
+    edges = [ImportEdge(e.source, e.target, e.line, True) for e in all_imports() if _under(e.source, "ipt.receiver")]
+    assert import_cycles(edges) == []
+
+
+def _reason_literals(path: Path) -> set[str]:
+    """The texts a module gives as a frame's reason: the fifth argument of ``FrameResult(...)``, what is
+    assigned to ``reason`` (or unpacked into it), and what a ``..._problem`` or ``_doubtful`` function returns."""
+    found: set[str] = set()
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+
+    def text(node: ast.AST) -> None:
+        if isinstance(node, ast.Constant) and isinstance(node.value, str):
+            found.add(node.value)
+        elif isinstance(node, ast.IfExp):  # "first_frame" if ... else "no_tags"
+            text(node.body)
+            text(node.orelse)
+
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "FrameResult" and len(node.args) >= 5:
+            text(node.args[4])
+        elif isinstance(node, ast.Assign):
+            for target in node.targets:
+                if isinstance(target, ast.Name) and target.id == "reason":
+                    text(node.value)
+                elif isinstance(target, ast.Tuple) and isinstance(node.value, ast.Tuple):
+                    for t, v in zip(target.elts, node.value.elts, strict=False):
+                        if isinstance(t, ast.Name) and t.id == "reason":
+                            text(v)
+        elif isinstance(node, ast.FunctionDef) and (node.name.endswith("_problem") or node.name == "_doubtful"):
+            for ret in ast.walk(node):
+                if isinstance(ret, ast.Return) and ret.value is not None:
+                    text(ret.value)
+    return found
+
+
+def test_every_reason_the_receiver_gives_is_a_frame_reason() -> None:
+    from ipt.receiver.reasons import FrameReason
+
+    receiver = PACKAGE / "receiver"
+    found = set().union(*(_reason_literals(receiver / n) for n in ("pipeline.py", "gates.py", "framecheck.py")))
+    assert {"pose", "first_frame", "no_tags", "time_gap", "dark", "motion_jump"} <= found  # the scan finds them
+    assert found - {r.value for r in FrameReason} == set()

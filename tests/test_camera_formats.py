@@ -22,13 +22,13 @@ import pytest
 from ipt.config.camera_info import load_camera_info
 from ipt.config.models import ArenaConfig, ConfigError, PipelineConfig, load_arena_config
 from ipt.config.receiver import CameraControls, ReceiverConfig, with_overrides
-from ipt.receiver import capture
 from ipt.receiver.capture import (
     MAX_UNDECODABLE_IN_A_ROW,
     CaptureError,
     DeviceCapture,
     PiCamera2Capture,
     VideoCapture,
+    v4l2,
 )
 from ipt.receiver.daemon import make_source
 from ipt.receiver.pipeline import FrameResult, Pipeline
@@ -105,7 +105,7 @@ class _V4l2:
 
 
 def _device(monkeypatch: pytest.MonkeyPatch, driver: _V4l2, grey: bool) -> DeviceCapture:
-    monkeypatch.setattr(capture.cv2, "VideoCapture", lambda index, api: driver)
+    monkeypatch.setattr(v4l2.cv2, "VideoCapture", lambda index, api: driver)
     src = DeviceCapture(0, W, H, FPS, controls=CameraControls(fourcc=driver.fourcc), grey=grey, clock=lambda: 1.0)
     src.open()
     return src

@@ -17,12 +17,12 @@ import numpy as np
 import pytest
 
 from ipt.config.models import ArenaConfig, load_arena_config, shipped_config_path
-from ipt.demo import ClosedLoopArena, LockstepProjector, SimClock
 from ipt.protocol import PosePacket, encode_pose
 from ipt.sender.content import GeneratedScene
 from ipt.sender.scene import PALETTE, ArScene
 from ipt.sender.server import run_sender
 from ipt.sim.config import SimConfig
+from ipt.sim.demo import ClosedLoopArena, LockstepProjector, SimClock
 from ipt.tum import read_tum
 
 DEMO = [sys.executable, "-m", "ipt.cli", "demo"]

@@ -401,7 +401,8 @@ def _frame(index: int, t_us: int) -> CapturedFrame:
 async def test_output_answers_timesync_says_fix_lost_and_regained() -> None:
     with _listener() as listener:
         cfg = MavlinkConfig(link=f"udpout:127.0.0.1:{listener.port}", fix_timeout_s=0.2, vision_position_estimate=True)
-        out = MavlinkOutput(cfg, report=None)
+        now_s = [100.0]  # the output's clock, injected: the fix is lost when it moves on, not after a sleep
+        out = MavlinkOutput(cfg, report=None, clock_s=lambda: now_s[0])
         await out.open()
         try:
             await asyncio.to_thread(listener.wait_for, "STATUSTEXT", 1, 10.0)  # "started", once the link is up
@@ -415,7 +416,8 @@ async def test_output_answers_timesync_says_fix_lost_and_regained() -> None:
             assert reply.ts1 == ts1
             assert before_ns <= reply.tc1 <= time.monotonic_ns()  # the monotonic clock, in ns
             listener.conn.mav.timesync_send(5, ts1)  # a reply to someone else: not answered
-            await asyncio.sleep(0.6)  # longer than fix_timeout_s: the fix is lost
+            now_s[0] += 0.6  # longer than fix_timeout_s: the watchdog's next look finds the fix lost
+            await _until(lambda: not out.fix.have_fix, 10.0)
             out.on_result(_frame(1, 600_000), FrameResult(1, 600_000, _pose(), 3, "pose"))
             texts = await asyncio.to_thread(listener.wait_for, "STATUSTEXT", 3, 10.0)
         finally:

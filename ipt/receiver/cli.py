@@ -11,12 +11,18 @@ import argparse
 import math
 import os
 import sys
+import threading
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ipt import __version__
 from ipt.cliutil import Parser, run_main
 from ipt.signals import Interrupted
+
+if TYPE_CHECKING:
+    from ipt.config.receiver import ReceiverConfig
+    from ipt.receiver.capture import CaptureSource
 
 PROFILES = ("ipt", "paper")
 """The processing profiles of ``replay --profile`` (:meth:`ipt.config.models.PipelineConfig.profile`)."""
@@ -113,8 +119,10 @@ def _run_daemon(args: argparse.Namespace) -> int:
         updates["record"] = {**cfg.record.model_dump(), "path": Path(args.record)}
     if updates:
         cfg = with_overrides(cfg, **updates)
+    capture_stop = threading.Event()
+    source = _simulated_camera(cfg, capture_stop) if cfg.source_spec.kind == "sim" else None
     try:
-        stats = run(cfg, max_frames=args.max_frames)
+        stats = run(cfg, max_frames=args.max_frames, source=source, capture_stop=capture_stop)
     except OutputError as exc:
         # Say where the target came from, so that the fix is one look away.
         where = "--send" if args.send else f"{config} (send:)"
@@ -126,6 +134,16 @@ def _run_daemon(args: argparse.Namespace) -> int:
         sys.stderr.flush()
         os._exit(0)
     return 0
+
+
+def _simulated_camera(cfg: ReceiverConfig, capture_stop: threading.Event) -> CaptureSource:
+    """The ``sim`` source: the simulator's camera, made here and handed to the daemon, which does not import
+    the simulator (the one place of the receiver that does, and only for this source)."""
+    from ipt.config.camera_info import load_camera_info
+    from ipt.config.models import load_arena_config
+    from ipt.sim.capture import sim_source
+
+    return sim_source(cfg, load_arena_config(cfg.arena), load_camera_info(cfg.camera), capture_stop)
 
 
 class _ListCameras(argparse.Action):
@@ -156,6 +174,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
     sub.required = True
+    _add_replay(sub)
+    _add_run(sub)
+    return p
+
+
+def _add_replay(sub: argparse._SubParsersAction[Parser]) -> None:
+    """``ipt-receiver replay``."""
     r = sub.add_parser(
         "replay",
         help="localise every frame of a recording and write a TUM trajectory",
@@ -176,6 +201,10 @@ def build_parser() -> argparse.ArgumentParser:
         "gated poses) or 'paper' (the published pipeline: lag-1 pairs, integer shift, IPPE alone)",
     )
     r.set_defaults(func=_cmd_replay)
+
+
+def _add_run(sub: argparse._SubParsersAction[Parser]) -> None:
+    """``ipt-receiver run``."""
     d = sub.add_parser(
         "run",
         help="the receiver daemon: localise every camera frame and send UDP pose packets",
@@ -232,7 +261,6 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--realtime", action="store_true", help="pace sim/video to the frame rate (a live source)")
     d.add_argument("--max-frames", type=_positive_int, metavar="N", help="stop after N captured frames")
     d.set_defaults(func=_cmd_run)
-    return p
 
 
 def _main(argv: Sequence[str] | None) -> int:

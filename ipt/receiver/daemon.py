@@ -47,9 +47,6 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TextIO
 
-import numpy as np
-import numpy.typing as npt
-
 from ipt import signals
 from ipt.config.camera_info import CameraInfo, load_camera_info
 from ipt.config.models import ArenaConfig, load_arena_config
@@ -57,19 +54,19 @@ from ipt.config.receiver import ReceiverConfig, read_auth_key
 from ipt.protocol import ProtocolError
 from ipt.receiver.capture import (
     CapturedFrame,
+    CaptureError,
     CaptureSource,
     CaptureThread,
     DeviceCapture,
     FrameQueue,
     PiCamera2Capture,
-    SimCapture,
     VideoCapture,
-    sim_camera_from,
 )
 from ipt.receiver.outputs import PacketMaker, UdpPoseSender
 from ipt.receiver.pipeline import FrameResult, Pipeline
+from ipt.receiver.reasons import FrameReason
 from ipt.receiver.rosoutputs import RosOutputs
-from ipt.sim.config import SimCameraConfig, SimConfig
+from ipt.runtime import LatencyHistogram, run_loop, write_line
 from ipt.tagmap import grid_tag_map
 
 if TYPE_CHECKING:
@@ -91,36 +88,6 @@ ResultHook = Callable[[CapturedFrame, FrameResult | None, int], None]
 """``on_result(frame, result, datagrams_sent)`` of :func:`run_daemon`."""
 ProcessedHook = Callable[[CapturedFrame, int], None]
 """``on_processed(frame, datagrams_sent)`` of :func:`run_daemon`."""
-
-
-class LatencyHistogram:
-    """Latencies in 0.1 ms bins up to 10 s (later ones in the last bin): constant memory, exact enough."""
-
-    BIN_MS = 0.1
-    BINS = 100_000
-
-    def __init__(self) -> None:
-        self.counts: npt.NDArray[np.int64] = np.zeros(self.BINS + 1, np.int64)
-        self.n = 0
-
-    def add(self, seconds: float) -> None:
-        """Count one latency."""
-        i = int(max(seconds, 0.0) * 1e3 / self.BIN_MS)
-        self.counts[min(i, self.BINS)] += 1
-        self.n += 1
-
-    def quantile_ms(self, q: float) -> float | None:
-        """The ``q`` quantile (0..1) in milliseconds (the middle of its bin); None when empty."""
-        if self.n == 0:
-            return None
-        rank = max(1, int(np.ceil(q * self.n)))
-        i = int(np.searchsorted(np.cumsum(self.counts), rank))
-        return (i + 0.5) * self.BIN_MS
-
-    def clear(self) -> None:
-        """Forget every latency."""
-        self.counts.fill(0)
-        self.n = 0
 
 
 def _ms(value: float | None) -> str:
@@ -191,7 +158,7 @@ class _Meter:
     def frame(self, reason: str) -> None:
         self.frames += 1
         self.i_frames += 1
-        self.reasons[reason] += 1
+        self.reasons[str(reason)] += 1  # plain text keys, whether the reason came as text or a FrameReason
 
     def pose(self, latency_s: float) -> None:
         self.poses += 1
@@ -214,16 +181,11 @@ class _Meter:
         return line
 
 
-def _write(out: TextIO, line: str) -> None:
-    try:
-        out.write(line + "\n")
-        out.flush()
-    except (OSError, ValueError):  # stderr gone (closed pipe): the daemon carries on regardless
-        pass
-
-
 def make_source(cfg: ReceiverConfig, arena: ArenaConfig, camera: CameraInfo, stop: threading.Event) -> CaptureSource:
-    """The frame source ``cfg.source`` describes; its pacing sleeps end early when ``stop`` is set."""
+    """The frame source ``cfg.source`` describes; its pacing sleeps end early when ``stop`` is set.
+
+    The simulated camera (``sim``) is not made here (the receiver does not import the simulator): the
+    command line makes it (:func:`ipt.sim.capture.sim_source`) and hands it to :func:`run_daemon`."""
     spec = cfg.source_spec
     grey = cfg.pipeline.luminance_only  # frames as luma, without a detour through RGB
     if spec.kind in ("video", "images") and spec.path is not None:
@@ -237,9 +199,7 @@ def make_source(cfg: ReceiverConfig, arena: ArenaConfig, camera: CameraInfo, sto
         return DeviceCapture(spec.device, w, h, cfg.fps, controls=cfg.camera_controls, grey=grey)
     if spec.kind == "picamera2" and spec.device is not None:
         return PiCamera2Capture(spec.device, w, h, cfg.fps, controls=cfg.camera_controls, grey=grey)
-    fps = cfg.fps if cfg.fps is not None else SimCameraConfig().fps
-    sim = SimConfig(camera=sim_camera_from(camera, fps))
-    return SimCapture(arena, sim, fps, cfg.realtime, sleep=stop.wait, grey=grey)
+    raise CaptureError(f"source {cfg.source}: the simulated camera is handed to the daemon by the command line")
 
 
 async def run_daemon(
@@ -252,6 +212,7 @@ async def run_daemon(
     source: CaptureSource | None = None,
     on_result: ResultHook | None = None,
     on_processed: ProcessedHook | None = None,
+    capture_stop: threading.Event | None = None,
 ) -> DaemonStats:
     """Run the receiver until ``stop`` is set (or SIGTERM/SIGINT), the recording ends or ``max_frames``
     frames were captured. Statistics go to ``stats_out`` (default: stderr). Configuration problems raise
@@ -263,235 +224,288 @@ async def run_daemon(
     kernel: with the frame, its :class:`FrameResult` (``None`` if processing raised) and the number of
     datagrams sent for it. A result may come a few frames after its frame was processed (the pipeline's
     ``lookahead_frames``); ``on_processed`` is called once each frame was processed and the results that
-    became final with it were delivered, with the datagrams sent for them."""
+    became final with it were delivered, with the datagrams sent for them. ``capture_stop`` is the event
+    that stops the capture thread (default: a new one): a source handed in paces its sleeps on it (as
+    :func:`make_source` does), so that they end at once at shutdown."""
     loop = asyncio.get_running_loop()
     stop_event = stop if stop is not None else asyncio.Event()
     unroute = signals.route_to_loop(loop, lambda _sig: stop_event.set()) if handle_signals else None
     try:
-        return await _run_daemon(cfg, stop_event, stats_out, max_frames, source, on_result, on_processed)
+        run = _DaemonRun(
+            cfg, stop_event, stats_out, max_frames, source, on_result, on_processed, capture_stop or threading.Event()
+        )
+        return await run.run()
     finally:
         if unroute is not None:
             unroute()
 
 
-async def _run_daemon(
-    cfg: ReceiverConfig,
-    stop: asyncio.Event,
-    stats_out: TextIO | None,
-    max_frames: int | None,
-    source: CaptureSource | None,
-    on_result: ResultHook | None,
-    on_processed: ProcessedHook | None,
-) -> DaemonStats:
-    out = stats_out if stats_out is not None else sys.stderr
-    loop = asyncio.get_running_loop()
+Batch = tuple[list[FrameResult], dict[str, float]]
+"""What the pipeline worker gives back for one frame: the results that became final with it, and the
+processor time each stage took for it."""
 
-    arena = load_arena_config(cfg.arena)
-    camera = load_camera_info(cfg.camera)
-    key = read_auth_key(cfg.auth_key_file) if cfg.auth_key_file is not None else None
-    pipeline = Pipeline(grid_tag_map(arena), camera, cfg.pipeline, projector_hz=arena.projector.rate_hz)
-    capture_stop = threading.Event()
-    if source is None:
-        source = make_source(cfg, arena, camera, capture_stop)
 
-    frames: FrameQueue[CapturedFrame] = FrameQueue(cfg.queue_size)
-    capture = CaptureThread(source, frames, loop, stop=capture_stop, max_frames=max_frames, report=out)
-    worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ipt-pipeline")
-    sender = UdpPoseSender(cfg.send_targets)
-    maker = PacketMaker(cfg.vehicle_id, key)
-    mavlink = _mavlink_output(cfg, out)
-    ros = RosOutputs.create(cfg, arena.projector.rate_hz, lambda line: _write(out, f"{PROG}: {line}"))
-    meter = _Meter()
-    errors_reported = 0
+class _DaemonRun:
+    """One run of the receiver daemon (what :func:`run_daemon` does), in the sender's shape: :meth:`start`
+    opens the outputs and the camera, :meth:`submit` and :meth:`deliver` move the frames through the
+    pipeline worker to the outputs, :meth:`report` prints the interval statistics, :meth:`shutdown` stops
+    it all in order; :meth:`run` is the whole life, :meth:`stats` its totals."""
 
-    # A live source: one frame at a time, so that the worker always takes the newest one (a second frame
-    # waiting in the executor would be stale by a whole processing time when its turn comes). A recording
-    # keeps the worker busy instead: the next frame waits while this one is processed.
-    slots = asyncio.Semaphore(1 if source.live else MAX_IN_FLIGHT)
-    Batch = tuple[list[FrameResult], dict[str, float]]
-    results: asyncio.Queue[tuple[CapturedFrame | None, asyncio.Future[Batch]] | None] = asyncio.Queue()
-    stage_totals: dict[str, float] | None = getattr(pipeline, "stage_seconds", None)
-    waiting: dict[int, CapturedFrame] = {}
-    """Frames processed whose result has not come out yet (the pipeline's look-ahead), by index."""
+    def __init__(
+        self,
+        cfg: ReceiverConfig,
+        stop: asyncio.Event,
+        stats_out: TextIO | None,
+        max_frames: int | None,
+        source: CaptureSource | None,
+        on_result: ResultHook | None,
+        on_processed: ProcessedHook | None,
+        capture_stop: threading.Event,
+    ) -> None:
+        """Load the arena, the camera and the key, and make the pipeline, the source and the outputs
+        (:class:`~ipt.errors.IptError` on a configuration problem, before any frame is read)."""
+        self.cfg, self.stop, self.on_result, self.on_processed = cfg, stop, on_result, on_processed
+        self.out = out = stats_out if stats_out is not None else sys.stderr
+        self.loop = loop = asyncio.get_running_loop()
 
-    def process(frame: CapturedFrame | None) -> Batch:
+        arena = load_arena_config(cfg.arena)
+        self.camera = camera = load_camera_info(cfg.camera)
+        self.key = key = read_auth_key(cfg.auth_key_file) if cfg.auth_key_file is not None else None
+        self.pipeline = Pipeline(grid_tag_map(arena), camera, cfg.pipeline, projector_hz=arena.projector.rate_hz)
+        if source is None:
+            source = make_source(cfg, arena, camera, capture_stop)
+        self.source = source
+
+        self.frames: FrameQueue[CapturedFrame] = FrameQueue(cfg.queue_size)
+        self.capture = CaptureThread(source, self.frames, loop, stop=capture_stop, max_frames=max_frames, report=out)
+        self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ipt-pipeline")
+        self.sender = UdpPoseSender(cfg.send_targets)
+        self.maker = PacketMaker(cfg.vehicle_id, key)
+        self.mavlink = _mavlink_output(cfg, out)
+        self.ros = RosOutputs.create(cfg, arena.projector.rate_hz, lambda line: write_line(out, f"{PROG}: {line}"))
+        self.meter = _Meter()
+        self.errors_reported = 0
+
+        # A live source: one frame at a time, so that the worker always takes the newest one (a second frame
+        # waiting in the executor would be stale by a whole processing time when its turn comes). A recording
+        # keeps the worker busy instead: the next frame waits while this one is processed.
+        self.slots = asyncio.Semaphore(1 if source.live else MAX_IN_FLIGHT)
+        self.results: asyncio.Queue[tuple[CapturedFrame | None, asyncio.Future[Batch]] | None] = asyncio.Queue()
+        self.stage_totals: dict[str, float] | None = getattr(self.pipeline, "stage_seconds", None)
+        self.waiting: dict[int, CapturedFrame] = {}
+        """Frames processed whose result has not come out yet (the pipeline's look-ahead), by index."""
+        self.tasks: set[asyncio.Task[None]] = set()
+        self.deliver_task: asyncio.Task[None] | None = None
+        self.running = False
+        """The source opened and frames began to flow (else the ROS recording is aborted, not closed)."""
+        self.start_s = time.monotonic()
+
+    async def run(self) -> DaemonStats:
+        """Start, run until stopped or the source ends, shut down, and print and return the totals."""
+        stop_wait = self.spawn(_wait_event(self.stop), "ipt-stop")
+        self.start_s = time.monotonic()
+        try:
+            if await self.start(stop_wait):
+                self.spawn(self.submit(), "ipt-submit")
+                self.deliver_task = self.spawn(self.deliver(), "ipt-deliver")
+                self.spawn(self.report(), "ipt-stats")
+                await asyncio.wait({self.deliver_task, stop_wait}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            await self.shutdown()
+        task = self.deliver_task
+        if task is not None and not task.cancelled() and task.exception() is not None:
+            raise RuntimeError("the delivery stage failed") from task.exception()
+        stats = self.stats()
+        self.say_summaries(stats)
+        return stats
+
+    async def start(self, stop_wait: asyncio.Task[None]) -> bool:
+        """Open the outputs, start the capture thread and wait for the source's first open (or the stop):
+        whether frames are coming. Raises the error of a first open that is not retried."""
+        if self.ros is not None:
+            self.ros.start()
+        await self.sender.open()
+        if self.mavlink is not None:
+            await self.mavlink.open()  # the link itself is (re)opened in the background
+        if not self.stop.is_set():  # a signal while starting: do not begin to capture at all
+            self.capture.start()
+        ready = asyncio.wrap_future(self.capture.ready)
+        await asyncio.wait({ready, stop_wait}, return_when=asyncio.FIRST_COMPLETED)
+        if not ready.done():
+            ready.cancel()
+            return False
+        ready.result()  # raises the error of a first open that is not retried (bad video file, ...)
+        self.running = True
+        self.start_s = self.meter.i_start = time.monotonic()
+        auth = ", authenticated" if self.key is not None else ""
+        source, camera, cfg = self.source, self.camera, self.cfg
+        write_line(
+            self.out,
+            f"{PROG}: running: {source.name}{' (live)' if source.live else ''}, camera "
+            f"{camera.width_px}x{camera.height_px}, vehicle {cfg.vehicle_id} -> {', '.join(cfg.send)}{auth}",
+        )
+        return True
+
+    def spawn(self, coro: Coroutine[Any, Any, None], name: str) -> asyncio.Task[None]:
+        """A task that :meth:`shutdown` cancels if it is still running."""
+        task = self.loop.create_task(coro, name=name)
+        self.tasks.add(task)
+        task.add_done_callback(self.tasks.discard)
+        return task
+
+    def process(self, frame: CapturedFrame | None) -> Batch:
         """On the worker thread: the results that became final with this frame (``None``: at the end, all
         that wait) and the processor time each stage took for it (from the pipeline's running totals, read
         on the same thread, so no other frame is counted in)."""
-        before = dict(stage_totals) if ros is not None and stage_totals is not None else None
+        stage_totals = self.stage_totals
+        before = dict(stage_totals) if self.ros is not None and stage_totals is not None else None
         if frame is None:
-            batch = pipeline.flush()
+            batch = self.pipeline.flush()
         else:
-            batch = pipeline.process(frame.index, frame.image, frame.capture_time_us)
+            batch = self.pipeline.process(frame.index, frame.image, frame.capture_time_us)
         if before is None or stage_totals is None:
             return batch, {}
         stages = {k: v - before.get(k, 0.0) for k, v in stage_totals.items() if v != before.get(k, 0.0)}
         return batch, stages
 
-    async def submit() -> None:
+    async def submit(self) -> None:
         """Frames from the capture queue to the pipeline worker, in capture order."""
+        loop, worker, results = self.loop, self.worker, self.results
         try:
             while True:
-                await slots.acquire()  # before taking a frame, so that a live source's newest one is taken
-                frame = await frames.get()
+                await self.slots.acquire()  # before taking a frame, so that a live source's newest one is taken
+                frame = await self.frames.get()
                 if frame is None:  # the end of a recording: what still waits for later frames comes out
-                    results.put_nowait((None, loop.run_in_executor(worker, process, None)))
+                    results.put_nowait((None, loop.run_in_executor(worker, self.process, None)))
                     return
-                results.put_nowait((frame, loop.run_in_executor(worker, process, frame)))
+                results.put_nowait((frame, loop.run_in_executor(worker, self.process, frame)))
         finally:
             results.put_nowait(None)
 
-    async def deliver() -> None:
+    async def deliver(self) -> None:
         """Results in frame order to the UDP targets."""
-        nonlocal errors_reported
         while True:
-            item = await results.get()
+            item = await self.results.get()
             if item is None:
                 return
             frame, fut = item
             if frame is not None:
-                waiting[frame.index] = frame
+                self.waiting[frame.index] = frame
             batch: list[FrameResult] = []
             stages: dict[str, float] = {}
             try:
                 batch, stages = await fut
             except Exception as exc:  # a bug or a library failure on one frame: report, count, go on
-                if frame is not None:
-                    waiting.pop(frame.index, None)
-                    meter.frame("error")
-                    if ros is not None:
-                        ros.on_result(frame, None, stages)
-                    if on_result is not None:
-                        on_result(frame, None, 0)
-                if errors_reported < MAX_ERROR_REPORTS:
-                    errors_reported += 1
-                    where = f"frame {frame.index}" if frame is not None else "the end of the recording"
-                    _write(out, f"{PROG}: {where}: processing failed: {type(exc).__name__}: {exc}")
+                self.processing_failed(frame, stages, exc)
             finally:
-                slots.release()
+                self.slots.release()
             sent_total = 0
             for result in batch:
-                owner = waiting.pop(result.index, None)
+                owner = self.waiting.pop(result.index, None)
                 if owner is None:  # not a frame this daemon submitted (cannot happen): nothing to send it for
                     continue
-                sent_total += deliver_result(owner, result, stages if owner is frame else {})
-            if frame is not None and on_processed is not None:
-                on_processed(frame, sent_total)
+                sent_total += self.deliver_result(owner, result, stages if owner is frame else {})
+            if frame is not None and self.on_processed is not None:
+                self.on_processed(frame, sent_total)
 
-    def deliver_result(frame: CapturedFrame, result: FrameResult, stages: dict[str, float]) -> int:
-        nonlocal errors_reported
-        if (result.reason == "detector_failed" or result.detector_failed) and errors_reported < MAX_ERROR_REPORTS:
-            errors_reported += 1
-            _write(out, f"{PROG}: frame {frame.index}: the tag detector's helper process failed; starting another")
-        sent = deliver_one(frame, result)
-        if mavlink is not None:
-            mavlink.on_result(frame, result)
-        if ros is not None:
-            ros.on_result(frame, result, stages)
-        if on_result is not None:
-            on_result(frame, result, sent)
+    def processing_failed(self, frame: CapturedFrame | None, stages: dict[str, float], exc: Exception) -> None:
+        """Count and report a frame whose processing raised (``None``: the flush at the end)."""
+        if frame is not None:
+            self.waiting.pop(frame.index, None)
+            self.meter.frame(FrameReason.ERROR)
+            if self.ros is not None:
+                self.ros.on_result(frame, None, stages)
+            if self.on_result is not None:
+                self.on_result(frame, None, 0)
+        if self.errors_reported < MAX_ERROR_REPORTS:
+            self.errors_reported += 1
+            where = f"frame {frame.index}" if frame is not None else "the end of the recording"
+            write_line(self.out, f"{PROG}: {where}: processing failed: {type(exc).__name__}: {exc}")
+
+    def deliver_result(self, frame: CapturedFrame, result: FrameResult, stages: dict[str, float]) -> int:
+        """One frame's result to every output; the number of datagrams sent."""
+        failed = result.reason == FrameReason.DETECTOR_FAILED or result.detector_failed
+        if failed and self.errors_reported < MAX_ERROR_REPORTS:
+            self.errors_reported += 1
+            write_line(
+                self.out, f"{PROG}: frame {frame.index}: the tag detector's helper process failed; starting another"
+            )
+        sent = self.deliver_one(frame, result)
+        if self.mavlink is not None:
+            self.mavlink.on_result(frame, result)
+        if self.ros is not None:
+            self.ros.on_result(frame, result, stages)
+        if self.on_result is not None:
+            self.on_result(frame, result, sent)
         return sent
 
-    def deliver_one(frame: CapturedFrame, result: FrameResult) -> int:
+    def deliver_one(self, frame: CapturedFrame, result: FrameResult) -> int:
         """Count one frame's result and send its pose; the number of datagrams sent."""
         if result.pose is None:
-            meter.frame(result.reason)
+            self.meter.frame(result.reason)
             return 0
         try:
-            data = maker.encode(result.pose, frame.capture_time_us)
+            data = self.maker.encode(result.pose, frame.capture_time_us)
         except ProtocolError:  # e.g. a non-finite position: not sendable
-            meter.frame("bad_pose")
+            self.meter.frame(FrameReason.BAD_POSE)
             return 0
-        meter.frame(result.reason)
-        sent = sender.send(data)
-        meter.pose(time.monotonic() - frame.grabbed_s)
+        self.meter.frame(result.reason)
+        sent = self.sender.send(data)
+        self.meter.pose(time.monotonic() - frame.grabbed_s)
         return sent
 
-    async def report_stats() -> None:
+    async def report(self) -> None:
+        """The interval statistics line, every ``stats_interval_s``."""
         while True:
-            await asyncio.sleep(cfg.stats_interval_s)
-            _write(out, meter.interval_line(frames.dropped, sender.errors))
+            await asyncio.sleep(self.cfg.stats_interval_s)
+            write_line(self.out, self.meter.interval_line(self.frames.dropped, self.sender.errors))
 
-    tasks: set[asyncio.Task[None]] = set()
-
-    def spawn(coro: Coroutine[Any, Any, None], name: str) -> asyncio.Task[None]:
-        task = loop.create_task(coro, name=name)
-        tasks.add(task)
-        task.add_done_callback(tasks.discard)
-        return task
-
-    stop_wait = spawn(_wait_event(stop), "ipt-stop")
-    deliver_task: asyncio.Task[None] | None = None
-    start = time.monotonic()
-    running = False
-    try:
-        if ros is not None:
-            ros.start()
-        await sender.open()
-        if mavlink is not None:
-            await mavlink.open()  # the link itself is (re)opened in the background
-        if not stop.is_set():  # a signal while starting: do not begin to capture at all
-            capture.start()
-        ready = asyncio.wrap_future(capture.ready)
-        await asyncio.wait({ready, stop_wait}, return_when=asyncio.FIRST_COMPLETED)
-        if not ready.done():
-            ready.cancel()
-        else:
-            ready.result()  # raises the error of a first open that is not retried (bad video file, ...)
-            running = True
-            start = meter.i_start = time.monotonic()
-            auth = ", authenticated" if key is not None else ""
-            _write(
-                out,
-                f"{PROG}: running: {source.name}{' (live)' if source.live else ''}, camera "
-                f"{camera.width_px}x{camera.height_px}, vehicle {cfg.vehicle_id} -> {', '.join(cfg.send)}{auth}",
-            )
-            spawn(submit(), "ipt-submit")
-            deliver_task = spawn(deliver(), "ipt-deliver")
-            spawn(report_stats(), "ipt-stats")
-            await asyncio.wait({deliver_task, stop_wait}, return_when=asyncio.FIRST_COMPLETED)
-    finally:
+    async def shutdown(self) -> None:
+        """Stop everything in order within :data:`SHUTDOWN_BUDGET_S` (see the module's doc)."""
         deadline = time.monotonic() + SHUTDOWN_BUDGET_S
-        await _shutdown(capture, frames, deliver_task, tasks, sender, deadline)
-        if mavlink is not None:
-            await mavlink.close()
-        if ros is not None:
+        await _shutdown(self.capture, self.frames, self.deliver_task, self.tasks, self.sender, deadline)
+        if self.mavlink is not None:
+            await self.mavlink.close()
+        if self.ros is not None:
             # A run that never got going (a camera or a send target that cannot be opened) leaves no
             # recording that looks complete.
-            await asyncio.to_thread(ros.close if running else ros.abort)
-        worker.shutdown(wait=False, cancel_futures=True)
+            await asyncio.to_thread(self.ros.close if self.running else self.ros.abort)
+        self.worker.shutdown(wait=False, cancel_futures=True)
         # The read in progress (a render, a decode, a camera grab) ends by itself; wait for it within the
         # budget. If it does not end, the thread is a daemon thread and `capture_running` tells the caller.
-        capture.join(max(0.0, deadline - time.monotonic()))
+        self.capture.join(max(0.0, deadline - time.monotonic()))
 
-    if deliver_task is not None and not deliver_task.cancelled() and deliver_task.exception() is not None:
-        raise RuntimeError("the delivery stage failed") from deliver_task.exception()
-    stats = DaemonStats(
-        frames_captured=capture.frames,
-        frames_processed=meter.frames,
-        poses=meter.poses,
-        packets_sent=sender.sent,
-        send_errors=sender.errors,
-        drops=frames.dropped,
-        capture_failures=capture.failures,
-        seconds=time.monotonic() - start,
-        latency_p50_ms=meter.latency.quantile_ms(0.5),
-        latency_p99_ms=meter.latency.quantile_ms(0.99),
-        reasons=dict(meter.reasons),
-        detector_recycles=pipeline.detector_replacements[0],
-        detector_restarts=pipeline.detector_replacements[1],
-        frames_skipped=capture.skipped,
-        capture_running=not capture.join(0),
-    )
-    _write(out, stats.line())
-    if sender.last_error is not None:
-        _write(out, f"{PROG}: last send error: {sender.last_error}")
-    if mavlink is not None:
-        mavlink.say_summary()
-    if ros is not None:
-        for line in ros.summaries():
-            _write(out, f"{PROG}: {line}")
-    return stats
+    def stats(self) -> DaemonStats:
+        """The totals of the run (after :meth:`shutdown`)."""
+        capture, meter, sender = self.capture, self.meter, self.sender
+        return DaemonStats(
+            frames_captured=capture.frames,
+            frames_processed=meter.frames,
+            poses=meter.poses,
+            packets_sent=sender.sent,
+            send_errors=sender.errors,
+            drops=self.frames.dropped,
+            capture_failures=capture.failures,
+            seconds=time.monotonic() - self.start_s,
+            latency_p50_ms=meter.latency.quantile_ms(0.5),
+            latency_p99_ms=meter.latency.quantile_ms(0.99),
+            reasons=dict(meter.reasons),
+            detector_recycles=self.pipeline.detector_replacements[0],
+            detector_restarts=self.pipeline.detector_replacements[1],
+            frames_skipped=capture.skipped,
+            capture_running=not capture.join(0),
+        )
+
+    def say_summaries(self, stats: DaemonStats) -> None:
+        """The final statistics line, the last send error, and each output's summary."""
+        write_line(self.out, stats.line())
+        if self.sender.last_error is not None:
+            write_line(self.out, f"{PROG}: last send error: {self.sender.last_error}")
+        if self.mavlink is not None:
+            self.mavlink.say_summary()
+        if self.ros is not None:
+            for line in self.ros.summaries():
+                write_line(self.out, f"{PROG}: {line}")
 
 
 def _mavlink_output(cfg: ReceiverConfig, out: TextIO) -> MavlinkOutput | None:
@@ -527,18 +541,16 @@ async def _shutdown(
     await sender.close()
 
 
-def _loop_factory() -> Callable[[], asyncio.AbstractEventLoop] | None:
-    try:
-        import uvloop
-    except ImportError:  # not on every platform: the standard loop is fine
-        return None
-    return uvloop.new_event_loop
-
-
-def run(cfg: ReceiverConfig, *, max_frames: int | None = None) -> DaemonStats:
-    """Run the daemon on a fresh event loop (uvloop when installed) until it stops."""
-    with asyncio.Runner(loop_factory=_loop_factory()) as runner:
-        return runner.run(run_daemon(cfg, max_frames=max_frames))
+def run(
+    cfg: ReceiverConfig,
+    *,
+    max_frames: int | None = None,
+    source: CaptureSource | None = None,
+    capture_stop: threading.Event | None = None,
+) -> DaemonStats:
+    """Run the daemon on a fresh event loop (uvloop when installed) until it stops (``source`` and
+    ``capture_stop`` as for :func:`run_daemon`)."""
+    return run_loop(run_daemon(cfg, max_frames=max_frames, source=source, capture_stop=capture_stop))
 
 
 __all__ = ["DaemonStats", "LatencyHistogram", "make_source", "run", "run_daemon"]

@@ -6,11 +6,12 @@ Corner order is AprilTag's (see :mod:`ipt.tagmap`), which the tag map uses for i
 
 The C detector runs either here (``isolation: inline``) or in a helper process that
 :mod:`ipt.receiver.tagworker` manages (``isolation: process``, the default): pupil-apriltags 1.0.4's C
-code leaks memory on every call, and only ending the process gives it back. Both give the same
+code leaks memory on every call, and only ending the process gives it back. :class:`DetectorError` and
+:data:`RawDetection` come from :mod:`ipt.receiver.apriltag_c` and are re-exported here. Both give the same
 detections; the filtering below (bit errors, ids, image border) is the same for both.
 
-This module imports neither pydantic nor the configuration models at run time, so that the helper
-process, which needs only :func:`make_pupil_detector`, starts quickly.
+The C library itself is called in :mod:`ipt.receiver.apriltag_c`, which both this module and the helper
+process import (the helper does not import this module).
 """
 
 from __future__ import annotations
@@ -19,26 +20,25 @@ import threading
 import weakref
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 import numpy.typing as npt
-import pupil_apriltags
 
-from ipt.errors import IptError
+from ipt.receiver.apriltag_c import (
+    DetectorError,
+    RawDetection,
+    free_pupil_detector,
+    make_pupil_detector,
+    pupil_detect,
+    pupil_settings,
+)
 
 if TYPE_CHECKING:
     from ipt.config.models import DetectorConfig
 
 #: AprilTag's pixel origin is the top-left corner of the top-left pixel; OpenCV's is its centre.
 APRILTAG_TO_OPENCV_PX = -0.5
-
-#: One detection as the C library gives it: id, bits corrected, decision margin, 4x2 corners (AprilTag px).
-RawDetection = tuple[int, int, float, npt.NDArray[np.float64]]
-
-
-class DetectorError(IptError):
-    """The detector was given something it cannot work on, or its helper process failed."""
 
 
 @dataclass(frozen=True)
@@ -54,27 +54,6 @@ class TagDetection:
     """4x2 corners in OpenCV pixel coordinates, in AprilTag's order."""
 
 
-def free_pupil_detector(det: Any) -> None:
-    """Free a pupil-apriltags detector in the order the C library needs.
-
-    pupil-apriltags 1.0.4's ``Detector.__del__`` frees the tag family first and then calls
-    ``apriltag_detector_destroy``, which writes into that freed family (``quick_decode_uninit``): an
-    8-byte use-after-free that valgrind shows and that later aborts the process in an unrelated
-    ``malloc``. We destroy the detector first, then the family, and disarm the library's ``__del__``.
-    """
-    ptr = det.tag_detector_ptr
-    if ptr is None:
-        return
-    det.tag_detector_ptr = None  # makes pupil-apriltags' own __del__ a no-op
-    libc = det.libc
-    libc.apriltag_detector_destroy.restype = None
-    libc.apriltag_detector_destroy(ptr)
-    libc.tag36h11_destroy.restype = None
-    for family in det.tag_families.values():
-        libc.tag36h11_destroy(family)
-    det.tag_families = {}
-
-
 def c_settings(cfg: DetectorConfig) -> dict[str, float]:
     """The settings the C detector is made with (plain values, so they can cross to the helper process)."""
     return {
@@ -84,45 +63,6 @@ def c_settings(cfg: DetectorConfig) -> dict[str, float]:
         "refine_edges": int(cfg.refine_edges),
         "decode_sharpening": cfg.decode_sharpening,
     }
-
-
-def make_pupil_detector(settings: dict[str, float]) -> Any:
-    """A tag36h11 pupil-apriltags detector with ``settings`` (see :func:`c_settings`). Free it with
-    :func:`free_pupil_detector`."""
-    det = pupil_apriltags.Detector(
-        families="tag36h11",
-        nthreads=int(settings["nthreads"]),
-        quad_decimate=settings["quad_decimate"],
-        quad_sigma=settings["quad_sigma"],
-        refine_edges=int(settings["refine_edges"]),
-        decode_sharpening=settings["decode_sharpening"],
-    )
-    # pupil-apriltags 1.0.4 stores int(decode_sharpening), so 0.25 would reach the C detector as 0.
-    det.tag_detector_ptr.contents.decode_sharpening = settings["decode_sharpening"]
-    return det
-
-
-def pupil_settings(det: Any) -> dict[str, float]:
-    """The settings as the C detector holds them (pupil-apriltags may coerce what it is given)."""
-    c = det.tag_detector_ptr.contents
-    return {
-        "nthreads": int(c.nthreads),
-        "quad_decimate": float(c.quad_decimate),
-        "quad_sigma": float(c.quad_sigma),
-        "refine_edges": int(c.refine_edges),
-        "decode_sharpening": float(c.decode_sharpening),
-    }
-
-
-def pupil_detect(det: Any, gray: npt.NDArray[np.uint8], decimate: float | None = None) -> list[RawDetection]:
-    """Every tag36h11 decode the C detector finds in ``gray``, unfiltered; with ``decimate``, quads are
-    looked for at that decimation from now on (the C detector reads it on every call)."""
-    if decimate is not None:
-        det.tag_detector_ptr.contents.quad_decimate = decimate
-    return [
-        (int(d.tag_id), int(d.hamming), float(d.decision_margin), np.asarray(d.corners, dtype=np.float64).reshape(4, 2))
-        for d in det.detect(gray)
-    ]
 
 
 class Backend(Protocol):
@@ -216,3 +156,16 @@ class TagDetector:
                 continue
             out.append(TagDetection(tag_id, hamming, margin, corners))
         return tuple(out)
+
+
+__all__ = [
+    "APRILTAG_TO_OPENCV_PX",
+    "Backend",
+    "DetectorError",
+    "InlineBackend",
+    "RawDetection",
+    "TagDetection",
+    "TagDetector",
+    "c_settings",
+    "free_pupil_detector",
+]

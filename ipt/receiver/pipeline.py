@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter, defaultdict, deque
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -50,10 +50,12 @@ from ipt.receiver.demodulator import (
 )
 from ipt.receiver.detector import DetectorError, TagDetection, TagDetector
 from ipt.receiver.framecheck import RESTARTS, frame_problem
+from ipt.receiver.frameresult import FrameResult, _Candidate, _Frame, _Pair
+from ipt.receiver.gates import PoseGates
 from ipt.receiver.imagealign import AlignTarget, alignment_features, floor_warp_between, warp_image
 from ipt.receiver.motion import MotionTrack, floor_warp
 from ipt.receiver.pose import PoseEstimate, solve_pose
-from ipt.receiver.scales import DetectScale, ScaleChooser, gate_growth
+from ipt.receiver.scales import DetectScale, ScaleChooser
 from ipt.receiver.track import (
     MapEdges,
     MaskRenderer,
@@ -77,10 +79,6 @@ HISTORY = 6
 #: period is still tried as a fallback: when an exposure straddles a flip, its lag-2 partner straddles the
 #: same way and the signal cancels, while the neighbour on the other side of the flip keeps half of it.
 MAX_PHASE_ERROR = 0.55
-#: The motion gate compares with accepted poses this close in time.
-GATE_WINDOW_US = 250_000
-#: After this many gated poses in a row the track is re-initialised (the earlier pose was the wrong one).
-GATE_RESET_AFTER = 4
 #: A gap in capture times longer than this (or time going backwards) starts pairing afresh.
 MAX_GAP_US = 100_000
 #: A predicted warp that moves the image centre further than this fraction of the width is not trusted.
@@ -95,74 +93,7 @@ GOOD_QUALITY = 0.3
 LOST_AFTER_US = 50_000
 #: A coarse search whose normalised correlation peak is weaker than this is not followed.
 MIN_COARSE_SCORE = 0.1
-@dataclass(frozen=True)
-class FrameResult:
-    """What one camera frame gave."""
-
-    index: int
-    capture_time_us: int
-    pose: PoseEstimate | None
-    num_detections: int
-    """Tags the pose rests on (AprilTag detections, or tags whose edges the track used)."""
-    reason: str
-    """"pose" when a pose was made; otherwise why not (e.g. "first_frame", "no_tags", "dark", "bad_frame")."""
-    reset: bool = False
-    """The pose re-initialises the track (it disagreed with the previous ones, which were dropped)."""
-    method: str = ""
-    """How the pose was found: "track" (the map's edges), "apriltag" (tag corners), or "" for none."""
-    partner: int | None = None
-    """The frame it was paired with."""
-    detector_failed: bool = False
-    """The tag detector's helper process failed while this frame was processed (the frame may still have
-    a pose: the track does not need AprilTag)."""
-
-
-@dataclass
-class _Frame:
-    index: int
-    time_us: int
-    lum: U8
-    """Lightness (undistorted in the ipt profile)."""
-    signal: U8 | None = None
-    features: F32 | None = None
-    target: AlignTarget | None = None
-    rt: tuple[F64, F64] | None = None
-    """OpenCV's (rvec, tvec) of the pose found for this frame."""
-    phase: int | None = None
-    """+1 if this frame showed the +ΔL phase, -1 the other, None if not known."""
-    result: FrameResult | None = None
-    final: bool = False
-    tried: set[int] = field(default_factory=set)
-    candidates: list[_Candidate] = field(default_factory=list)
-    """The poses found for this frame with each partner (ipt profile), not yet gated."""
-    best: _Candidate | None = None
-    """The candidate that fits the map best so far."""
-    failure: FrameResult | None = None
-    """Why the last attempt gave no pose."""
-
-
-@dataclass(frozen=True)
-class _Candidate:
-    """A pose found for a frame with one partner, and how well the map fitted it."""
-
-    pose: PoseEstimate
-    rt: tuple[F64, F64]
-    tags: int
-    method: str
-    partner: int
-    quality: float
-    """The share of the visible map's edges on their steps (0 for a pose from tag corners alone)."""
-
-
-@dataclass
-class _Pair:
-    warp: F64
-    """Carries the earlier frame onto the later one (undistorted pixels)."""
-    later: PairDifference
-    earlier: PairDifference | None = None
-
-
-class Pipeline:
+class Pipeline(PoseGates):
     """The receiver's per-frame processing, for either profile (see :meth:`PipelineConfig.profile`)."""
 
     def __init__(self, tag_map: TagMap, camera: CameraInfo, cfg: PipelineConfig, projector_hz: float = 60.0) -> None:
@@ -643,45 +574,5 @@ class Pipeline:
             return True
         return float(np.linalg.norm(position - pose.position_m)) < 0.05
 
-    # -- gates ----------------------------------------------------------------------------------------
 
-    def _doubtful(self, t_us: int, pose: PoseEstimate) -> str | None:
-        """Why ``pose`` disagrees with the recent motion (the reason counted), or None if it does not."""
-        cfg = self.cfg.pose
-        if cfg.max_prediction_error_m is not None:
-            bound_m = cfg.max_prediction_error_m * gate_growth(float(pose.position_m[2]))
-            predicted = self._track.pose_at(t_us)
-            if predicted is None:
-                # Nothing to check it against yet (the start, or after a gap): only a pose whose own
-                # uncertainty is within the same bound goes out; the rest only feed the track.
-                if float(np.linalg.norm(pose.position_std_m)) > bound_m:
-                    return "unconfirmed"
-            elif float(np.linalg.norm(pose.position_m - predicted[0])) > bound_m:
-                return "inconsistent"
-        if cfg.max_speed_mps is not None and self._accepted:
-            last_us, last = min(self._accepted, key=lambda a: abs(a[0] - t_us))
-            dt_us = abs(t_us - last_us)
-            if 0 < dt_us <= GATE_WINDOW_US:
-                allowed_m = 0.05 + cfg.max_speed_mps * dt_us * 1e-6
-                if float(np.linalg.norm(pose.position_m - last.position_m)) > allowed_m:
-                    return "motion_jump"
-        return None
-
-    def _gated(self, frame: _Frame, pose: PoseEstimate, tags: int, method: str, partner: int) -> FrameResult:
-        t_us = frame.time_us
-        doubt = self._doubtful(t_us, pose)
-        # Every solved pose goes into the track, gated or not: its fit is robust, and a gate that fed only
-        # on what it let through could lock onto a wrong track and reject every good pose after it.
-        self._track.add(t_us, pose.position_m, pose.r_arena_cam, float(np.linalg.norm(pose.position_std_m)))
-        reset = False
-        if doubt in ("inconsistent", "unconfirmed"):
-            return FrameResult(frame.index, t_us, None, tags, doubt, method=method, partner=partner)
-        if doubt == "motion_jump":
-            self._gated_in_a_row += 1
-            if self._gated_in_a_row < GATE_RESET_AFTER:
-                return FrameResult(frame.index, t_us, None, tags, doubt, method=method, partner=partner)
-            reset = True
-            self._accepted.clear()
-        self._gated_in_a_row = 0
-        self._accepted.append((t_us, pose))
-        return FrameResult(frame.index, t_us, pose, tags, "pose", reset, method, partner)
+__all__ = ["FrameResult", "Pipeline"]

@@ -35,7 +35,7 @@ import numpy.typing as npt
 
 from ipt.geometry import quat_wxyz_from_matrix
 from ipt.receiver.kinematics import Twist, VelocityFit, skew
-from ipt.receiver.mavlink import Mounting
+from ipt.receiver.mavframes import Mounting
 from ipt.receiver.pose import PoseEstimate
 from ipt.rosmsg import DIAGNOSTICS, ODOMETRY, POSE, TF, Message, time_msg
 

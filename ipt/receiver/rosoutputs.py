@@ -57,7 +57,7 @@ class RosOutputs:
         :class:`~ipt.errors.IptError` if one cannot be set up (nothing is left open then)."""
         if not cfg.ros2.enabled and cfg.record.path is None:
             return None
-        from ipt.receiver.mavlink import mounting_from
+        from ipt.receiver.mavframes import mounting_from
 
         r = cfg.ros2
         names = RosNames(r.frame_id, r.base_frame_id, r.camera_frame_id, r.namespace)

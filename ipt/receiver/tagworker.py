@@ -7,7 +7,7 @@ hour, and freeing the detector gives none of it back; only the end of the proces
 runs the detector in a helper process (:class:`ProcessBackend`) and, once the helper's own memory
 (``RssAnon``) grew by ``recycle_mb`` since it warmed up, starts a fresh one in the background and
 switches to it when it is ready: no frame waits for a helper to start. A helper that crashes or hangs is
-replaced in the same way, and the frame in hand fails with :class:`~ipt.receiver.detector.DetectorError`.
+replaced in the same way, and the frame in hand fails with :class:`~ipt.receiver.apriltag_c.DetectorError`.
 
 The image crosses in shared memory (a ``memfd`` both processes map); the request and the detections
 cross the helper's stdin and stdout as little-endian binary::
@@ -43,7 +43,7 @@ from typing import Final
 import numpy as np
 import numpy.typing as npt
 
-from ipt.receiver.detector import (
+from ipt.receiver.apriltag_c import (
     DetectorError,
     RawDetection,
     make_pupil_detector,

@@ -1,0 +1,87 @@
+"""AprilTag's C detector (pupil-apriltags), called directly: made, asked, freed.
+
+What both sides of the detector's process boundary need: :mod:`ipt.receiver.detector` runs it inline,
+the helper process of :mod:`ipt.receiver.tagworker` runs it there; neither imports the other for it.
+Detections come out as the C library gives them (:data:`RawDetection`, AprilTag's pixel origin,
+unfiltered); :class:`~ipt.receiver.detector.TagDetector` filters them and moves the corners to OpenCV's.
+
+This module imports neither pydantic nor the configuration models, so that the helper process starts
+quickly.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import pupil_apriltags
+
+from ipt.errors import IptError
+
+#: One detection as the C library gives it: id, bits corrected, decision margin, 4x2 corners (AprilTag px).
+RawDetection = tuple[int, int, float, npt.NDArray[np.float64]]
+
+
+class DetectorError(IptError):
+    """The detector was given something it cannot work on, or its helper process failed."""
+
+
+def free_pupil_detector(det: Any) -> None:
+    """Free a pupil-apriltags detector in the order the C library needs.
+
+    pupil-apriltags 1.0.4's ``Detector.__del__`` frees the tag family first and then calls
+    ``apriltag_detector_destroy``, which writes into that freed family (``quick_decode_uninit``): an
+    8-byte use-after-free that valgrind shows and that later aborts the process in an unrelated
+    ``malloc``. We destroy the detector first, then the family, and disarm the library's ``__del__``.
+    """
+    ptr = det.tag_detector_ptr
+    if ptr is None:
+        return
+    det.tag_detector_ptr = None  # makes pupil-apriltags' own __del__ a no-op
+    libc = det.libc
+    libc.apriltag_detector_destroy.restype = None
+    libc.apriltag_detector_destroy(ptr)
+    libc.tag36h11_destroy.restype = None
+    for family in det.tag_families.values():
+        libc.tag36h11_destroy(family)
+    det.tag_families = {}
+
+
+def make_pupil_detector(settings: dict[str, float]) -> Any:
+    """A tag36h11 pupil-apriltags detector with ``settings`` (see :func:`ipt.receiver.detector.c_settings`).
+    Free it with :func:`free_pupil_detector`."""
+    det = pupil_apriltags.Detector(
+        families="tag36h11",
+        nthreads=int(settings["nthreads"]),
+        quad_decimate=settings["quad_decimate"],
+        quad_sigma=settings["quad_sigma"],
+        refine_edges=int(settings["refine_edges"]),
+        decode_sharpening=settings["decode_sharpening"],
+    )
+    # pupil-apriltags 1.0.4 stores int(decode_sharpening), so 0.25 would reach the C detector as 0.
+    det.tag_detector_ptr.contents.decode_sharpening = settings["decode_sharpening"]
+    return det
+
+
+def pupil_settings(det: Any) -> dict[str, float]:
+    """The settings as the C detector holds them (pupil-apriltags may coerce what it is given)."""
+    c = det.tag_detector_ptr.contents
+    return {
+        "nthreads": int(c.nthreads),
+        "quad_decimate": float(c.quad_decimate),
+        "quad_sigma": float(c.quad_sigma),
+        "refine_edges": int(c.refine_edges),
+        "decode_sharpening": float(c.decode_sharpening),
+    }
+
+
+def pupil_detect(det: Any, gray: npt.NDArray[np.uint8], decimate: float | None = None) -> list[RawDetection]:
+    """Every tag36h11 decode the C detector finds in ``gray``, unfiltered; with ``decimate``, quads are
+    looked for at that decimation from now on (the C detector reads it on every call)."""
+    if decimate is not None:
+        det.tag_detector_ptr.contents.quad_decimate = decimate
+    return [
+        (int(d.tag_id), int(d.hamming), float(d.decision_margin), np.asarray(d.corners, dtype=np.float64).reshape(4, 2))
+        for d in det.detect(gray)
+    ]

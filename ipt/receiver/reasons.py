@@ -1,0 +1,50 @@
+"""Why a camera frame gave no pose: the values of :attr:`ipt.receiver.pipeline.FrameResult.reason`.
+
+A :class:`~enum.StrEnum`, so a member is equal to its text (``FrameReason.NO_TAGS == "no_tags"``) and
+prints as it: the statistics lines, the suite's JSON and the diagnostics carry the same words as before.
+"""
+
+from __future__ import annotations
+
+from enum import StrEnum
+
+
+class FrameReason(StrEnum):
+    """The reason of one frame's result (``pose`` when it has one)."""
+
+    POSE = "pose"
+    """A pose was made."""
+    FIRST_FRAME = "first_frame"
+    """No frame before it to pair with."""
+    TIME_GAP = "time_gap"
+    """Too long since the previous frame: the pairing and the track start again."""
+    BAD_FRAME = "bad_frame"
+    """Not an H×W or H×W×3 uint8 image."""
+    WRONG_SIZE = "wrong_size"
+    """An image of another size than the camera's."""
+    DARK = "dark"
+    """Too little light to see the hidden tags."""
+    SATURATED = "saturated"
+    """Too much of the frame saturated."""
+    NO_ALIGNMENT = "no_alignment"
+    """The frame could not be aligned with its partner."""
+    NO_TAGS = "no_tags"
+    """No tag found."""
+    LOST = "lost"
+    """The track lost the map and no tag was found."""
+    TRACK_DISAGREES = "track_disagrees"
+    """The track's pose disagreed with the tags'."""
+    DETECTOR_FAILED = "detector_failed"
+    """The tag detector's helper process failed on this frame."""
+    POSE_REJECTED = "pose_rejected"
+    """A pose was found but not trusted (its fit)."""
+    INCONSISTENT = "inconsistent"
+    """A pose that disagrees with the poses before it."""
+    UNCONFIRMED = "unconfirmed"
+    """A pose after a disagreement, not yet confirmed by the next ones."""
+    MOTION_JUMP = "motion_jump"
+    """A pose farther from the last one than the drone can move in the time."""
+    BAD_POSE = "bad_pose"
+    """A pose that cannot be sent (e.g. a non-finite position): counted by the daemon."""
+    ERROR = "error"
+    """Processing the frame raised: counted by the daemon, reported on stderr."""
