@@ -20,7 +20,7 @@ from ipt.errors import IptError
 
 if TYPE_CHECKING:  # loaded only by the commands that use them
     from ipt.config.models import ArenaConfig
-    from ipt.sender.content import Scene
+    from ipt.sender.content import ContentSource
 
 DEFAULT_ARENA_NAME = "arena.yaml"
 """The arena shipped in ``ipt/config``, used when ``--config`` is not given."""
@@ -38,7 +38,7 @@ def _arena(path: str | None) -> ArenaConfig:
     return load_arena_config(path if path is not None else _default_arena())
 
 
-def _scene(spec: str, arena: ArenaConfig, seed: int) -> Scene:
+def _scene(spec: str, arena: ArenaConfig, seed: int) -> ContentSource:
     from ipt.imageio import IMAGE_SUFFIXES
     from ipt.sender.content import GeneratedScene, StillImageScene, VideoScene
     from ipt.sender.photos import PanningPhotoScene

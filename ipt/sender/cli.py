@@ -276,7 +276,7 @@ def _main(argv: Sequence[str] | None) -> int:
 def _serve(args: argparse.Namespace) -> int:
     from ipt.sender.modulator import FrameTiming, Modulator, delta_l_warning, make_modulator
     from ipt.sender.options import SenderOptions
-    from ipt.sender.scene import ArScene
+    from ipt.sender.overlay import ArOverlay
     from ipt.sender.server import run_sender
     from ipt.tagmap import grid_tag_map
 
@@ -310,7 +310,7 @@ def _serve(args: argparse.Namespace) -> int:
             frames=args.frames,
             listen=listen,
             packet_filter=packet_filter,
-            overlay=ArScene(arena, max_vehicles=max_vehicles),
+            overlay=ArOverlay(arena, max_vehicles=max_vehicles),
             stats_every_s=args.stats_every,
             input_rate_hz=input_rate_hz,
             modulator=modulator,
@@ -357,7 +357,7 @@ def _packet_filter(args: argparse.Namespace) -> tuple[PacketFilter, int]:
     """The pose packets' gate of ``--auth-key-file``, ``--vehicles``, ``--max-vehicles`` and
     ``--source-rate-limit``, and the most vehicles tracked."""
     from ipt.protocol import PacketFilter
-    from ipt.sender.scene import DEFAULT_MAX_VEHICLES
+    from ipt.sender.overlay import DEFAULT_MAX_VEHICLES
     from ipt.sender.server import DEFAULT_SOURCE_RATE_HZ
 
     key = _read_key(args.auth_key_file) if args.auth_key_file is not None else None

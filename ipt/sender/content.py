@@ -6,7 +6,7 @@ a street network, labels) under a phone-style interface, with a route that grows
 end pin, a moving location marker and a slow pan and zoom. :class:`StillImageScene` shows one image and
 :class:`VideoScene` plays a video file or image folder in a loop.
 
-All scenes answer the same question, :meth:`Scene.frame`: the RGB picture (H×W×3 uint8) of input frame
+All content sources answer the same question, :meth:`ContentSource.frame`: the RGB picture (H×W×3 uint8) of input frame
 ``index`` when input frames come at ``rate_hz``, that is at time ``index / rate_hz`` seconds.
 """
 
@@ -33,10 +33,15 @@ class ContentError(IptError):
     """A scene cannot be made from the values or the image given."""
 
 
-class Scene(Protocol):
+class ContentSource(Protocol):
     """Video content: input frame ``index`` at ``rate_hz`` as an H×W×3 uint8 RGB image."""
 
     def frame(self, index: int, rate_hz: float) -> U8: ...
+
+
+Scene = ContentSource
+"""The old name of :class:`ContentSource`, kept for ``ipt/demo.py`` (moved by another change at the same
+time) until it is switched at the merge."""
 
 
 def _check_size(width_px: int, height_px: int) -> None:

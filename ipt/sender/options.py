@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Final, Literal
 if TYPE_CHECKING:
     from ipt.protocol import PacketFilter
     from ipt.sender.modulator import Modulator
-    from ipt.sender.scene import ArScene
+    from ipt.sender.overlay import ArOverlay
 
 DEFAULT_LISTEN: Final = ("127.0.0.1", 9870)
 """Where the sender listens for pose packets unless told otherwise."""
@@ -35,8 +35,8 @@ class SenderOptions:
     packet_filter: PacketFilter | None = None
     """The gate for datagrams (``None``: :func:`~ipt.sender.server.default_packet_filter`, any vehicle, no
     key, at most 16 vehicles, re-baselined after 10 s of silence so that a restarted drone is seen again)."""
-    overlay: ArScene | None = None
-    """The AR overlay (``None``: a new :class:`~ipt.sender.scene.ArScene`); it may also be updated by the
+    overlay: ArOverlay | None = None
+    """The AR overlay (``None``: a new :class:`~ipt.sender.overlay.ArOverlay`); it may also be updated by the
     caller's own code (it is thread-safe)."""
     stats_every_s: float = 5.0
     """Interval of the statistics lines."""
@@ -51,8 +51,8 @@ class SenderOptions:
     shutdown_timeout_s: float = 0.5
     """Bound on waiting for the render thread when stopping."""
     overlay_clock: Callable[[], float] | None = None
-    """The time (seconds) the overlay runs on: given to :meth:`ArScene.update` for each accepted pose and to
-    :meth:`ArScene.draw` for each input frame, so it sets fading and trails (``None``: ``time.monotonic``;
+    """The time (seconds) the overlay runs on: given to :meth:`ArOverlay.update` for each accepted pose and to
+    :meth:`ArOverlay.draw` for each input frame, so it sets fading and trails (``None``: ``time.monotonic``;
     the closed-loop demo passes the simulation's clock)."""
     on_listening: Callable[[tuple[str, int]], None] | None = None
     """Called with the bound ``(host, port)`` once the pose listener is up (useful with port 0)."""

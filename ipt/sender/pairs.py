@@ -55,7 +55,7 @@ import numpy.typing as npt
 
 from ipt.errors import IptError
 from ipt.fileio import atomic_path
-from ipt.sender.colour import CODE_TO_LINEAR, L8_PER_LSTAR, LUMINANCE_WEIGHTS, RGB_TO_XYZ, WHITE_XYZ, lightness
+from ipt.sender.colour import CODE_TO_LINEAR, L8_PER_LSTAR, LUMINANCE_WEIGHTS, RGB_TO_XYZ, WHITE_XYZ, lstar
 
 U8 = npt.NDArray[np.uint8]
 F64 = npt.NDArray[np.float64]
@@ -99,7 +99,7 @@ def amplitude_grid(delta_l: float, steps: int = AMPLITUDE_STEPS) -> F64:
     lo, hi = np.zeros_like(y), y.copy()
     for _ in range(64):
         a = (lo + hi) / 2
-        above = lightness(y + a) - lightness(y - a) > target
+        above = lstar(y + a) - lstar(y - a) > target
         hi = np.where(above, a, hi)
         lo = np.where(above, lo, a)
     out: F64 = (lo + hi) / 2
@@ -154,7 +154,7 @@ def _floor_code(x: float, lin: F64) -> int:
 
 
 def _lstar(y: float) -> float:
-    """CIE L* of relative luminance ``y`` (as :func:`ipt.sender.colour.lightness`)."""
+    """CIE L* of relative luminance ``y`` (as :func:`ipt.sender.colour.lstar`)."""
     if y > 0.008856451679035631:  # (6/29)^3
         return 116.0 * float(y ** (1.0 / 3.0)) - 16.0
     return 116.0 * (y / 0.12841854934601665 + 4.0 / 29.0) - 16.0  # 3 (6/29)^2

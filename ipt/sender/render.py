@@ -20,9 +20,9 @@ from typing import Any, Final
 import numpy as np
 import numpy.typing as npt
 
-from ipt.sender.content import Scene
+from ipt.sender.content import ContentSource
 from ipt.sender.modulator import FrameTiming, Modulator, phase_sign, resize_to
-from ipt.sender.scene import ArScene
+from ipt.sender.overlay import ArOverlay
 
 U8 = npt.NDArray[np.uint8]
 
@@ -108,9 +108,9 @@ class Renderer:
 
     def __init__(
         self,
-        scene: Scene,
+        scene: ContentSource,
         modulator: Modulator,
-        ar: ArScene | None,
+        overlay: ArOverlay | None,
         timing: FrameTiming,
         clock: Callable[[], float] = time.monotonic,
         content_worker: Worker | None = None,
@@ -121,7 +121,7 @@ class Renderer:
         self.scene = scene
         self.frames = frames
         self.modulator = modulator
-        self.ar = ar
+        self.overlay = overlay
         self.clock = clock
         self.timing = timing
         self.input_rate_hz = timing.input_rate_hz
@@ -248,13 +248,13 @@ class Renderer:
         self._ring_next += 1
         return pair
 
-    def _overlay(self, rgb: U8) -> float | None:
+    def _draw_overlay(self, rgb: U8) -> float | None:
         """Draw the AR overlay into ``rgb``; its duration (None without an overlay)."""
-        if self.ar is None:
+        if self.overlay is None:
             return None
         t1 = time.perf_counter()
         try:
-            self.ar.draw(rgb, self.clock())
+            self.overlay.draw(rgb, self.clock())
         except Exception as exc:  # the overlay must never stop the projection
             self.overlay_errors += 1
             if self.first_overlay_error is None:
@@ -273,7 +273,7 @@ class Renderer:
             else:
                 content = self._content(i, self._next_input(i, j))
                 content_s, content_cpu_s = content.seconds, content.cpu_s
-                overlay_s = self._overlay(content.rgb)
+                overlay_s = self._draw_overlay(content.rgb)
                 self._phases = self.modulator.phases(content.rgb, self._buffers())
             self._input = i
         assert self._phases is not None
@@ -284,7 +284,7 @@ class Renderer:
             if ni != i and ahead is not None and ahead[0] == ni and ahead[1].done():
                 content = self._content(ni, self._next_input(ni, j + 1))
                 content_s, content_cpu_s = content.seconds, content.cpu_s
-                overlay_s = self._overlay(content.rgb)
+                overlay_s = self._draw_overlay(content.rgb)
                 out = self._buffers()
                 if out is None:
                     shape = (self.modulator.height_px, self.modulator.width_px, 3)

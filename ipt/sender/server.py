@@ -25,9 +25,9 @@ not paced: frames are rendered and written as fast as possible, and there are no
 
 Packets. A UDP socket (an asyncio datagram endpoint on the event loop) feeds every datagram, with its
 source address, to a :class:`~ipt.protocol.PacketFilter`; accepted poses update the
-:class:`~ipt.sender.scene.ArScene`, rejected ones are counted by reason. Nothing in a datagram can stop
+:class:`~ipt.sender.overlay.ArOverlay`, rejected ones are counted by reason. Nothing in a datagram can stop
 the loop: anything unexpected is counted as ``error``. The default filter tracks at most
-:data:`~ipt.sender.scene.DEFAULT_MAX_VEHICLES` vehicles and takes at most :data:`DEFAULT_SOURCE_RATE_HZ`
+:data:`~ipt.sender.overlay.DEFAULT_MAX_VEHICLES` vehicles and takes at most :data:`DEFAULT_SOURCE_RATE_HZ`
 datagrams a second from one source address, so that a flood of made-up vehicle ids neither grows the
 overlay's work nor takes the event loop's time from the frames (``docs/reliability.md``).
 
@@ -64,13 +64,13 @@ from ipt.errors import IptError
 from ipt.memory import keep_freed_memory, warm
 from ipt.protocol import PacketFilter
 from ipt.sender.clock import FrameClock, Verdict
-from ipt.sender.content import GeneratedScene, Scene
+from ipt.sender.content import ContentSource, GeneratedScene
 from ipt.sender.display import Sink
 from ipt.sender.modulator import FrameTiming, Modulator, make_modulator
 from ipt.sender.options import DEFAULT_LISTEN, SenderOptions
+from ipt.sender.overlay import DEFAULT_MAX_VEHICLES, ArOverlay
 from ipt.sender.pairs import default_cache_dir
 from ipt.sender.render import EARLY_ROWS, Rendered, Renderer, Worker
-from ipt.sender.scene import DEFAULT_MAX_VEHICLES, ArScene
 from ipt.sender.stats import Histogram, SenderStats
 from ipt.tagmap import grid_tag_map
 
@@ -141,10 +141,10 @@ class _PoseListener(asyncio.DatagramProtocol):
     """Every datagram goes through the filter; accepted poses update the overlay."""
 
     def __init__(
-        self, packet_filter: PacketFilter, ar: ArScene | None, clock: Callable[[], float] | None = None
+        self, packet_filter: PacketFilter, overlay: ArOverlay | None, clock: Callable[[], float] | None = None
     ) -> None:
         self.filter = packet_filter
-        self.ar = ar
+        self.overlay = overlay
         self.clock = clock
         self.errors = 0
         self.socket_errors = 0
@@ -153,8 +153,8 @@ class _PoseListener(asyncio.DatagramProtocol):
         now = time.monotonic()
         try:
             packet = self.filter.accept(data, now, addr[0] if addr else None)
-            if packet is not None and self.ar is not None:
-                self.ar.update(packet, now if self.clock is None else self.clock())
+            if packet is not None and self.overlay is not None:
+                self.overlay.update(packet, now if self.clock is None else self.clock())
         except Exception:  # a bug somewhere below: count it, keep listening
             self.errors += 1
 
@@ -180,7 +180,7 @@ def _nothing() -> None:
 class Sender:
     """One run of the sender; see the module doc. Use :func:`run_sender`."""
 
-    def __init__(self, arena: ArenaConfig, sink: Sink, content: Scene | None, options: SenderOptions) -> None:
+    def __init__(self, arena: ArenaConfig, sink: Sink, content: ContentSource | None, options: SenderOptions) -> None:
         o = options
         if o.frames is not None and o.frames < 0:
             raise SenderError(f"frames must be >= 0, got {o.frames}")
@@ -192,7 +192,7 @@ class Sender:
         self.frames = o.frames
         self.paced = sink.paced if o.paced is None else o.paced
         self.filter = o.packet_filter if o.packet_filter is not None else default_packet_filter()
-        self.ar = o.overlay if o.overlay is not None else ArScene(arena)
+        self.overlay = o.overlay if o.overlay is not None else ArOverlay(arena)
         self.log = o.log if o.log is not None else _stderr_line
         self.overlay_clock = o.overlay_clock if o.overlay_clock is not None else time.monotonic
         self.rate_hz = arena.projector.rate_hz
@@ -206,7 +206,7 @@ class Sender:
         self.renderer = Renderer(
             content if content is not None else GeneratedScene(pr.width_px, pr.height_px),
             self.modulator,
-            self.ar,
+            self.overlay,
             self.timing,
             self.overlay_clock,
             None,
@@ -301,7 +301,7 @@ class Sender:
         if self.sink.threaded:
             self._display = Worker("ipt-display")
         if self.options.listen is not None:
-            self._listener = _PoseListener(self.filter, self.ar, self.options.overlay_clock)
+            self._listener = _PoseListener(self.filter, self.overlay, self.options.overlay_clock)
             self._transport, self.bound = await self._bind(loop, *self.options.listen)
             self.log(f"ipt-sender: listening for pose packets on udp {self.bound[0]}:{self.bound[1]}")
             if self.options.on_listening is not None:
@@ -469,8 +469,8 @@ class Sender:
         pacing: Callable[[], dict[str, Any]] | None = getattr(self.sink, "pacing", None)
         if pacing is not None:
             stats.pacing = pacing()
-        if self.ar is not None:
-            stats.vehicles = len(self.ar.vehicle_ids())
+        if self.overlay is not None:
+            stats.vehicles = len(self.overlay.vehicle_ids())
         if self.renderer.first_overlay_error is not None and not self._overlay_error_logged:
             self._overlay_error_logged = True
             self.log(f"ipt-sender: overlay failed (frames are shown without it): {self.renderer.first_overlay_error}")
@@ -518,7 +518,7 @@ class Sender:
 async def run_sender(
     arena: ArenaConfig,
     sink: Sink,
-    scene: Scene | None = None,
+    scene: ContentSource | None = None,
     options: SenderOptions | None = None,
     **changes: Any,
 ) -> SenderStats:
