@@ -15,7 +15,8 @@ from ipt.invisibility import ciede2000
 from ipt.sender import pairs
 from ipt.sender.colour import L8_PER_LSTAR, LUMINANCE_WEIGHTS, code_to_lab, code_to_linear, linear_to_lab, lstar
 from ipt.sender.modulator import IptModulator, PaperModulator
-from ipt.sender.pairs import COLOURS, PairTable, allowance_budget_de00, cache_path, read_cache, write_cache
+from ipt.sender.pairs import COLOURS, allowance_budget_de00
+from ipt.sender.pairtable import PairTable, cache_path, read_cache, write_cache
 
 U8 = npt.NDArray[np.uint8]
 DELTA_L = 4.0

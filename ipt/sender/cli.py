@@ -202,7 +202,7 @@ def _gpu_path(args: argparse.Namespace, arena: ArenaConfig, mask: Any) -> tuple[
     """The GPU window and its modulator, ready (colour table complete, textures up); or, when the GPU path
     cannot start, one line saying why and (None, None): the CPU makes the phases instead."""
     from ipt.sender.gpu import GlWindowSink, GpuError, GpuModulator
-    from ipt.sender.pairs import default_cache_dir
+    from ipt.sender.pairtable import default_cache_dir
 
     mod = arena.modulation
     gpu = GpuModulator(mask, mod.delta_l, mod.clip_allowance_l8)

@@ -63,5 +63,5 @@ class SenderOptions:
     """The modulator (``None``: the arena's ``modulation.profile`` for its tag map and ΔL)."""
     pair_cache: os.PathLike[str] | Literal["default"] | None = "default"
     """Folder of the ``ipt`` profile's colour table cache (``"default"``:
-    :func:`~ipt.sender.pairs.default_cache_dir`; ``None``: none, the table is computed at every start). A
+    :func:`~ipt.sender.pairtable.default_cache_dir`; ``None``: none, the table is computed at every start). A
     paced run completes the table before its first frame."""

@@ -69,7 +69,7 @@ from ipt.sender.display import Sink
 from ipt.sender.modulator import FrameTiming, Modulator, make_modulator
 from ipt.sender.options import DEFAULT_LISTEN, SenderOptions
 from ipt.sender.overlay import DEFAULT_MAX_VEHICLES, ArOverlay
-from ipt.sender.pairs import default_cache_dir
+from ipt.sender.pairtable import default_cache_dir
 from ipt.sender.render import EARLY_ROWS, Rendered, Renderer, Worker
 from ipt.sender.stats import Histogram, SenderStats
 from ipt.tagmap import grid_tag_map
