@@ -1,10 +1,11 @@
 """The ``ipt`` profile's pairs: for every 8-bit colour, the two codes a tag pixel of it flickers between.
 
 Pure and compiled (numba, :mod:`ipt.sender.jit`; the per-colour CIELAB and CIEDE2000 are
-:mod:`ipt.sender.cielab`, the table and its cache file :mod:`ipt.sender.pairtable`). What one colour's pair is (:func:`_ipt_pair`; :mod:`ipt.sender.modulator`
-says why): around the input's linear colour ``c`` (luminance ``Y``) the two phases are ``c ± v``, ``v``
-water-filled within each channel's room so that their L* differ by 2ΔL, quantised to 8-bit codes whose
-linear mean misses ``c`` by less than half a code step.
+:mod:`ipt.sender.cielab`, the table and its cache file :mod:`ipt.sender.pairtable`). What one colour's
+pair is (:func:`_ipt_pair`; :mod:`ipt.sender.modulator` says why): around the input's linear colour
+``c`` (luminance ``Y``) the two phases are ``c ± v``, ``v`` water-filled within each channel's room so
+that their L* differ by 2ΔL, quantised to 8-bit codes whose linear mean misses ``c`` by less than half a
+code step.
 
 **The clip allowance.** Pure white and black, pure primaries and colours next to them leave no room for
 that step. There the centre of the pair may move, by as little as gives the full step and at most a
@@ -19,15 +20,15 @@ fused colour (the linear mean of the two codes) misses ``c`` by more than the bu
 shortened until it does not. So no pixel's fused colour differs from the input by more than the budget,
 or by more than 8-bit quantisation where the budget is smaller than that.
 
-**The table.** A pair depends only on the colour, so pairs are kept in a table of all 2^24 colours
-(128 MB per ΔL and allowance, :class:`~ipt.sender.pairtable.PairTable`, shared in a process). Index and codes are the pixel's
-bytes read little-endian (``r | g << 8 | b << 16``), so that the frame kernel reads and writes a pixel
-as one 32-bit word. The table is filled either lazily (a colour the first time a frame has it, about a
-microsecond; the simulator and the measurements) or completely before a projection starts
-(:meth:`~ipt.sender.pairtable.PairTable.complete_with_cache`): computed once on all cores (about 15 s on 2 cores here) and kept in a
-cache file (:func:`~ipt.sender.pairtable.cache_path`), read back in a fraction of a second by the next run. Photographic
-content shows hundreds of thousands of new colours a second; filling them as they come cost the
-sender seconds of missed frames at every new scene.
+**The table.** A pair depends only on the colour, so pairs are kept in a table of all 2^24 colours (128
+MB per ΔL and allowance, :class:`~ipt.sender.pairtable.PairTable`, shared in a process). Index and codes
+are the pixel's bytes read little-endian (``r | g << 8 | b << 16``), so that the frame kernel reads and
+writes a pixel as one 32-bit word. The table is filled either lazily (a colour the first time a frame
+has it, about a microsecond; the simulator and the measurements) or completely before a projection
+starts (:meth:`~ipt.sender.pairtable.PairTable.complete_with_cache`): computed once on all cores (about
+15 s on 2 cores here) and kept in a cache file (:func:`~ipt.sender.pairtable.cache_path`), read back in
+a fraction of a second by the next run. Photographic content shows hundreds of thousands of new colours
+a second; filling them as they come cost the sender seconds of missed frames at every new scene.
 
 **The frame kernel** (:func:`_modulate_rows`) writes both output frames of an input frame in one pass:
 pixels outside the tags copied, tag pixels looked up (and filled if new). It reads each pixel as one
