@@ -218,20 +218,10 @@ def _de_from(l0: float, a0: float, b0: float, c0: float, c1: float, c2: float) -
     return float(_de00_c(l0, a0, b0, l1, a1, b1))
 
 
-def _allowance_move(
-    c0: float, c1: float, c2: float, target: float, budget: float, agrid: F64, w: F64
-) -> tuple[float, float, float]:
-    """How far the centre of ``c``'s pair moves (linear RGB) under the allowance (see the module doc).
-
-    The cheapest direction: with each channel moving inwards (up below 0.5, down above) by ``x_i``, the
-    room gained is ``w·x`` and ``ΔE00² ≈ xᵀMx`` (M from finite differences at ``c``); the least ``xᵀMx``
-    for ``w·x = 1``, ``x >= 0``, is found over the 7 sets of free channels. Its length: the least that
-    gives the full step, within ``budget``.
-    """
-    l0, a0, b0 = _lab_c(c0, c1, c2)
-    s0 = -1.0 if c0 > 0.5 else 1.0
-    s1 = -1.0 if c1 > 0.5 else 1.0
-    s2 = -1.0 if c2 > 0.5 else 1.0
+def _cost_metric(l0: float, a0: float, b0: float, c0: float, c1: float, c2: float, s0: float, s1: float,
+                 s2: float) -> F64:  # fmt: skip
+    """M of ``ΔE00² ≈ xᵀMx`` at linear colour ``c`` (CIELAB ``l0, a0, b0``) for channel moves ``x`` in the
+    directions ``s`` (±1 each), from finite differences."""
     h = 1e-3
     m = np.empty((3, 3))
     sg = (s0, s1, s2)
@@ -247,66 +237,101 @@ def _allowance_move(
             d[j] = h * sg[j]
             e = _de_from_c(l0, a0, b0, c0 + d[0], c1 + d[1], c2 + d[2])
             m[i, j] = m[j, i] = (e * e / (h * h) - m[i, i] - m[j, j]) / 2.0
+    return m
+
+
+def _free_set_move(m: F64, w: F64, subset: int) -> tuple[bool, float, float, float]:
+    """The least ``xᵀMx`` for ``w·x = 1`` with only the channels of ``subset`` (bit i: channel i) free:
+    whether it exists with ``x >= 0``, and ``x``."""
+    f0, f1, f2 = (subset & 1) != 0, (subset & 2) != 0, (subset & 4) != 0
+    y0 = y1 = y2 = 0.0
+    n = int(f0) + int(f1) + int(f2)
+    if n == 1:
+        k = 0 if f0 else (1 if f1 else 2)
+        if m[k, k] <= 0.0:
+            return False, 0.0, 0.0, 0.0
+        val = w[k] / m[k, k]
+        if k == 0:
+            y0 = val
+        elif k == 1:
+            y1 = val
+        else:
+            y2 = val
+    elif n == 2:
+        i = 0 if f0 else 1
+        j = 2 if f2 else 1
+        det = m[i, i] * m[j, j] - m[i, j] * m[i, j]
+        if det <= 0.0:
+            return False, 0.0, 0.0, 0.0
+        xi = (m[j, j] * w[i] - m[i, j] * w[j]) / det
+        xj = (m[i, i] * w[j] - m[i, j] * w[i]) / det
+        if xi < 0.0 or xj < 0.0:
+            return False, 0.0, 0.0, 0.0
+        if i == 0:
+            y0 = xi
+        else:
+            y1 = xi
+        if j == 2:
+            y2 = xj
+        else:
+            y1 = xj
+    else:
+        # 3x3: x = M^-1 g by cofactors
+        g0, g1, g2 = w[0], w[1], w[2]
+        a11, a12, a13 = m[0, 0], m[0, 1], m[0, 2]
+        a22, a23, a33 = m[1, 1], m[1, 2], m[2, 2]
+        c11 = a22 * a33 - a23 * a23
+        c12 = a13 * a23 - a12 * a33
+        c13 = a12 * a23 - a13 * a22
+        det = a11 * c11 + a12 * c12 + a13 * c13
+        if det <= 0.0:
+            return False, 0.0, 0.0, 0.0
+        c22 = a11 * a33 - a13 * a13
+        c23 = a12 * a13 - a11 * a23
+        c33 = a11 * a22 - a12 * a12
+        y0 = (c11 * g0 + c12 * g1 + c13 * g2) / det
+        y1 = (c12 * g0 + c22 * g1 + c23 * g2) / det
+        y2 = (c13 * g0 + c23 * g1 + c33 * g2) / det
+        if y0 < 0.0 or y1 < 0.0 or y2 < 0.0:
+            return False, 0.0, 0.0, 0.0
+    return True, y0, y1, y2
+
+
+def _cheapest_direction(m: F64, w: F64) -> tuple[float, float, float]:
+    """The inward channel move ``x >= 0`` that buys the most room ``w·x`` per unit of ``xᵀMx``, over the 7
+    sets of free channels; all channels alike if none is usable."""
     g0, g1, g2 = w[0], w[1], w[2]
     best_q = 0.0
     x0 = x1 = x2 = 0.0
     for subset in range(1, 8):  # bit i set: channel i free to move
-        f0, f1, f2 = (subset & 1) != 0, (subset & 2) != 0, (subset & 4) != 0
-        y0 = y1 = y2 = 0.0
-        n = int(f0) + int(f1) + int(f2)
-        if n == 1:
-            k = 0 if f0 else (1 if f1 else 2)
-            if m[k, k] <= 0.0:
-                continue
-            val = w[k] / m[k, k]
-            if k == 0:
-                y0 = val
-            elif k == 1:
-                y1 = val
-            else:
-                y2 = val
-        elif n == 2:
-            i = 0 if f0 else 1
-            j = 2 if f2 else 1
-            det = m[i, i] * m[j, j] - m[i, j] * m[i, j]
-            if det <= 0.0:
-                continue
-            xi = (m[j, j] * w[i] - m[i, j] * w[j]) / det
-            xj = (m[i, i] * w[j] - m[i, j] * w[i]) / det
-            if xi < 0.0 or xj < 0.0:
-                continue
-            if i == 0:
-                y0 = xi
-            else:
-                y1 = xi
-            if j == 2:
-                y2 = xj
-            else:
-                y1 = xj
-        else:
-            # 3x3: x = M^-1 g by cofactors
-            a11, a12, a13 = m[0, 0], m[0, 1], m[0, 2]
-            a22, a23, a33 = m[1, 1], m[1, 2], m[2, 2]
-            c11 = a22 * a33 - a23 * a23
-            c12 = a13 * a23 - a12 * a33
-            c13 = a12 * a23 - a13 * a22
-            det = a11 * c11 + a12 * c12 + a13 * c13
-            if det <= 0.0:
-                continue
-            c22 = a11 * a33 - a13 * a13
-            c23 = a12 * a13 - a11 * a23
-            c33 = a11 * a22 - a12 * a12
-            y0 = (c11 * g0 + c12 * g1 + c13 * g2) / det
-            y1 = (c12 * g0 + c22 * g1 + c23 * g2) / det
-            y2 = (c13 * g0 + c23 * g1 + c33 * g2) / det
-            if y0 < 0.0 or y1 < 0.0 or y2 < 0.0:
-                continue
+        ok, y0, y1, y2 = _free_set_move_c(m, w, subset)
+        if not ok:
+            continue
         q = g0 * y0 + g1 * y1 + g2 * y2  # room per unit of x^T M x along this direction
         if q > best_q:
             best_q = q
             x0, x1, x2 = y0, y1, y2
     if best_q <= 0.0:  # no usable metric (never seen): move every channel towards mid-grey alike
         x0 = x1 = x2 = 1.0
+    return x0, x1, x2
+
+
+def _allowance_move(
+    c0: float, c1: float, c2: float, target: float, budget: float, agrid: F64, w: F64
+) -> tuple[float, float, float]:
+    """How far the centre of ``c``'s pair moves (linear RGB) under the allowance (see the module doc).
+
+    The cheapest direction: with each channel moving inwards (up below 0.5, down above) by ``x_i``, the
+    room gained is ``w·x`` and ``ΔE00² ≈ xᵀMx`` (M from finite differences at ``c``); the least ``xᵀMx``
+    for ``w·x = 1``, ``x >= 0``, is found over the 7 sets of free channels. Its length: the least that
+    gives the full step, within ``budget``.
+    """
+    l0, a0, b0 = _lab_c(c0, c1, c2)
+    s0 = -1.0 if c0 > 0.5 else 1.0
+    s1 = -1.0 if c1 > 0.5 else 1.0
+    s2 = -1.0 if c2 > 0.5 else 1.0
+    m = _cost_metric_c(l0, a0, b0, c0, c1, c2, s0, s1, s2)
+    x0, x1, x2 = _cheapest_direction_c(m, w)
     d0, d1, d2 = s0 * x0, s1 * x1, s2 * x2
     # Longest move that stays in the RGB cube.
     s_max = 1e300
@@ -545,6 +570,9 @@ _amplitude_c: Any = jit(_amplitude)
 _fill_c: Any = jit(_fill)
 _step_c: Any = jit(_step)
 _balanced_c: Any = jit(_balanced)
+_cost_metric_c: Any = jit(_cost_metric)
+_free_set_move_c: Any = jit(_free_set_move)
+_cheapest_direction_c: Any = jit(_cheapest_direction)
 _allowance_move_c: Any = jit(_allowance_move)
 _pair_around_c: Any = jit(_pair_around)
 _fused_de_c: Any = jit(_fused_de)
