@@ -108,7 +108,7 @@ class Renderer:
 
     def __init__(
         self,
-        scene: ContentSource,
+        source: ContentSource,
         modulator: Modulator,
         overlay: ArOverlay | None,
         timing: FrameTiming,
@@ -118,7 +118,7 @@ class Renderer:
         frames: int | None = None,
         early: float | None = None,
     ) -> None:
-        self.scene = scene
+        self.source = source
         self.frames = frames
         self.modulator = modulator
         self.overlay = overlay
@@ -138,7 +138,7 @@ class Renderer:
         self.content_failing = False
         self.last_content_error: str | None = None
         self.notes: list[str] = []  # lines for the user about the scene (a frame of another size), said once
-        self._scene_shape: tuple[int, int] | None = None  # (H, W) of the scene's newest frame
+        self._source_shape: tuple[int, int] | None = None  # (H, W) of the scene's newest frame
         self._phases: tuple[U8, U8] | None = None
         self._input = -1
         self._next: tuple[int, Future[_Content]] | None = None
@@ -151,7 +151,7 @@ class Renderer:
         t0, cpu0 = time.perf_counter(), time.thread_time()
         h, w = self.modulator.height_px, self.modulator.width_px
         try:
-            rgb = self._scene_frame(i, w, h)
+            rgb = self._source_frame(i, w, h)
             failed = None
         except Exception as exc:  # the video source failing must never stop a live projection
             if not self.live:
@@ -176,25 +176,25 @@ class Renderer:
             notes, self.notes = self.notes, []
         return notes
 
-    def _scene_frame(self, i: int, w: int, h: int) -> U8:
-        rgb = self.scene.frame(i, self.input_rate_hz)
+    def _source_frame(self, i: int, w: int, h: int) -> U8:
+        rgb = self.source.frame(i, self.input_rate_hz)
         if not (isinstance(rgb, np.ndarray) and rgb.dtype == np.uint8 and rgb.ndim == 3 and rgb.shape[2] == 3):
             got = f"{getattr(rgb, 'shape', '?')} {getattr(rgb, 'dtype', type(rgb).__name__)}"
             raise TypeError(f"the scene gave {got}, not an H×W×3 uint8 image")
         shape = (int(rgb.shape[0]), int(rgb.shape[1]))
-        if shape != self._scene_shape:
+        if shape != self._source_shape:
             if shape != (h, w):  # resized from now on: say so once
                 with self._fault_lock:
                     self.notes.append(f"the scene's frames are {shape[1]}x{shape[0]} from input frame {i} on; "
                                       f"resized to {w}x{h}")  # fmt: skip
-            self._scene_shape = shape
+            self._source_shape = shape
         if shape != (h, w):
             rgb = resize_to(rgb, w, h)
         return np.ascontiguousarray(rgb)
 
     def _last_good(self, w: int, h: int) -> U8:
         """A fresh copy of the last input frame the scene made (black if it never made one)."""
-        last: Callable[[], U8 | None] | None = getattr(self.scene, "last_frame", None)
+        last: Callable[[], U8 | None] | None = getattr(self.source, "last_frame", None)
         rgb = last() if last is not None else None
         if rgb is None:
             return np.zeros((h, w, 3), np.uint8)

@@ -518,7 +518,7 @@ class Sender:
 async def run_sender(
     arena: ArenaConfig,
     sink: Sink,
-    scene: ContentSource | None = None,
+    content: ContentSource | None = None,
     options: SenderOptions | None = None,
     **changes: Any,
 ) -> SenderStats:
@@ -528,7 +528,7 @@ async def run_sender(
     Args:
         arena: projector size and rate, tag map and modulation.
         sink: where the frames go (:mod:`ipt.sender.display`).
-        scene: the content (default: the generated map at projector size).
+        content: the content source (default: the generated map at projector size).
         options: how the run is set up (:class:`~ipt.sender.options.SenderOptions`; default: its defaults).
         changes: fields of ``options`` to set, by name (``frames=600, listen=None``); ``ar_scene`` is the old
             name of ``overlay``, still taken from callers not yet switched.
@@ -539,7 +539,7 @@ async def run_sender(
     if not options.stats_every_s > 0:
         raise SenderError(f"stats_every_s must be > 0, got {options.stats_every_s}")
     try:
-        sender = Sender(arena, sink, scene, options)
+        sender = Sender(arena, sink, content, options)
     except BaseException:
         sink.abort()  # nothing was shown: leave nothing behind (a file sink may have started its file)
         raise
