@@ -5,10 +5,10 @@ This module is the asyncio shell; the parts it drives live in their own modules:
 statistics (:mod:`ipt.sender.stats`) and the options of a run (:mod:`ipt.sender.options`).
 
 Frames. Output frame ``j`` is due at ``start + j / f_o`` (``time.monotonic``), with ``f_o`` the
-projector rate. It shows input frame ``i = floor(j · f_i / f_o)`` of the scene (``j // N`` when
+projector rate. It shows input frame ``i = floor(j · f_i / f_o)`` of the content (``j // N`` when
 ``f_o = N·f_i``; other ratios repeat or drop input frames, :class:`~ipt.sender.modulator.FrameTiming`).
-A content thread makes input frame ``i + 1`` (scene frame, resized to the projector) while the render
-thread works on frame ``i``. At the first output frame of input frame ``i`` the render thread draws the
+A content thread makes input frame ``i + 1`` (the content source's frame, resized to the projector)
+while the render thread works on frame ``i``. At the first output frame of input frame ``i`` the render thread draws the
 AR overlay on it and makes both phases in one pass (:meth:`Modulator.phases`, the arena's profile);
 every output frame is then the phase of ``phase_sign(j)``. The render thread works up to ``lookahead``
 frames ahead of the clock, one frame at a time and in order. The clock never skips or repeats a frame:
