@@ -19,19 +19,10 @@ class JitError(IptError):
     """A compiled kernel was called where numba cannot compile."""
 
 
-def _import_numba() -> tuple[Any, str | None]:
-    """numba, or None and why it cannot compile here."""
-    try:
-        import numba
-    except (ImportError, OSError) as exc:  # OSError: llvmlite refused executable memory
-        return None, f"numba cannot compile here ({type(exc).__name__}: {exc})"
-    return numba, None
-
-
-_NUMBA, JIT_UNAVAILABLE = _import_numba()
+JIT_UNAVAILABLE: str | None = None
 """Why numba cannot compile here (e.g. memory that is both writable and executable is forbidden, as
-under systemd's MemoryDenyWriteExecute), or None if it can. The ``ipt`` profile needs it. Settled when this
-module is imported, so that a ``from`` import of it is never stale."""
+under systemd's MemoryDenyWriteExecute), or None if it can; set by the first :func:`jit` that finds
+out. Read it as ``ipt.sender.pairs.JIT_UNAVAILABLE``, which is settled once the kernels are made."""
 
 
 def _unavailable(*_args: Any) -> Any:
@@ -44,12 +35,16 @@ def jit(fn: Callable[..., Any]) -> Any:
     Where numba cannot run, a stand-in that raises :class:`JitError` when called, so that the module
     (and the ``paper`` profile) still imports.
     """
-    if _NUMBA is None:
+    global JIT_UNAVAILABLE
+    try:
+        import numba
+    except (ImportError, OSError) as exc:  # OSError: llvmlite refused executable memory
+        JIT_UNAVAILABLE = f"numba cannot compile here ({type(exc).__name__}: {exc})"
         return _unavailable
     try:
-        return _NUMBA.njit(nogil=True, cache=True)(fn)
+        return numba.njit(nogil=True, cache=True)(fn)
     except RuntimeError:  # no writable cache location: compile in every process
-        return _NUMBA.njit(nogil=True)(fn)
+        return numba.njit(nogil=True)(fn)
 
 
 def intrinsics() -> tuple[Any, Any, Any]:

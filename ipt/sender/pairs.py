@@ -47,6 +47,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.errors import IptError
+from ipt.sender import jit as jit_module
 from ipt.sender.cielab import de00
 from ipt.sender.cielab import de00_c as _de00_c
 from ipt.sender.cielab import lab_c as _lab_c
@@ -581,3 +582,7 @@ _fill_range_c: Any = jit(_fill_range)
 _fill_codes_c: Any = jit(_fill_codes)
 _compute_codes_c: Any = jit(_compute_codes)
 _modulate_rows_c: Any = jit(_modulate_rows)
+
+JIT_UNAVAILABLE: str | None = jit_module.JIT_UNAVAILABLE
+"""Why numba cannot compile here, or None if it can (:data:`ipt.sender.jit.JIT_UNAVAILABLE`, settled by
+the compiles above). The ``ipt`` profile needs it."""
