@@ -4,7 +4,7 @@ Runs the real sender loop (content, modulation, 8 vehicles drawn on the overlay)
 paced at the projector rate, for ``--frames`` output frames (or ``--seconds`` of wall time; SIGINT stops
 it early), from its very first frame: start-up (the modulator, the ``ipt`` profile's colour table, read
 from its cache or computed on a first run) is part of the run and measured. The vehicles are fed straight
-to the :class:`~ipt.sender.scene.ArScene` at 30 Hz (no UDP): each circles the arena centre at its own
+to the :class:`~ipt.sender.overlay.ArOverlay` at 30 Hz (no UDP): each circles the arena centre at its own
 radius and speed, nose along its path. The shipped arena is used with the projector size replaced by
 ``--width``/``--height`` (tags scaled to fit; the floor size is unchanged) and its modulation profile by
 ``--profile``. Prints one JSON object; ``criteria`` checks the targets (>= 60 output frames/s, no missed
@@ -46,8 +46,8 @@ from ipt.protocol import PosePacket
 from ipt.sender.content import GeneratedScene, VideoScene
 from ipt.sender.display import NullSink
 from ipt.sender.modulator import make_modulator
+from ipt.sender.overlay import ArOverlay
 from ipt.sender.photos import PanningPhotoScene
-from ipt.sender.scene import ArScene
 from ipt.sender.server import run_sender
 from ipt.tagmap import grid_tag_map
 from ipt.videoio import FfvWriter
@@ -99,7 +99,7 @@ def arena_for(width: int, height: int, profile: str | None = None) -> ArenaConfi
     return ArenaConfig.model_validate(data)
 
 
-async def feed_vehicles(ar: ArScene, count: int, stop: asyncio.Event) -> int:
+async def feed_vehicles(ar: ArOverlay, count: int, stop: asyncio.Event) -> int:
     """Update ``count`` vehicles at POSE_RATE_HZ until ``stop``; returns the number of poses fed."""
     fed, seq, t0 = 0, 0, time.monotonic()
     while not stop.is_set():
@@ -130,7 +130,7 @@ async def bench(
 ) -> dict[str, Any]:
     t0 = time.monotonic()
     arena = arena_for(width, height, profile)
-    ar = ArScene(arena)
+    ar = ArOverlay(arena)
     scene: GeneratedScene | VideoScene
     if content == "map":
         scene = GeneratedScene(width, height)
@@ -161,7 +161,7 @@ async def bench(
             scene,
             frames=frames,
             listen=None,
-            ar_scene=ar,
+            overlay=ar,
             stats_every_s=5.0,
             stop=stop,
             modulator=modulator,

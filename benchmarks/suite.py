@@ -69,8 +69,9 @@ ORDER = ("moving-content", "shadow-vibration", "realcam", "rolling", "fast", "ta
 #: Bands of true camera height (m) for the per-height yield.
 HEIGHT_BANDS_M = ((0.0, 0.4), (0.4, 0.7), (0.7, 1.2), (1.2, 1.7), (1.7, 2.2), (2.2, 10.0))
 #: Sources whose change invalidates a cached rendering.
-RENDER_SOURCES = ("ipt/sim", "ipt/sender/photos.py", "ipt/sender/content.py", "ipt/sender/modulator.py",
-                  "ipt/sender/colour.py", "ipt/tagmap.py", "ipt/videoio.py", "ipt/calib/floor.py")  # fmt: skip
+RENDER_SOURCES = ("ipt/sim", "ipt/sender/photos.py", "ipt/sender/content.py", "ipt/sender/basemap.py",
+                  "ipt/sender/modulator.py", "ipt/sender/colour.py", "ipt/tagmap.py", "ipt/videoio.py",
+                  "ipt/calib/floor.py")  # fmt: skip
 
 
 def scenario_files(only: list[str] | None) -> list[Path]:

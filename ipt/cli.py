@@ -20,7 +20,7 @@ from ipt.errors import IptError
 
 if TYPE_CHECKING:  # loaded only by the commands that use them
     from ipt.config.models import ArenaConfig
-    from ipt.sender.content import Scene
+    from ipt.sender.content import ContentSource
 
 DEFAULT_ARENA_NAME = "arena.yaml"
 """The arena shipped in ``ipt/config``, used when ``--config`` is not given."""
@@ -38,7 +38,7 @@ def _arena(path: str | None) -> ArenaConfig:
     return load_arena_config(path if path is not None else _default_arena())
 
 
-def _scene(spec: str, arena: ArenaConfig, seed: int) -> Scene:
+def _scene(spec: str, arena: ArenaConfig, seed: int) -> ContentSource:
     from ipt.imageio import IMAGE_SUFFIXES
     from ipt.sender.content import GeneratedScene, StillImageScene, VideoScene
     from ipt.sender.photos import PanningPhotoScene
@@ -109,8 +109,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from ipt.config.models import load_yaml_model
-    from ipt.demo import run_demo
     from ipt.sim.config import SimConfig
+    from ipt.sim.demo import run_demo
 
     arena_path = Path(args.config) if args.config is not None else _default_arena()
     _arena(str(arena_path))  # a bad arena file is one line before anything starts
@@ -190,6 +190,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     cfg_help = f"arena YAML (default: the shipped paper arena, {DEFAULT_ARENA_NAME})"
 
+    _add_map_parser(sub, cfg_help)
+    _add_sim_parser(sub, cfg_help)
+    # 'ipt eval' is dispatched to ipt.eval.eval_main before parsing; listed here for the help text.
+    sub.add_parser("eval", help="the paper's error table for poses against ground truth (see ipt eval --help)")
+
+    _add_demo_parser(sub, cfg_help)
+    _add_invisibility_parser(sub, cfg_help)
+    add_calibrate_parser(sub)
+    return p
+
+
+def _add_map_parser(sub: argparse._SubParsersAction[Parser], cfg_help: str) -> None:
+    """``ipt map export`` and ``ipt map check``."""
     m = sub.add_parser("map", help="export or check the tag map")
     msub = m.add_subparsers(dest="map_command", metavar="ACTION", parser_class=Parser)
     msub.required = True
@@ -213,6 +226,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--image", metavar="MAP.png")
     c.set_defaults(func=_cmd_map_check)
 
+
+def _add_sim_parser(sub: argparse._SubParsersAction[Parser], cfg_help: str) -> None:
+    """``ipt sim``."""
     s = sub.add_parser(
         "sim",
         help="render a simulated flight (video, camera.yaml, ground truth)",
@@ -244,9 +260,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.set_defaults(func=_cmd_sim)
 
-    # 'ipt eval' is dispatched to ipt.eval.eval_main before parsing; listed here for the help text.
-    sub.add_parser("eval", help="the paper's error table for poses against ground truth (see ipt eval --help)")
 
+def _add_demo_parser(sub: argparse._SubParsersAction[Parser], cfg_help: str) -> None:
+    """``ipt demo``."""
     d = sub.add_parser(
         "demo",
         help="the closed loop: sender, simulated drone and receiver together; prints the paper's error table",
@@ -278,6 +294,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", metavar="DIR", help="results folder (default results/demo-<time>)")
     d.set_defaults(func=_cmd_demo)
 
+
+def _add_invisibility_parser(sub: argparse._SubParsersAction[Parser], cfg_help: str) -> None:
+    """``ipt invisibility``."""
     v = sub.add_parser(
         "invisibility",
         help="how visible the hidden tags are, and how much signal a camera gets, for each modulation profile",
@@ -320,9 +339,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     v.add_argument("--seed", type=int, default=0, help="seed of the generated and the photographic content (default 0)")
     v.set_defaults(func=_cmd_invisibility)
-
-    add_calibrate_parser(sub)
-    return p
 
 
 def _main(argv: Sequence[str] | None) -> int:

@@ -33,8 +33,8 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.config.models import ArenaConfig
-from ipt.sender.colour import CODE_TO_LINEAR, L8_PER_LSTAR, LUMINANCE_WEIGHTS, lightness, linear_to_lab
-from ipt.sender.content import Scene
+from ipt.sender.colour import CODE_TO_LINEAR, L8_PER_LSTAR, LUMINANCE_WEIGHTS, linear_to_lab, lstar
+from ipt.sender.content import ContentSource
 from ipt.sender.modulator import PROFILES, Modulator, make_modulator, resize_to
 from ipt.tagmap import grid_tag_map
 
@@ -139,7 +139,7 @@ class Distribution:
 
 def _lstar(codes: U8) -> F64:
     lin = CODE_TO_LINEAR[codes]
-    return lightness(lin @ LUMINANCE_WEIGHTS)
+    return lstar(lin @ LUMINANCE_WEIGHTS)
 
 
 def _mean_error(ref_a: U8, ref_b: U8, a: U8, b: U8) -> F64:
@@ -294,7 +294,7 @@ def frame_indices(count: int, length: int | None, step_when_unknown: int) -> lis
 
 def measure_scene(
     arena: ArenaConfig,
-    scene: Scene,
+    scene: ContentSource,
     indices: Iterable[int],
     rate_hz: float,
     profiles: Iterable[str] = PROFILES,

@@ -38,7 +38,7 @@ nothing is written into the user's own ~/.cache."""
 def xdg_cache_home() -> Iterator[Path]:
     """Point $XDG_CACHE_HOME at :data:`XDG_CACHE`, with the shipped arena's colour table in it (computed
     here the first time, a quarter of a minute on 2 cores), so that a paced sender starts at once."""
-    from ipt.sender.pairs import default_cache_dir, pair_table
+    from ipt.sender.pairtable import default_cache_dir, pair_table
 
     before = os.environ.get("XDG_CACHE_HOME")
     os.environ["XDG_CACHE_HOME"] = str(XDG_CACHE)

@@ -12,7 +12,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pydantic import BaseModel, ValidationError
 
+import ipt.config.base as base_module
 import ipt.config.models as models_module
+import ipt.config.pipeline as pipeline_module
 from ipt.config import (
     ArenaConfig,
     CameraInfo,
@@ -183,10 +185,12 @@ def test_load_yaml_model_other_models(tmp_path: Path) -> None:
 
 
 def _all_models() -> list[type[BaseModel]]:
+    """Every model defined in the settings modules that ``ipt.config.models`` gathers."""
     found = [
         obj
-        for obj in vars(models_module).values()
-        if isinstance(obj, type) and issubclass(obj, BaseModel) and obj.__module__ == models_module.__name__
+        for module in (base_module, models_module, pipeline_module)
+        for obj in vars(module).values()
+        if isinstance(obj, type) and issubclass(obj, BaseModel) and obj.__module__ == module.__name__
     ]
     return sorted(found, key=lambda m: m.__name__)
 

@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ipt.sender.content import ContentError, GeneratedScene, Scene, StillImageScene, VideoScene
+from ipt.sender.content import ContentError, ContentSource, GeneratedScene, StillImageScene, VideoScene
 from ipt.videoio import FfvWriter, VideoError
 
 W, H = 320, 360
@@ -103,7 +103,7 @@ def test_still_image_resizes() -> None:
     img = np.zeros((30, 40, 3), dtype=np.uint8)
     img[:, :20] = (255, 0, 0)
     img[:, 20:] = (0, 0, 255)
-    still: Scene = StillImageScene(img, 80, 60)
+    still: ContentSource = StillImageScene(img, 80, 60)
     f = still.frame(5, 60.0)
     assert f.shape == (60, 80, 3)
     assert f.dtype == np.uint8

@@ -19,7 +19,7 @@ import pytest
 from ipt.config.models import ArenaConfig, load_arena_config, shipped_config_path
 from ipt.protocol import PosePacket, encode_pose
 from ipt.sender.content import GeneratedScene
-from ipt.sender.scene import PALETTE, ArScene
+from ipt.sender.overlay import PALETTE, ArOverlay
 from ipt.sender.server import run_sender
 from ipt.sim.config import SimConfig
 from ipt.sim.demo import ClosedLoopArena, LockstepProjector, SimClock
@@ -117,7 +117,7 @@ async def test_the_camera_sees_the_senders_output_with_the_drone_on_it(arena: Ar
     pr = arena.projector
     projector = LockstepProjector(per_input=2)
     clock = SimClock()
-    ar = ArScene(arena)
+    ar = ArOverlay(arena)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     listening: asyncio.Future[tuple[str, int]] = loop.create_future()
@@ -128,7 +128,7 @@ async def test_the_camera_sees_the_senders_output_with_the_drone_on_it(arena: Ar
             projector.gated(GeneratedScene(pr.width_px, pr.height_px, seed=0)),
             paced=False,
             listen=("127.0.0.1", 0),
-            ar_scene=ar,
+            overlay=ar,
             log=lambda line: None,
             install_signal_handlers=False,
             stop=stop,

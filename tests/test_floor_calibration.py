@@ -25,7 +25,7 @@ from ipt.calib.floor import fit_floor, parse_points, update_floor_yaml
 from ipt.config.models import ArenaConfig, FloorConfig, load_arena_config
 from ipt.receiver.track import MapEdges
 from ipt.sender.content import GeneratedScene
-from ipt.sender.scene import ArScene
+from ipt.sender.overlay import ArOverlay
 from ipt.sim.arena import SimulatedArena, survey_points, true_arena
 from ipt.sim.config import KeystoneConfig, SimConfig
 from ipt.sim.run import simulate_to_folder
@@ -312,7 +312,7 @@ def test_tag_corners_edges_and_the_receivers_homography_follow_the_measured_floo
 
 
 def test_the_overlay_draws_a_vehicle_on_the_pixel_that_lands_where_it_is() -> None:
-    ar = ArScene(KEYSTONED)
+    ar = ArOverlay(KEYSTONED)
     for u, v in [(100.0, 100.0), (1800.0, 2000.0), (960.0, 1080.0)]:
         x, y = _floor(TRUE_H, u, v)
         assert ar.pixel_of(x, y) == pytest.approx((u, v), abs=1e-6)
@@ -393,7 +393,7 @@ def test_tags_stay_out_of_the_seam_and_take_their_own_projectors_mapping() -> No
     lower = tm.by_id[4].corners_m[0][0] - grid_tag_map(TWO).by_id[4].corners_m[0][0]
     upper = tm.by_id[76].corners_m[0][0] - grid_tag_map(TWO).by_id[76].corners_m[0][0]
     assert (lower, upper) == pytest.approx((0.01, 0.0), abs=1e-12)  # the lower projector is 1 cm off
-    ar = ArScene(TWO_TRUE)
+    ar = ArOverlay(TWO_TRUE)
     for u, v in [(500.0, 300.0), (500.0, 1900.0), (1500.0, 1100.0)]:
         x, y, _ = pixel_to_arena_m(TWO_TRUE, u, v)
         assert ar.pixel_of(x, y) == pytest.approx((u, v), abs=1e-6)

@@ -19,7 +19,7 @@ from ipt.config.models import ArenaConfig
 from ipt.sender.content import GeneratedScene
 from ipt.sender.gpu import GlPhaseRenderer, GlWindowSink, GpuError, GpuModulator, render_phases, standalone_context
 from ipt.sender.modulator import IptModulator
-from ipt.sender.pairs import PairTable, default_cache_dir
+from ipt.sender.pairtable import PairTable, default_cache_dir
 from ipt.sender.photos import PanningPhotoScene
 from ipt.sender.server import run_sender
 from ipt.tagmap import grid_tag_map

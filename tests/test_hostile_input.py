@@ -51,7 +51,7 @@ from ipt.imageio import encode_image, write_image
 from ipt.protocol import PacketFilter, PosePacket, encode_pose
 from ipt.ratelimit import LogThrottle, SourceRateLimit
 from ipt.sender.modulator import FrameTiming
-from ipt.sender.scene import ArScene
+from ipt.sender.overlay import ArOverlay
 from ipt.tagmap import export_map, grid_tag_map
 from ipt.videoio import FfvWriter
 
@@ -715,7 +715,7 @@ def test_log_throttle_says_a_few_lines_then_how_many_were_held_back() -> None:
 
 def test_the_overlay_keeps_at_most_max_vehicles() -> None:
     arena = ArenaConfig.model_validate(TINY_ARENA)
-    ar = ArScene(arena, max_vehicles=16)
+    ar = ArOverlay(arena, max_vehicles=16)
     for v in range(300):
         ar.update(PosePacket(v, 1, 1, (0.1, 0.1, 1.0), (0.0, 1.0, 0.0, 0.0)), 0.0)
     assert ar.vehicle_ids() == list(range(16))

@@ -15,8 +15,8 @@ from ipt.sender.colour import (
     LUMINANCE_WEIGHTS,
     code_to_lab,
     code_to_linear,
-    lightness,
     linear_to_lab,
+    lstar,
 )
 from ipt.sender.modulator import (
     FrameTiming,
@@ -262,7 +262,7 @@ def test_paper_arena_modulates() -> None:
 
 def _lstar8(rgb: npt.NDArray[np.uint8]) -> npt.NDArray[np.float64]:
     """Exact L* of 8-bit sRGB, in 8-bit L units."""
-    return lightness(code_to_linear(rgb) @ LUMINANCE_WEIGHTS) * L8_PER_LSTAR
+    return lstar(code_to_linear(rgb) @ LUMINANCE_WEIGHTS) * L8_PER_LSTAR
 
 
 def _half_step(codes: npt.NDArray[np.uint8]) -> npt.NDArray[np.float64]:
@@ -457,7 +457,7 @@ def test_amplitude_grid_solves_the_lightness_step() -> None:
     grid = amplitude_grid(4.0, steps=1024)
     y = np.linspace(0.0, 1.0, 1025)
     inner = (y > 0.02) & (y < 0.98)
-    step = lightness(y + grid) - lightness(y - grid)
+    step = lstar(y + grid) - lstar(y - grid)
     assert np.allclose(step[inner], 2 * 4.0 / L8_PER_LSTAR, atol=1e-9)
     assert grid[0] == 0.0
     assert np.all(grid <= y + 1e-15)

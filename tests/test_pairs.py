@@ -13,9 +13,10 @@ from test_invisibility import SHARMA_PAIRS
 
 from ipt.invisibility import ciede2000
 from ipt.sender import pairs
-from ipt.sender.colour import L8_PER_LSTAR, LUMINANCE_WEIGHTS, code_to_lab, code_to_linear, lightness, linear_to_lab
+from ipt.sender.colour import L8_PER_LSTAR, LUMINANCE_WEIGHTS, code_to_lab, code_to_linear, linear_to_lab, lstar
 from ipt.sender.modulator import IptModulator, PaperModulator
-from ipt.sender.pairs import COLOURS, PairTable, allowance_budget_de00, cache_path, read_cache, write_cache
+from ipt.sender.pairs import COLOURS, allowance_budget_de00
+from ipt.sender.pairtable import PairTable, cache_path, read_cache, write_cache
 
 U8 = npt.NDArray[np.uint8]
 DELTA_L = 4.0
@@ -27,7 +28,7 @@ CORNERS = np.array(
 
 def _step_l8(up: U8, down: U8) -> npt.NDArray[np.float64]:
     y_up, y_down = code_to_linear(up) @ LUMINANCE_WEIGHTS, code_to_linear(down) @ LUMINANCE_WEIGHTS
-    out: npt.NDArray[np.float64] = (lightness(y_up) - lightness(y_down)) * L8_PER_LSTAR
+    out: npt.NDArray[np.float64] = (lstar(y_up) - lstar(y_down)) * L8_PER_LSTAR
     return out
 
 

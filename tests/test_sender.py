@@ -21,11 +21,11 @@ import pytest
 from ipt.config.models import ArenaConfig, load_arena_config
 from ipt.geometry import R_BODY_CAM_DOWNWARD, quat_wxyz_from_matrix, rot_z
 from ipt.protocol import PosePacket, QualityFlags, encode_pose
-from ipt.sender.colour import CODE_TO_LINEAR, LUMINANCE_WEIGHTS, code_to_linear, lightness
+from ipt.sender.colour import CODE_TO_LINEAR, LUMINANCE_WEIGHTS, code_to_linear, lstar
 from ipt.sender.content import ContentError, GeneratedScene
 from ipt.sender.display import DisplayError, FileSink, NullSink, PresentClock, WindowSink, make_sink
 from ipt.sender.modulator import IptModulator
-from ipt.sender.scene import PALETTE, ArScene, heading_rad
+from ipt.sender.overlay import PALETTE, ArOverlay, heading_rad
 from ipt.sender.server import SenderError, parse_listen, run_sender
 from ipt.tagmap import grid_tag_map
 from ipt.videoio import FfvWriter, open_frames
@@ -73,7 +73,8 @@ def _pose(vehicle: int, seq: int, xyz: tuple[float, float, float], quat: Quat = 
     return PosePacket(vehicle_id=vehicle, seq=seq, capture_time_us=seq * 10_000, position_m=xyz, quat_wxyz=quat)
 
 
-def _lightness(rgb: U8) -> npt.NDArray[np.float64]:
+def _l8(rgb: U8) -> npt.NDArray[np.float64]:
+    """8-bit CIELAB L (0..255) of an 8-bit sRGB image, as OpenCV converts it."""
     return np.asarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2Lab)[:, :, 0], dtype=np.float64)
 
 
@@ -137,7 +138,7 @@ def test_file_sink_writes_the_modulated_frames(tmp_path: Path, arena_yaml: Path)
 
 
 def _lstar(rgb: U8) -> npt.NDArray[np.float64]:
-    return lightness(code_to_linear(rgb) @ LUMINANCE_WEIGHTS)
+    return lstar(code_to_linear(rgb) @ LUMINANCE_WEIGHTS)
 
 
 def test_a_24_fps_video_is_retimed_and_phases_keep_alternating(tmp_path: Path, arena_yaml: Path) -> None:
@@ -309,7 +310,7 @@ async def test_authenticated_listener_counts_each_rejection(tmp_path: Path, aren
         if found and not bound.done():
             bound.set_result(int(found.group(1)))
 
-    ar, stop, packet_filter = ArScene(arena), asyncio.Event(), PacketFilter(key, [1])
+    ar, stop, packet_filter = ArOverlay(arena), asyncio.Event(), PacketFilter(key, [1])
     run = asyncio.create_task(
         run_sender(
             arena,
@@ -317,7 +318,7 @@ async def test_authenticated_listener_counts_each_rejection(tmp_path: Path, aren
             _FlatScene(),
             listen=("127.0.0.1", 0),
             packet_filter=packet_filter,
-            ar_scene=ar,
+            overlay=ar,
             log=log,
             install_signal_handlers=False,
             stop=stop,
@@ -354,13 +355,13 @@ def _grey() -> U8:
     return np.full((H, W, 3), GREY, np.uint8)
 
 
-def _px(ar: ArScene, x_m: float, y_m: float, du: float = 0.0, dv: float = 0.0) -> tuple[int, int]:
+def _px(ar: ArOverlay, x_m: float, y_m: float, du: float = 0.0, dv: float = 0.0) -> tuple[int, int]:
     u, v = ar.pixel_of(x_m, y_m)
     return math.floor(u + du), math.floor(v + dv)  # (column, row) of the pixel containing that point
 
 
 def test_vehicle_is_drawn_at_its_arena_position(arena: ArenaConfig) -> None:
-    ar = ArScene(arena)
+    ar = ArOverlay(arena)
     ar.update(_pose(0, 1, (0.2, -0.1, 1.0), Q_LEVEL), now_s=0.0)
     assert ar.pixel_of(0.2, -0.1) == pytest.approx((224.0, 176.0))  # 320 px per metre, centre (160, 144)
     frame = ar.draw(_grey(), now_s=0.0)
@@ -377,7 +378,7 @@ def test_vehicle_is_drawn_at_its_arena_position(arena: ArenaConfig) -> None:
 
 
 def test_vehicle_fades_and_is_forgotten(arena: ArenaConfig) -> None:
-    ar = ArScene(arena, fade_after_s=1.0, forget_after_s=3.0)
+    ar = ArOverlay(arena, fade_after_s=1.0, forget_after_s=3.0)
     ar.update(_pose(5, 1, (0.0, 0.0, 1.0), Q_LEVEL), now_s=10.0)
     col, row = _px(ar, 0.0, 0.0)
     colour = np.array(PALETTE[5], dtype=float)
@@ -399,11 +400,11 @@ def test_heading_arrow_points_along_image_up(arena: ArenaConfig) -> None:
     assert heading_rad(Q_DOWN_EAST) == pytest.approx(0.0, abs=1e-9)
     assert heading_rad(Q_DOWN_NORTH) == pytest.approx(math.pi / 2)
     assert heading_rad(Q_LEVEL) is None
-    ar = ArScene(arena)
+    ar = ArOverlay(arena)
     r = ar.radius_px
     ar.update(_pose(1, 1, (0.0, 0.0, 1.0), Q_DOWN_EAST), now_s=0.0)
     east = ar.draw(_grey(), now_s=0.0)
-    ar = ArScene(arena)
+    ar = ArOverlay(arena)
     ar.update(_pose(1, 1, (0.0, 0.0, 1.0), Q_DOWN_NORTH), now_s=0.0)
     north = ar.draw(_grey(), now_s=0.0)
     ahead, behind = 1.6 * r, -1.6 * r  # outside the circle, inside the arrow's reach of 2r
@@ -419,7 +420,7 @@ def test_heading_arrow_points_along_image_up(arena: ArenaConfig) -> None:
 
 
 def test_trail_fades_behind_a_moving_vehicle(arena: ArenaConfig) -> None:
-    ar = ArScene(arena, trail_s=3.0)
+    ar = ArOverlay(arena, trail_s=3.0)
     for k in range(11):
         ar.update(_pose(2, k + 1, (-0.3 + 0.03 * k, 0.0, 1.0), Q_LEVEL), now_s=0.1 * k)
     frame = ar.draw(_grey(), now_s=1.0)
@@ -440,7 +441,7 @@ def test_trail_fades_behind_a_moving_vehicle(arena: ArenaConfig) -> None:
 
 
 def test_absurd_positions_are_harmless(arena: ArenaConfig) -> None:
-    ar = ArScene(arena)
+    ar = ArOverlay(arena)
     ar.update(_pose(1, 1, (1e300, -1e300, 0.0)), now_s=0.0)
     ar.update(_pose(2, 1, (5.0, 0.0, 0.0)), now_s=0.0)  # off the screen
     ar.update(_pose(3, 1, (0.4, 0.0, 0.0)), now_s=0.0)
@@ -632,7 +633,7 @@ async def test_a_failing_video_source_shows_the_last_good_frame_with_phases_alte
         if shown[j] == shown[j - 1]:
             up = sink.frames[j - 1] if j % 2 == 1 else sink.frames[j]
             down = sink.frames[j] if j % 2 == 1 else sink.frames[j - 1]
-            assert _lightness(up)[white].mean() > _lightness(down)[white].mean() + DELTA_L / 2, j
+            assert _l8(up)[white].mean() > _l8(down)[white].mean() + DELTA_L / 2, j
     assert stats.content_errors == 5
     assert sum("video source failed (OSError: decoder error at input frame 4)" in ln for ln in lines) == 1, lines
     assert sum("video source is back (5 input frames were replaced" in ln for ln in lines) == 1, lines
@@ -833,7 +834,7 @@ async def test_a_frame_of_another_size_is_said_once_and_resized(arena: ArenaConf
     assert [_input_shown(f, mask) + 10 for f in sink.frames[::2]] == [60 + 20 * k for k in range(6)]
     white = mask > 0
     for j in range(0, 12, 2):
-        assert _lightness(sink.frames[j])[white].mean() > _lightness(sink.frames[j + 1])[white].mean() + DELTA_L / 2
+        assert _l8(sink.frames[j])[white].mean() > _l8(sink.frames[j + 1])[white].mean() + DELTA_L / 2
 
 
 def _mpeg_ts(path: Path, width: int, height: int, frames: int, first: int) -> bytes:
@@ -877,4 +878,4 @@ async def test_a_video_that_changes_size_mid_stream_keeps_the_projection_going(
     assert "showing the last good frame, phases still alternating" in failed[0]
     white = mask > 0
     for j in range(0, 16, 2):
-        assert _lightness(sink.frames[j])[white].mean() > _lightness(sink.frames[j + 1])[white].mean() + DELTA_L / 2
+        assert _l8(sink.frames[j])[white].mean() > _l8(sink.frames[j + 1])[white].mean() + DELTA_L / 2

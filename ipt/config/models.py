@@ -1,25 +1,69 @@
-"""The arena configuration and a strict YAML loader for any pydantic model.
+"""The arena configuration: projector, screen, floor, tag map and modulation (:class:`ArenaConfig`).
 
 Units are in the field names. Every model forbids unknown keys, so a typo in a YAML file is reported
-instead of silently ignored.
+instead of silently ignored. The strict base and the YAML loaders are :mod:`ipt.config.base`, the
+receiver's processing settings :mod:`ipt.config.pipeline`; both are re-exported here, so that
+``from ipt.config.models import X`` keeps working for all of them.
 """
 
 from __future__ import annotations
 
 import math
-from importlib import resources
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Literal
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, model_validator
 
-from ipt.errors import IptError
-from ipt.fileio import read_text_file
+from ipt.config.base import (
+    ConfigError,
+    StrictModel,
+    _describe_validation_error,
+    finite_float,
+    load_yaml_model,
+    read_yaml_mapping,
+    shipped_config_path,
+)
+from ipt.config.pipeline import (
+    PROFILES,
+    REFERENCE_WIDTH_PX,
+    DemodulationConfig,
+    DetectorConfig,
+    PipelineConfig,
+    PoseConfig,
+    TrackConfig,
+)
 
-
-class ConfigError(IptError):
-    """A configuration file is missing, unreadable or invalid."""
+__all__ = [
+    "MAX_RATE_HZ",
+    "MIN_CAMERA_RATE_HZ",
+    "MIN_CONTENT_RATE_HZ",
+    "MIN_PROJECTOR_RATE_HZ",
+    "MIN_TAG_SIZE_PX",
+    "PROFILES",
+    "REFERENCE_WIDTH_PX",
+    "ArenaConfig",
+    "ConfigError",
+    "DemodulationConfig",
+    "DetectorConfig",
+    "FloorConfig",
+    "LandingPadConfig",
+    "ModulationConfig",
+    "PipelineConfig",
+    "PoseConfig",
+    "ProjectorConfig",
+    "ScreenConfig",
+    "StrictModel",
+    "TagMapConfig",
+    "TileConfig",
+    "TrackConfig",
+    "_describe_validation_error",
+    "finite_float",
+    "floor_homography_fits",
+    "load_arena_config",
+    "load_yaml_model",
+    "read_yaml_mapping",
+    "shipped_config_path",
+]
 
 
 MIN_PROJECTOR_RATE_HZ = 1.0
@@ -30,12 +74,6 @@ MAX_RATE_HZ = 1000.0
 """Fastest projector, content or camera rate accepted."""
 MIN_CAMERA_RATE_HZ = 1.0
 """Slowest camera rate accepted (IPT needs twice the projector's rate; below 1 Hz a frame time is absurd)."""
-
-
-class StrictModel(BaseModel):
-    """Base for every settings model: unknown keys are errors, instances are immutable."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
 
 class ProjectorConfig(StrictModel):
@@ -371,368 +409,6 @@ class ArenaConfig(StrictModel):
             raise ValueError(f"projectors: the tiles must cover the whole {pr.width_px}x{pr.height_px} canvas")
 
 
-#: Image width the receiver's pixel-sized defaults are stated for (the paper's 640x360 camera); they
-#: scale with the actual width, since blur, motion and corner noise in pixels grow with resolution.
-REFERENCE_WIDTH_PX = 640
-
-
-class DemodulationConfig(StrictModel):
-    """Recovering the tag image from two camera frames (the paper's Algorithm 2 and Section V-A/B)."""
-
-    pairing: Literal["opposite_phase", "previous"] = Field(
-        "opposite_phase",
-        description="Which earlier frame a frame is subtracted from. 'previous' is the paper's (lag 1: with a "
-        "120 FPS camera and 60 Hz phases only every other pair straddles a flip). 'opposite_phase' picks "
-        "the lag whose time step is closest to an odd number of projector periods (lag 2 at 120 FPS, lag 3 "
-        "at 180), falling back to the next best lags when it finds no tags.",
-    )
-    alignment: Literal["gradient", "sampled_lines"] = Field(
-        "gradient",
-        description="How the earlier frame is aligned to the current one. 'sampled_lines' is the paper's "
-        "integer shift from N columns and rows (equation 5). 'gradient' is the floor's full homography "
-        "between the two frames (phase correlation, then Lucas-Kanade with eight parameters) on their "
-        "gradient magnitudes, which the tags' sign flip between phases does not disturb: a vibrating drone "
-        "turns by up to a degree between the two frames, which a shift alone leaves misaligned.",
-    )
-    lookahead_frames: int = Field(
-        2,
-        ge=0,
-        le=4,
-        description="A frame whose earlier partners give no pose may wait for this many later frames and be "
-        "paired with one of them (its pose goes out that much later, in order). Needed whenever the content "
-        "changes between two projector frames (half the pairs of a 30 fps video at 60 Hz) or an exposure "
-        "straddles a flip. 0: each pose as soon as its frame is processed, from earlier frames only.",
-    )
-    undistort: bool = Field(
-        True,
-        description="Undistort each frame once (with 'gradient' alignment), so that the floor moves by an "
-        "exact homography between frames and the camera is a pinhole afterwards.",
-    )
-    polarity: Literal["tracked", "both"] = Field(
-        "tracked",
-        description="'both' runs the detector on the binary image and its inverse (the paper's phase is "
-        "unknown). 'tracked' predicts the phase from earlier detections and tries the other only on a miss.",
-    )
-    predict_warp: bool = Field(
-        True,
-        description="With 'gradient' alignment: warp the earlier frame by the floor homography predicted from "
-        "the recent poses before refining the shift, so that yaw, tilt and height changes between the "
-        "paired frames are aligned too, not only the translation.",
-    )
-    lightness: Literal["cielab", "luma"] = Field(
-        "luma",
-        description="How lightness is taken from a camera frame. 'cielab' is the paper's 8-bit CIELAB L. "
-        "'luma' maps the BT.601 luma of the frame through a table to L: the same for grey pixels, a "
-        "fifth of the cost, and the difference of two phases shows the tags just as well.",
-    )
-    clip_factor: float | None = Field(
-        1.2,
-        gt=0.0,
-        le=100.0,
-        description="With 'sampled_lines' alignment: the difference image is clipped to ± this many times its "
-        "median magnitude before it is normalised, so that edges of the video left by motion (tens of L "
-        "units) cannot outweigh the tags' 2ΔL in the mean filter. None: no clipping (the paper). ('gradient' "
-        "alignment leaves out what changed more than the tags can instead.)",
-    )
-    sample_lines: int = Field(3, ge=1, le=64, description="N: columns (and rows) sampled for the alignment.")
-    max_shift_px: int | None = Field(
-        None,
-        ge=0,
-        le=64,
-        description="b: the largest alignment shift tried, in pixels. Default: the paper's 5 px at 640 px "
-        "wide, scaled with the image width (motion in pixels grows with resolution).",
-    )
-    blur_ksize: int | None = Field(
-        None,
-        ge=1,
-        le=31,
-        description="Side of the mean filter, in pixels. Default: 5 at 640 px wide, scaled with the width "
-        "(odd). The paper names the filter but not its size.",
-    )
-    morph_ksize: int | None = Field(
-        None,
-        ge=1,
-        le=31,
-        description="Side of the square opening/closing element. Default: as for blur_ksize.",
-    )
-
-
-class DetectorConfig(StrictModel):
-    """AprilTag 3 (pupil-apriltags) settings."""
-
-    quad_decimate: float = Field(
-        3.0,
-        ge=1.0,
-        le=8.0,
-        description="Decimation before quad detection (edges are refined at full size). 3 finds as many "
-        "tags as 2 on the binary tag image at 640x360 and 1280x720, as accurately, in two thirds of the time.",
-    )
-    quad_sigma: float = Field(0.0, ge=0.0, le=5.0, description="Gaussian blur sigma before quad detection.")
-    refine_edges: bool = Field(True, description="Snap quad edges to strong gradients.")
-    decode_sharpening: float = Field(0.25, ge=0.0, le=2.0, description="Sharpening of decoded images.")
-    threads: int = Field(1, ge=1, le=16, description="Detector worker threads.")
-    max_hamming: int = Field(1, ge=0, le=2, description="Decodes with more bit errors than this are dropped.")
-    border_margin_px: float = Field(
-        2.0,
-        ge=0.0,
-        description="Tags with a corner closer than this to the image edge are dropped: a tag cut by the edge "
-        "can still decode, with the edge taken for its border.",
-    )
-    isolation: Literal["process", "inline"] = Field(
-        "process",
-        description="Where AprilTag's C code runs. 'process': in a helper process that is replaced, without "
-        "a gap in detection, once its memory grew by recycle_mb (pupil-apriltags 1.0.4 leaks a few hundred "
-        "bytes per call; see docs/reliability.md), and restarted if it crashes. 'inline': in the calling "
-        "thread, with memory growing by the leak, for short runs; on a 2-core test machine it had 1.3 ms "
-        "less capture-to-send latency at the median and 3.8 ms at p99. Linux only; elsewhere 'process' "
-        "runs inline.",
-    )
-    recycle_mb: float = Field(
-        4.0,
-        gt=0.0,
-        le=4096.0,
-        description="With isolation 'process': the helper is replaced once its own memory (RssAnon) grew "
-        "by this many MB since it warmed up. At 120 frames/s the leak reaches 4 MB in one to five minutes.",
-    )
-
-
-class TrackConfig(StrictModel):
-    """Pose from every visible edge of the hidden map (method 'track', see ipt/receiver/track.py)."""
-
-    search_px: float = Field(
-        4.0,
-        gt=0.5,
-        le=20.0,
-        description="How far (pixels at 640 wide) each edge sample looks along its normal for its step.",
-    )
-    min_inliers: int = Field(
-        30,
-        ge=10,
-        le=10000,
-        description="Fewest edge samples on their steps for a pose (about one tag's worth: the cell check and "
-        "the inlier fraction reject a wrong pose, and a view mostly in the drone's shadow or cut by a "
-        "content change has few samples left).",
-    )
-    min_inlier_fraction: float = Field(
-        0.15,
-        gt=0,
-        le=1,
-        description="Fewest edge samples on their steps, as a fraction of those that could see signal: a "
-        "pose that explains less of the visible map is not taken.",
-    )
-    min_cell_agreement: float = Field(
-        0.8,
-        ge=0.5,
-        le=1,
-        description="Of the cells in view whose difference is clearly signed, at least this fraction must have "
-        "the sign the map gives them at the pose found: a pose off by a cell or more agrees with about half.",
-    )
-    verify_every: int = Field(
-        15,
-        ge=0,
-        le=10000,
-        description="Every this many tracked frames AprilTag checks the track (a pose whose tags it decodes "
-        "elsewhere restarts it). 0: never.",
-    )
-    rolling_shutter: bool = Field(
-        False,
-        description="The camera has a rolling shutter (most Pi and USB cameras): fit, beside each frame's pose "
-        "(that of its centre row), how the pose moves from the top row to the bottom one while the drone "
-        "vibrates. Measured on the suite's 8 s rolling flight (6 ms readout): X/Y/Z MAE 4.7/2.8/1.6 -> "
-        "4.2/2.1/0.7 mm, tilt 0.40 -> 0.35 deg, yield 72.7 -> 71.2 %; on a global-shutter camera it costs yield "
-        "(shadow-vibration, first 4 s: 85.4 -> 76.0 %: the six extra unknowns fit noise), so it is off by "
-        "default.",
-    )
-
-
-class PoseConfig(StrictModel):
-    """Pose from tag corners (OpenCV solvePnP with IPPE) or from the whole visible map."""
-
-    method: Literal["track", "apriltag"] = Field(
-        "track",
-        description="'apriltag': every pose from the corners of the tags AprilTag decodes in its frame (the "
-        "paper). 'track': AprilTag acquires, then every pose is fitted to all the cell edges of the map in "
-        "view (partial tags, tags half in shadow or at the image border included), from the previous pose; "
-        "AprilTag takes over again whenever the track is lost. Needs 'gradient' alignment.",
-    )
-    track: TrackConfig = Field(default_factory=TrackConfig, description="Settings of method 'track'.")
-
-    min_tags: int = Field(
-        2,
-        ge=1,
-        le=64,
-        description="Fewest tags a pose may rest on. One small tag leaves the tilt ambiguous (IPPE's two "
-        "solutions): on the simulated flight 37 % of single-tag poses were more than 5 cm off.",
-    )
-    refine_lm: bool = Field(
-        True,
-        description="Refine IPPE's solution by Levenberg-Marquardt on the reprojection error. OpenCV's IPPE "
-        "fits a homography to all points and does not minimise reprojection error; on the simulated "
-        "arena refinement cuts the position error of a single frame from centimetres to millimetres.",
-    )
-    max_reprojection_rms_px: float | None = Field(
-        None,
-        gt=0,
-        description="Poses whose corner reprojection RMS exceeds this are rejected. Default: 2.5 px at 640 px "
-        "wide, scaled with the width (corner noise from binarisation grows with the filter sizes).",
-    )
-    max_speed_mps: float | None = Field(
-        3.0,
-        gt=0,
-        description="Motion gate: a pose farther from the last accepted one (within the last 0.25 s) than "
-        "this speed allows, plus 5 cm, is rejected as doubtful. None turns the gate off.",
-    )
-    max_prediction_error_m: float | None = Field(
-        0.015,
-        gt=0,
-        description="Consistency gate: a pose farther than this from where the recent poses (a constant-"
-        "velocity fit over the last 0.15 s) put the camera at its capture time is rejected as doubtful. "
-        "It catches the tilt/translation ambiguity of a view with few tags, where a 2° tilt error moves "
-        "the position several centimetres. Until there are enough recent poses to predict from (the start, "
-        "after a gap), a pose goes out only if its own position uncertainty is within this bound. Stated for "
-        "heights up to 0.8 m; above, the bound grows with the height (3 times at 2.4 m), as a pixel's floor "
-        "distance does. None turns the gate off.",
-    )
-    outlier_tag_px: float | None = Field(
-        None,
-        gt=0,
-        description="A tag whose own reprojection RMS exceeds this (and three times the median) is dropped "
-        "and the pose solved again without it. Default: 2 px at 640 px wide, scaled with the width.",
-    )
-
-
-class PipelineConfig(StrictModel):
-    """The receiver's per-frame processing."""
-
-    demodulation: DemodulationConfig = Field(default_factory=DemodulationConfig, description="Demodulation.")
-    detector: DetectorConfig = Field(default_factory=DetectorConfig, description="Tag detection.")
-    pose: PoseConfig = Field(default_factory=PoseConfig, description="Pose estimation.")
-
-    @property
-    def luminance_only(self) -> bool:
-        """Whether a frame's luma is all the processing needs (lightness 'luma'): frame sources then hand
-        over grey frames, taken without a detour through RGB (a YUV camera's Y plane, a JPEG decoded to
-        grey). The paper's CIELAB lightness needs the colours."""
-        return self.demodulation.lightness == "luma"
-
-    @classmethod
-    def profile(cls, name: str) -> PipelineConfig:
-        """The settings of a named profile: ``ipt`` (the defaults) or ``paper`` (the paper as published)."""
-        if name == "ipt":
-            return cls()
-        if name == "paper":
-            return cls(
-                demodulation=DemodulationConfig(
-                    pairing="previous",
-                    alignment="sampled_lines",
-                    lookahead_frames=0,
-                    undistort=False,
-                    polarity="both",
-                    predict_warp=False,
-                    lightness="cielab",
-                    clip_factor=None,
-                    blur_ksize=3,
-                    morph_ksize=3,
-                ),
-                detector=DetectorConfig(quad_decimate=1.0, border_margin_px=0.0),
-                pose=PoseConfig(
-                    method="apriltag",
-                    min_tags=1,
-                    refine_lm=False,
-                    max_reprojection_rms_px=3.0,
-                    outlier_tag_px=1e9,
-                    max_speed_mps=None,
-                    max_prediction_error_m=None,
-                ),
-            )
-        raise ConfigError(f"unknown pipeline profile '{name}' (choose from {', '.join(PROFILES)})")
-
-
-PROFILES = ("ipt", "paper")
-"""Named pipeline settings; ``paper`` keeps the published pipeline available beside ours."""
-
-
-def finite_float(value: object) -> float | None:
-    """``value`` as a float if it is a real number that fits one (not bool, not inf/nan), else None."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        return None
-    try:
-        number = float(value)
-    except OverflowError:  # an integer too large for a float
-        return None
-    return number if math.isfinite(number) else None
-
-
-M = TypeVar("M", bound=BaseModel)
-
-
-_MAX_PROBLEMS = 12
-"""Problems named in one configuration error; the rest are counted ("... and N more")."""
-_MAX_PART_CHARS = 200
-"""Longest description of one problem (a key or a value can be megabytes long in a broken file)."""
-
-
-def _shorten(text: str, limit: int = _MAX_PART_CHARS) -> str:
-    return text if len(text) <= limit else text[: limit - 1] + "…"
-
-
-def _describe_validation_error(exc: ValidationError) -> str:
-    parts = []
-    errors = exc.errors()
-    for err in errors[:_MAX_PROBLEMS]:
-        where = ".".join(str(p) for p in err["loc"]) or "(top level)"
-        if not where.isprintable():
-            where = repr(where)
-        msg = err["msg"]
-        if err["type"] == "extra_forbidden":
-            msg = "unknown key"
-        elif err["type"] == "missing":
-            msg = "missing key"
-        parts.append(_shorten(f"{where}: {msg}"))
-    if len(errors) > _MAX_PROBLEMS:
-        parts.append(f"... and {len(errors) - _MAX_PROBLEMS} more")
-    return "; ".join(parts)
-
-
-def read_yaml_mapping(path: Path, error: type[IptError] = ConfigError) -> dict[str, Any]:
-    """Read a YAML file whose top level is a mapping; raise ``error`` naming the file otherwise."""
-    text = read_text_file(path, error, "a YAML file")
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise error(f"{path}: not valid YAML{where}") from None
-    except RecursionError:
-        raise error(f"{path}: not usable YAML: nested too deeply") from None
-    except Exception as exc:
-        # PyYAML's own constructors raise plain exceptions for some scalars they claim to resolve:
-        # ValueError for a date like 2001-13-45 or an integer of more than 4300 digits, KeyError for
-        # `!!bool maybe`, AttributeError for `!!timestamp x`, IndexError for an empty `!!int`.
-        what = _shorten(str(exc) or type(exc).__name__)
-        raise error(f"{path}: not usable YAML: a value cannot be read ({what})") from None
-    if data is None:
-        raise error(f"{path}: the file is empty")
-    if not isinstance(data, dict):
-        raise error(f"{path}: expected a mapping of keys at the top level, got {type(data).__name__}")
-    return data
-
-
-def load_yaml_model(path: str | Path, model: type[M]) -> M:
-    """Load ``path`` as YAML and validate it as ``model``; any problem is one :class:`ConfigError`."""
-    p = Path(path)
-    data = read_yaml_mapping(p)
-    try:
-        return model.model_validate(data)
-    except ValidationError as exc:
-        raise ConfigError(f"{p}: {_describe_validation_error(exc)}") from None
-
-
 def load_arena_config(path: str | Path) -> ArenaConfig:
     """Load an arena YAML file (see the shipped ``arena.yaml``)."""
     return load_yaml_model(path, ArenaConfig)
-
-
-def shipped_config_path(name: str) -> Path:
-    """Path of an example config shipped inside the package (e.g. ``arena.yaml``)."""
-    return Path(str(resources.files("ipt.config") / name))

@@ -22,6 +22,9 @@ from ipt.signals import Interrupted
 
 if TYPE_CHECKING:
     from ipt.config.models import ArenaConfig
+    from ipt.protocol import PacketFilter
+    from ipt.sender.display import Sink
+    from ipt.sender.modulator import FrameTiming
 
 DEFAULT_ARENA_NAME = "arena.yaml"
 """The arena shipped in ``ipt/config``, used when ``--config`` is not given."""
@@ -199,7 +202,7 @@ def _gpu_path(args: argparse.Namespace, arena: ArenaConfig, mask: Any) -> tuple[
     """The GPU window and its modulator, ready (colour table complete, textures up); or, when the GPU path
     cannot start, one line saying why and (None, None): the CPU makes the phases instead."""
     from ipt.sender.gpu import GlWindowSink, GpuError, GpuModulator
-    from ipt.sender.pairs import default_cache_dir
+    from ipt.sender.pairtable import default_cache_dir
 
     mod = arena.modulation
     gpu = GpuModulator(mask, mod.delta_l, mod.clip_allowance_l8)
@@ -271,35 +274,18 @@ def _main(argv: Sequence[str] | None) -> int:
 
 
 def _serve(args: argparse.Namespace) -> int:
-    from ipt.config.models import load_arena_config, shipped_config_path
-    from ipt.protocol import PacketFilter
-    from ipt.sender.display import Sink, make_sink
     from ipt.sender.modulator import FrameTiming, Modulator, delta_l_warning, make_modulator
-    from ipt.sender.scene import DEFAULT_MAX_VEHICLES, ArScene
-    from ipt.sender.server import DEFAULT_LISTEN, DEFAULT_SOURCE_RATE_HZ, parse_listen, run_sender
+    from ipt.sender.options import SenderOptions
+    from ipt.sender.overlay import ArOverlay
+    from ipt.sender.server import run_sender
     from ipt.tagmap import grid_tag_map
 
-    arena = load_arena_config(args.config if args.config is not None else shipped_config_path(DEFAULT_ARENA_NAME))
-    if args.modulation is not None:
-        modulation = arena.modulation.model_copy(update={"profile": args.modulation})
-        arena = arena.model_copy(update={"modulation": modulation})
+    arena = _arena(args)
     pr, mod = arena.projector, arena.modulation
     if (warning := delta_l_warning(mod.delta_l)) is not None:
         _note(f"warning: {warning}")
-    if args.listen is not None:
-        listen: tuple[str, int] | None = parse_listen(args.listen)
-    else:
-        listen = None if args.sink == "file" else DEFAULT_LISTEN
-    key = _read_key(args.auth_key_file) if args.auth_key_file is not None else None
-    max_vehicles = args.max_vehicles if args.max_vehicles is not None else DEFAULT_MAX_VEHICLES
-    rate = args.source_rate_limit if args.source_rate_limit is not None else DEFAULT_SOURCE_RATE_HZ
-    packet_filter = PacketFilter(
-        key=key,
-        vehicle_ids=args.vehicles,
-        resync_after_s=10.0,
-        max_vehicles=max_vehicles,
-        source_rate_hz=rate or None,
-    )
+    listen = _listen(args)
+    packet_filter, max_vehicles = _packet_filter(args)
     if args.gpu and mod.profile != "ipt":
         raise SenderCliError(
             f"--gpu makes the ipt profile's phases; the arena's modulation.profile is {mod.profile!r}"
@@ -313,51 +299,24 @@ def _serve(args: argparse.Namespace) -> int:
         timing = FrameTiming(input_rate_hz, pr.rate_hz)
         if (note := timing.note()) is not None:
             _note(note)
-        sink: Sink | None = None
-        on_gpu = False
-        if args.gpu:
-            sink, gpu_modulator = _gpu_path(args, arena, mask)
-            if gpu_modulator is not None:
-                modulator, on_gpu = gpu_modulator, True
-                stack.callback(_close, gpu_modulator)
+        sink, gpu_modulator = _gpu_path(args, arena, mask) if args.gpu else (None, None)
+        if gpu_modulator is not None:
+            modulator = gpu_modulator
+            stack.callback(_close, gpu_modulator)
         if sink is None:
-            sink = make_sink(
-                args.sink,
-                output=args.output,
-                fps=pr.rate_hz,
-                width=pr.width_px,
-                height=pr.height_px,
-                display_index=args.display,
-                fullscreen=not args.windowed,
-            )
-        ratio = float(timing.ratio)
-        per_input = f"N={int(timing.ratio)}" if timing.whole else f"{ratio:.3g} output frames per input frame"
-        guard = "authenticated packets only" if key is not None else "packets not authenticated"
-        if args.vehicles is not None:
-            guard += f", vehicles {' '.join(map(str, args.vehicles))}"
-        print(
-            f"ipt-sender: {pr.width_px}x{pr.height_px} at {pr.rate_hz:g} Hz, input {input_rate_hz:g} Hz "
-            f"({per_input}), modulation {mod.profile}"
-            + (f" (clip allowance {mod.clip_allowance_l8:g})" if mod.profile == "ipt" else "")
-            + f", ΔL {mod.delta_l:g}, sink {args.sink}{' (phases on the GPU)' if on_gpu else ''} "
-            f"({'paced' if sink.paced else 'as fast as possible'}), {guard}, at most {max_vehicles} vehicles",
-            file=sys.stderr,
+            sink = _make_sink(args, arena)
+        _say_what_runs(args, arena, timing, sink, gpu_modulator is not None, max_vehicles)
+        options = SenderOptions(
+            frames=args.frames,
+            listen=listen,
+            packet_filter=packet_filter,
+            overlay=ArOverlay(arena, max_vehicles=max_vehicles),
+            stats_every_s=args.stats_every,
+            input_rate_hz=input_rate_hz,
+            modulator=modulator,
         )
         try:
-            stats = _run(
-                lambda: run_sender(
-                    arena,
-                    sink,
-                    scene,
-                    frames=args.frames,
-                    listen=listen,
-                    packet_filter=packet_filter,
-                    ar_scene=ArScene(arena, max_vehicles=max_vehicles),
-                    stats_every_s=args.stats_every,
-                    input_rate_hz=input_rate_hz,
-                    modulator=modulator,
-                )
-            )
+            stats = _run(lambda: run_sender(arena, sink, scene, options))
         except BaseException:
             sink.abort()  # a file begun before the run (or in it) is not left behind; aborting twice is harmless
             raise
@@ -372,6 +331,82 @@ def _serve(args: argparse.Namespace) -> int:
     if args.sink == "file":
         print(f"ipt-sender: wrote {stats.frames} frames -> {args.output}")
     return 0
+
+
+def _arena(args: argparse.Namespace) -> ArenaConfig:
+    """The arena of ``--config`` (default: the shipped one), with ``--modulation`` applied."""
+    from ipt.config.models import load_arena_config, shipped_config_path
+
+    arena = load_arena_config(args.config if args.config is not None else shipped_config_path(DEFAULT_ARENA_NAME))
+    if args.modulation is not None:
+        modulation = arena.modulation.model_copy(update={"profile": args.modulation})
+        arena = arena.model_copy(update={"modulation": modulation})
+    return arena
+
+
+def _listen(args: argparse.Namespace) -> tuple[str, int] | None:
+    """Where to listen for pose packets: ``--listen``, else the default (no listener for a file by default)."""
+    from ipt.sender.server import DEFAULT_LISTEN, parse_listen
+
+    if args.listen is not None:
+        return parse_listen(args.listen)
+    return None if args.sink == "file" else DEFAULT_LISTEN
+
+
+def _packet_filter(args: argparse.Namespace) -> tuple[PacketFilter, int]:
+    """The pose packets' gate of ``--auth-key-file``, ``--vehicles``, ``--max-vehicles`` and
+    ``--source-rate-limit``, and the most vehicles tracked."""
+    from ipt.protocol import PacketFilter
+    from ipt.sender.overlay import DEFAULT_MAX_VEHICLES
+    from ipt.sender.server import DEFAULT_SOURCE_RATE_HZ
+
+    key = _read_key(args.auth_key_file) if args.auth_key_file is not None else None
+    max_vehicles = args.max_vehicles if args.max_vehicles is not None else DEFAULT_MAX_VEHICLES
+    rate = args.source_rate_limit if args.source_rate_limit is not None else DEFAULT_SOURCE_RATE_HZ
+    packet_filter = PacketFilter(
+        key=key,
+        vehicle_ids=args.vehicles,
+        resync_after_s=10.0,
+        max_vehicles=max_vehicles,
+        source_rate_hz=rate or None,
+    )
+    return packet_filter, max_vehicles
+
+
+def _make_sink(args: argparse.Namespace, arena: ArenaConfig) -> Sink:
+    """The sink of ``--sink`` (window, file or null)."""
+    from ipt.sender.display import make_sink
+
+    pr = arena.projector
+    return make_sink(
+        args.sink,
+        output=args.output,
+        fps=pr.rate_hz,
+        width=pr.width_px,
+        height=pr.height_px,
+        display_index=args.display,
+        fullscreen=not args.windowed,
+    )
+
+
+def _say_what_runs(
+    args: argparse.Namespace, arena: ArenaConfig, timing: FrameTiming, sink: Sink, on_gpu: bool, max_vehicles: int
+) -> None:
+    """The one line on stderr that says what this run does, before it starts."""
+    pr, mod = arena.projector, arena.modulation
+    ratio = float(timing.ratio)
+    per_input = f"N={int(timing.ratio)}" if timing.whole else f"{ratio:.3g} output frames per input frame"
+    guard = "authenticated packets only" if args.auth_key_file is not None else "packets not authenticated"
+    if args.vehicles is not None:
+        guard += f", vehicles {' '.join(map(str, args.vehicles))}"
+    print(
+        f"ipt-sender: {pr.width_px}x{pr.height_px} at {pr.rate_hz:g} Hz, input {timing.input_rate_hz:g} Hz "
+        f"({per_input}), modulation {mod.profile}"
+        + (f" (clip allowance {mod.clip_allowance_l8:g})" if mod.profile == "ipt" else "")
+        + f", ΔL {mod.delta_l:g}, sink {args.sink}{' (phases on the GPU)' if on_gpu else ''} "
+        f"({'paced' if sink.paced else 'as fast as possible'}), {guard}, at most {max_vehicles} vehicles",
+        file=sys.stderr,
+    )
 
 
 def _close(thing: object) -> None:

@@ -74,15 +74,15 @@ def nearest_code(x: npt.ArrayLike) -> npt.NDArray[np.intp]:
     return out
 
 
-def lightness(y: npt.ArrayLike) -> F64:
+def lstar(y: npt.ArrayLike) -> F64:
     """CIE L* (0..100) of relative luminance ``y`` (white = 1)."""
     t = np.asarray(y, dtype=np.float64)
     f = np.where(t > _EPS, np.cbrt(np.maximum(t, _EPS)), t / _KAPPA + 4.0 / 29.0)
     return 116.0 * f - 16.0
 
 
-def lightness_to_luminance(lstar: npt.ArrayLike) -> F64:
-    """Relative luminance of CIE L* (the inverse of :func:`lightness`)."""
+def lstar_to_luminance(lstar: npt.ArrayLike) -> F64:
+    """Relative luminance of CIE L* (the inverse of :func:`lstar`)."""
     f = (np.asarray(lstar, dtype=np.float64) + 16.0) / 116.0
     return np.where(f > 6.0 / 29.0, f**3, _KAPPA * (f - 4.0 / 29.0))
 

@@ -6,8 +6,9 @@ a street network, labels) under a phone-style interface, with a route that grows
 end pin, a moving location marker and a slow pan and zoom. :class:`StillImageScene` shows one image and
 :class:`VideoScene` plays a video file or image folder in a loop.
 
-All scenes answer the same question, :meth:`Scene.frame`: the RGB picture (H×W×3 uint8) of input frame
-``index`` when input frames come at ``rate_hz``, that is at time ``index / rate_hz`` seconds.
+All content sources answer the same question, :meth:`ContentSource.frame`: the RGB picture (H×W×3 uint8)
+of input frame ``index`` when input frames come at ``rate_hz``, that is at time ``index / rate_hz``
+seconds. The generated map's base map is drawn by :mod:`ipt.sender.basemap`.
 """
 
 from __future__ import annotations
@@ -23,6 +24,13 @@ import numpy.typing as npt
 
 from ipt.errors import IptError
 from ipt.imageio import read_image
+from ipt.sender.basemap import ONE as _ONE
+from ipt.sender.basemap import PLACES, draw_base_map
+from ipt.sender.basemap import SHIFT as _SHIFT
+from ipt.sender.basemap import TEXT as _TEXT
+from ipt.sender.basemap import WHITE as _WHITE
+from ipt.sender.basemap import fixed_point as _fixed
+from ipt.sender.basemap import put_text as _text
 from ipt.videoio import FrameSource, VideoError, open_frames
 
 U8 = npt.NDArray[np.uint8]
@@ -33,7 +41,7 @@ class ContentError(IptError):
     """A scene cannot be made from the values or the image given."""
 
 
-class Scene(Protocol):
+class ContentSource(Protocol):
     """Video content: input frame ``index`` at ``rate_hz`` as an H×W×3 uint8 RGB image."""
 
     def frame(self, index: int, rate_hz: float) -> U8: ...
@@ -57,46 +65,12 @@ def _check_rate(rate_hz: float) -> None:
 # --- the generated map ------------------------------------------------------------------------------
 
 # Colours are RGB.
-_LAND: Final = (243, 241, 236)
-_BLOCK: Final = (235, 232, 225)
-_BUILDING: Final = (222, 218, 211)
-_BUILDING_EDGE: Final = (190, 184, 176)
-_LANDMARK: Final = (247, 222, 196)
-_LANDMARK_EDGE: Final = (214, 170, 130)
-_PARK: Final = (196, 230, 184)
-_PARK_EDGE: Final = (150, 200, 140)
-_WATER: Final = (164, 206, 246)
-_WATER_EDGE: Final = (120, 170, 225)
-_MINOR_ROAD: Final = (255, 255, 255)
-_MINOR_EDGE: Final = (120, 120, 124)
-_MAJOR_ROAD: Final = (255, 216, 96)
-_MAJOR_EDGE: Final = (150, 100, 20)
-_TEXT: Final = (34, 34, 38)
-_PARK_TEXT: Final = (30, 100, 40)
-_WATER_TEXT: Final = (30, 80, 160)
 _ROUTE: Final = (38, 130, 255)
 _ROUTE_EDGE: Final = (10, 60, 170)
 _START_PIN: Final = (30, 170, 80)
 _END_PIN: Final = (235, 50, 45)
-_WHITE: Final = (255, 255, 255)
 _BLACK: Final = (0, 0, 0)
 _GREY_TEXT: Final = (110, 110, 115)
-_POI_COLOURS: Final = ((230, 90, 60), (60, 120, 230), (240, 150, 20), (150, 80, 200))
-
-_FONT: Final = cv2.FONT_HERSHEY_SIMPLEX
-_SHIFT: Final = 4  # sub-pixel bits for cv2 drawing
-_ONE: Final = 1 << _SHIFT
-
-_STREETS: Final = (
-    "Zhongshan Rd", "Renmin Ave", "Jiefang Rd", "Harbour St", "Station Rd", "Garden Ln", "Market St",
-    "River Rd", "Park Ave", "Lake St", "Hill Rd", "Bridge St", "Canal Rd", "Elm St", "Mill Ln",
-    "North Ave", "College Rd", "Temple St", "Silk Rd", "Orchard Ln",
-)  # fmt: skip
-_PLACES: Final = (
-    "Library", "Museum", "City Hall", "Hospital", "Stadium", "Cinema", "Hotel", "Bank", "School",
-    "Mall", "Post Office", "Theatre", "Market", "Gallery", "Cafe", "Pharmacy", "Gym", "Bakery",
-)  # fmt: skip
-_PARKS: Final = ("Central Park", "Riverside Park", "Plum Garden", "Green Square", "Bamboo Park")
 
 # Motion: slow enough to look like a person panning a map, fast enough to change every few frames.
 _PAN_AMPLITUDE_PX: Final = 48.0  # at 1080 lines; peak speed 2π·48/70 ≈ 4.3 px/s
@@ -114,11 +88,6 @@ def _smoothstep(x: float) -> float:
     return x * x * (3.0 - 2.0 * x)
 
 
-def _fixed(points: F64) -> npt.NDArray[np.int32]:
-    """Float pixel coordinates as cv2's fixed-point integers (``shift=_SHIFT``)."""
-    return np.round(points * _ONE).astype(np.int32)
-
-
 def _rounded_rect(
     img: U8, x0: int, y0: int, x1: int, y1: int, r: int, color: tuple[int, int, int], line_type: int
 ) -> None:
@@ -129,20 +98,6 @@ def _rounded_rect(
     if r > 0:
         for cx, cy in ((x0 + r, y0 + r), (x1 - 1 - r, y0 + r), (x0 + r, y1 - 1 - r), (x1 - 1 - r, y1 - 1 - r)):
             cv2.circle(img, (cx, cy), r, color, -1, line_type)
-
-
-def _text(
-    img: U8,
-    s: str,
-    org: tuple[int, int],
-    scale: float,
-    color: tuple[int, int, int],
-    thickness: int,
-    halo: tuple[int, int, int] | None = None,
-) -> None:
-    if halo is not None:
-        cv2.putText(img, s, org, _FONT, scale, halo, thickness + max(2, thickness * 2), cv2.LINE_AA)
-    cv2.putText(img, s, org, _FONT, scale, color, thickness, cv2.LINE_AA)
 
 
 class GeneratedScene:
@@ -170,13 +125,13 @@ class GeneratedScene:
         self._base_w, self._base_h = w + 2 * margin, h + 2 * margin
         rng = np.random.default_rng(seed)
         self._base = np.empty((self._base_h, self._base_w, 3), dtype=np.uint8)
-        self._draw_map(rng)
+        self._xs, self._ys = draw_base_map(self._base, u, rng)
         self._route = self._pick_route(rng)
         seg = np.diff(self._route, axis=0)
         self._route_cum = np.concatenate([[0.0], np.cumsum(np.hypot(seg[:, 0], seg[:, 1]))])
         km = self._route_cum[-1] / u * 0.0025
         self._route_text = f"{max(1, round(km * 4.5))} min  {km:.1f} km"
-        self._dest_name = str(rng.choice(_PLACES))
+        self._dest_name = str(rng.choice(PLACES))
         # The view changes only every few frames: keep the last scaled map (a pure function of the view).
         self._map_cache: tuple[tuple[int, int, int, int], U8] | None = None
         self._layout()
@@ -187,113 +142,6 @@ class GeneratedScene:
     def _t(self, x: float) -> int:
         """A thickness or length of ``x`` at 1080 lines, in pixels (at least 1)."""
         return max(1, round(x * self._u))
-
-    def _draw_map(self, rng: np.random.Generator) -> None:
-        img, u = self._base, self._u
-        bw, bh = self._base_w, self._base_h
-        img[:] = _LAND
-
-        # Road positions: an irregular grid. Every third road (roughly) is a major one.
-        def positions(extent: int) -> F64:
-            xs = [-rng.uniform(0, 120) * u]
-            while xs[-1] < extent + 150 * u:
-                xs.append(xs[-1] + rng.uniform(150, 290) * u)
-            return np.array(xs)
-
-        self._xs, self._ys = positions(bw), positions(bh)
-        major_x = rng.random(len(self._xs)) < 0.3
-        major_y = rng.random(len(self._ys)) < 0.3
-
-        # Blocks between the roads: parks, water, or built-up land with buildings.
-        park_names = list(_PARKS)
-        rng.shuffle(park_names)
-        self._labels: list[tuple[str, tuple[int, int], float, tuple[int, int, int]]] = []
-        pad = 10 * u
-        for i in range(len(self._xs) - 1):
-            for j in range(len(self._ys) - 1):
-                x0, x1 = self._xs[i] + pad, self._xs[i + 1] - pad
-                y0, y1 = self._ys[j] + pad, self._ys[j + 1] - pad
-                kind = rng.random()
-                p0, p1 = (round(x0), round(y0)), (round(x1), round(y1))
-                if kind < 0.12:
-                    cv2.rectangle(img, p0, p1, _PARK, -1)
-                    cv2.rectangle(img, p0, p1, _PARK_EDGE, self._t(2))
-                    if rng.random() < 0.5:  # a pond
-                        c = (round((x0 + x1) / 2), round((y0 + y1) / 2))
-                        axes = (round((x1 - x0) * 0.25), round((y1 - y0) * 0.18))
-                        cv2.ellipse(img, c, axes, float(rng.uniform(0, 180)), 0, 360, _WATER, -1, cv2.LINE_AA)
-                    if park_names:
-                        self._labels.append((park_names.pop(), p0, 0.55, _PARK_TEXT))
-                    # Paths through the park, and a few trees as darker dots.
-                    for _ in range(int(rng.integers(6, 14))):
-                        c = (round(rng.uniform(x0, x1)), round(rng.uniform(y0, y1)))
-                        cv2.circle(img, c, self._t(rng.uniform(4, 9)), (150, 205, 140), -1, cv2.LINE_AA)
-                elif kind < 0.17:
-                    cv2.rectangle(img, p0, p1, _WATER, -1)
-                else:
-                    cv2.rectangle(img, p0, p1, _BLOCK, -1)
-                    self._draw_buildings(rng, x0, y0, x1, y1)
-
-        # A river winding across the map, under the roads (so the roads become bridges).
-        t = np.linspace(0.0, 1.0, 60)
-        y_mid = rng.uniform(0.3, 0.7) * bh
-        river = np.stack(
-            [t * (bw + 200 * u) - 100 * u, y_mid + 90 * u * np.sin(t * 2 * math.pi * rng.uniform(1.0, 2.0))],
-            axis=1,
-        )
-        cv2.polylines(img, [_fixed(river)], False, _WATER_EDGE, self._t(52), cv2.LINE_AA, _SHIFT)
-        cv2.polylines(img, [_fixed(river)], False, _WATER, self._t(46), cv2.LINE_AA, _SHIFT)
-        self._labels.append(("Pearl River", (round(bw * 0.55), round(y_mid + 8 * u)), 0.6, _WATER_TEXT))
-
-        # The streets: all outlines first, then all fills, so that crossings merge.
-        roads: list[tuple[F64, bool]] = []
-        for x, major in zip(self._xs, major_x, strict=True):
-            roads.append((np.array([[x, -10.0], [x, bh + 10.0]]), bool(major)))
-        for y, major in zip(self._ys, major_y, strict=True):
-            roads.append((np.array([[-10.0, y], [bw + 10.0, y]]), bool(major)))
-        diag = np.array([[rng.uniform(0, 0.3) * bw, -10.0], [rng.uniform(0.7, 1.0) * bw, bh + 10.0]])
-        roads.append((diag, True))
-        for edge in (True, False):
-            for line, major in roads:
-                width = (22 if major else 13) + (4 if edge else 0)
-                colour = (_MAJOR_EDGE if major else _MINOR_EDGE) if edge else (_MAJOR_ROAD if major else _MINOR_ROAD)
-                cv2.polylines(img, [_fixed(line)], False, colour, self._t(width), cv2.LINE_AA, _SHIFT)
-        # Centre lines on the major roads.
-        for line, major in roads:
-            if major:
-                cv2.polylines(img, [_fixed(line)], False, (230, 170, 40), self._t(1.5), cv2.LINE_AA, _SHIFT)
-
-        # Street names along the horizontal roads, then the place names; dark text on a white halo.
-        names = list(_STREETS)
-        rng.shuffle(names)
-        for k, y in enumerate(self._ys):
-            for x in self._xs[1::3] if k % 2 else self._xs[2::3]:
-                name = names[(k * 7 + round(x)) % len(names)]
-                self._labels.append((name, (round(x + 30 * u), round(y + 6 * u)), 0.5, _TEXT))
-        for s, org, scale, colour in self._labels:
-            _text(img, s, org, scale * u, colour, self._t(1.3), _WHITE)
-
-    def _draw_buildings(self, rng: np.random.Generator, x0: float, y0: float, x1: float, y1: float) -> None:
-        img, u = self._base, self._u
-        n = int(rng.integers(3, 9))
-        for _ in range(n):
-            bw_ = rng.uniform(30, 90) * u
-            bh_ = rng.uniform(30, 90) * u
-            if bw_ > x1 - x0 - 8 * u or bh_ > y1 - y0 - 8 * u:
-                continue
-            bx = rng.uniform(x0 + 4 * u, x1 - 4 * u - bw_)
-            by = rng.uniform(y0 + 4 * u, y1 - 4 * u - bh_)
-            landmark = rng.random() < 0.08
-            fill, edge = (_LANDMARK, _LANDMARK_EDGE) if landmark else (_BUILDING, _BUILDING_EDGE)
-            p0, p1 = (round(bx), round(by)), (round(bx + bw_), round(by + bh_))
-            cv2.rectangle(img, p0, p1, fill, -1)
-            cv2.rectangle(img, p0, p1, edge, self._t(1.2))
-        if rng.random() < 0.45:  # a point of interest: a coloured icon and its name
-            cx, cy = round((x0 + x1) / 2), round((y0 + y1) / 2)
-            colour = _POI_COLOURS[int(rng.integers(len(_POI_COLOURS)))]
-            cv2.circle(img, (cx, cy), self._t(9), _WHITE, -1, cv2.LINE_AA)
-            cv2.circle(img, (cx, cy), self._t(7), colour, -1, cv2.LINE_AA)
-            self._labels.append((str(rng.choice(_PLACES)), (cx + self._t(12), cy + self._t(5)), 0.45, _TEXT))
 
     def _pick_route(self, rng: np.random.Generator) -> F64:
         """A staircase path along the street grid from a start crossing to an end crossing."""

@@ -41,7 +41,8 @@ import numpy.typing as npt
 from ipt.errors import IptError
 from ipt.sender.display import PresentClock
 from ipt.sender.modulator import resize_to
-from ipt.sender.pairs import COLOURS, PairTable, pair_table
+from ipt.sender.pairs import COLOURS
+from ipt.sender.pairtable import PairTable, pair_table
 
 U8 = npt.NDArray[np.uint8]
 
@@ -107,7 +108,7 @@ class GpuFrame:
 
 class GpuModulator:
     """The ``ipt`` profile's stand-in for the GPU path: frames out are :class:`GpuFrame`, made into pixels
-    by :class:`GlWindowSink`. Its colour table is the CPU path's (:func:`~ipt.sender.pairs.pair_table`)."""
+    by :class:`GlWindowSink`. Its colour table is the CPU path's (:func:`~ipt.sender.pairtable.pair_table`)."""
 
     profile = "ipt"
 

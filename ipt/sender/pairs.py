@@ -1,9 +1,11 @@
 """The ``ipt`` profile's pairs: for every 8-bit colour, the two codes a tag pixel of it flickers between.
 
-Pure and compiled (numba). What one colour's pair is (:func:`_ipt_pair`; :mod:`ipt.sender.modulator`
-says why): around the input's linear colour ``c`` (luminance ``Y``) the two phases are ``c ± v``, ``v``
-water-filled within each channel's room so that their L* differ by 2ΔL, quantised to 8-bit codes whose
-linear mean misses ``c`` by less than half a code step.
+Pure and compiled (numba, :mod:`ipt.sender.jit`; the per-colour CIELAB and CIEDE2000 are
+:mod:`ipt.sender.cielab`, the table and its cache file :mod:`ipt.sender.pairtable`). What one colour's
+pair is (:func:`_ipt_pair`; :mod:`ipt.sender.modulator` says why): around the input's linear colour
+``c`` (luminance ``Y``) the two phases are ``c ± v``, ``v`` water-filled within each channel's room so
+that their L* differ by 2ΔL, quantised to 8-bit codes whose linear mean misses ``c`` by less than half a
+code step.
 
 **The clip allowance.** Pure white and black, pure primaries and colours next to them leave no room for
 that step. There the centre of the pair may move, by as little as gives the full step and at most a
@@ -18,15 +20,15 @@ fused colour (the linear mean of the two codes) misses ``c`` by more than the bu
 shortened until it does not. So no pixel's fused colour differs from the input by more than the budget,
 or by more than 8-bit quantisation where the budget is smaller than that.
 
-**The table.** A pair depends only on the colour, so pairs are kept in a table of all 2^24 colours
-(128 MB per ΔL and allowance, :class:`PairTable`, shared in a process). Index and codes are the pixel's
-bytes read little-endian (``r | g << 8 | b << 16``), so that the frame kernel reads and writes a pixel
-as one 32-bit word. The table is filled either lazily (a colour the first time a frame has it, about a
-microsecond; the simulator and the measurements) or completely before a projection starts
-(:meth:`PairTable.complete`): computed once on all cores (about 15 s on 2 cores here) and kept in a
-cache file (:func:`cache_path`), read back in a fraction of a second by the next run. Photographic
-content shows hundreds of thousands of new colours a second; filling them as they come cost the
-sender seconds of missed frames at every new scene.
+**The table.** A pair depends only on the colour, so pairs are kept in a table of all 2^24 colours (128
+MB per ΔL and allowance, :class:`~ipt.sender.pairtable.PairTable`, shared in a process). Index and codes
+are the pixel's bytes read little-endian (``r | g << 8 | b << 16``), so that the frame kernel reads and
+writes a pixel as one 32-bit word. The table is filled either lazily (a colour the first time a frame
+has it, about a microsecond; the simulator and the measurements) or completely before a projection
+starts (:meth:`~ipt.sender.pairtable.PairTable.complete_with_cache`): computed once on all cores (about
+15 s on 2 cores here) and kept in a cache file (:func:`~ipt.sender.pairtable.cache_path`), read back in
+a fraction of a second by the next run. Photographic content shows hundreds of thousands of new colours
+a second; filling them as they come cost the sender seconds of missed frames at every new scene.
 
 **The frame kernel** (:func:`_modulate_rows`) writes both output frames of an input frame in one pass:
 pixels outside the tags copied, tag pixels looked up (and filled if new). It reads each pixel as one
@@ -38,24 +40,20 @@ frame span megabytes, and waiting for each in turn doubled the time of the pass.
 
 from __future__ import annotations
 
-import contextlib
-import hashlib
-import json
 import math
-import os
-import threading
-import time
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
 from typing import Any, Final
 
 import numpy as np
 import numpy.typing as npt
 
 from ipt.errors import IptError
-from ipt.fileio import atomic_path
-from ipt.sender.colour import CODE_TO_LINEAR, L8_PER_LSTAR, LUMINANCE_WEIGHTS, RGB_TO_XYZ, WHITE_XYZ, lightness
+from ipt.sender import jit as jit_module
+from ipt.sender.cielab import de00
+from ipt.sender.cielab import de00_c as _de00_c
+from ipt.sender.cielab import lab_c as _lab_c
+from ipt.sender.cielab import lstar_c as _lstar_c
+from ipt.sender.colour import CODE_TO_LINEAR, L8_PER_LSTAR, lstar
+from ipt.sender.jit import intrinsics, jit
 
 U8 = npt.NDArray[np.uint8]
 F64 = npt.NDArray[np.float64]
@@ -99,7 +97,7 @@ def amplitude_grid(delta_l: float, steps: int = AMPLITUDE_STEPS) -> F64:
     lo, hi = np.zeros_like(y), y.copy()
     for _ in range(64):
         a = (lo + hi) / 2
-        above = lightness(y + a) - lightness(y - a) > target
+        above = lstar(y + a) - lstar(y - a) > target
         hi = np.where(above, a, hi)
         lo = np.where(above, lo, a)
     out: F64 = (lo + hi) / 2
@@ -113,7 +111,7 @@ def allowance_budget_de00(clip_allowance_l8: float) -> float:
     if not (math.isfinite(clip_allowance_l8) and clip_allowance_l8 >= 0):
         raise PairsError(f"the clip allowance must be a non-negative number, got {clip_allowance_l8}")
     dl = clip_allowance_l8 / L8_PER_LSTAR
-    return _de00_py(100.0, 0.0, 0.0, 100.0 - dl, 0.0, 0.0)
+    return de00(100.0, 0.0, 0.0, 100.0 - dl, 0.0, 0.0)
 
 
 # --- one colour ---------------------------------------------------------------------------------------
@@ -123,12 +121,6 @@ _LOW24: Final = np.uint64(0xFFFFFF)
 _SHIFT_DOWN: Final = np.uint64(24)
 _MIDS: Final = (CODE_TO_LINEAR[:-1] + CODE_TO_LINEAR[1:]) / 2
 """Linear light half way between consecutive codes: the nearest code to x is the number of mids below x."""
-_XYZ_N: Final = RGB_TO_XYZ / WHITE_XYZ[:, None]
-"""Linear sRGB to XYZ relative to the white point (X/Xn, Y/Yn, Z/Zn)."""
-_EPS: Final = (6.0 / 29.0) ** 3
-_KAPPA: Final = 3.0 * (6.0 / 29.0) ** 2
-
-
 def _nearest(x: float, mids: F64) -> int:
     """The 8-bit code nearest to linear ``x`` (``np.searchsorted(mids, x)``)."""
     lo, hi = 0, mids.shape[0]
@@ -151,80 +143,6 @@ def _floor_code(x: float, lin: F64) -> int:
         else:
             hi = mid
     return max(lo - 1, 0)
-
-
-def _lstar(y: float) -> float:
-    """CIE L* of relative luminance ``y`` (as :func:`ipt.sender.colour.lightness`)."""
-    if y > 0.008856451679035631:  # (6/29)^3
-        return 116.0 * float(y ** (1.0 / 3.0)) - 16.0
-    return 116.0 * (y / 0.12841854934601665 + 4.0 / 29.0) - 16.0  # 3 (6/29)^2
-
-
-def _lab_f(t: float) -> float:
-    if t > _EPS:
-        return float(t ** (1.0 / 3.0))
-    return t / _KAPPA + 4.0 / 29.0
-
-
-def _lab(c0: float, c1: float, c2: float) -> tuple[float, float, float]:
-    """CIELAB of linear sRGB (as :func:`ipt.sender.colour.linear_to_lab`)."""
-    fx = _lab_f_c(_XYZ_N[0, 0] * c0 + _XYZ_N[0, 1] * c1 + _XYZ_N[0, 2] * c2)
-    fy = _lab_f_c(_XYZ_N[1, 0] * c0 + _XYZ_N[1, 1] * c1 + _XYZ_N[1, 2] * c2)
-    fz = _lab_f_c(_XYZ_N[2, 0] * c0 + _XYZ_N[2, 1] * c1 + _XYZ_N[2, 2] * c2)
-    return 116.0 * fy - 16.0, 500.0 * (fx - fy), 200.0 * (fy - fz)
-
-
-def _de00_py(l1: float, a1: float, b1: float, l2: float, a2: float, b2: float) -> float:
-    """CIEDE2000 of two CIELAB colours (kL = kC = kH = 1): the scalar form of
-    :func:`ipt.invisibility.ciede2000` (Sharma, Wu & Dalal 2005, eqs. 1-17)."""
-    p7 = 6103515625.0  # 25^7
-    c_bar = (math.hypot(a1, b1) + math.hypot(a2, b2)) / 2.0
-    c7 = c_bar**7
-    g = 0.5 * (1.0 - math.sqrt(c7 / (c7 + p7)))
-    a1p, a2p = (1.0 + g) * a1, (1.0 + g) * a2
-    c1p, c2p = math.hypot(a1p, b1), math.hypot(a2p, b2)
-    h1p = 0.0 if (a1p == 0.0 and b1 == 0.0) else math.degrees(math.atan2(b1, a1p)) % 360.0
-    h2p = 0.0 if (a2p == 0.0 and b2 == 0.0) else math.degrees(math.atan2(b2, a2p)) % 360.0
-    chroma_product = c1p * c2p
-    dl = l2 - l1
-    dc = c2p - c1p
-    if chroma_product == 0.0:
-        dh = 0.0
-    else:
-        dh = h2p - h1p
-        if dh > 180.0:
-            dh -= 360.0
-        elif dh < -180.0:
-            dh += 360.0
-    dhh = 2.0 * math.sqrt(chroma_product) * math.sin(math.radians(dh) / 2.0)
-    l_bar = (l1 + l2) / 2.0
-    cp_bar = (c1p + c2p) / 2.0
-    h_sum = h1p + h2p
-    if chroma_product == 0.0:
-        h_bar = h_sum
-    elif abs(h1p - h2p) <= 180.0:
-        h_bar = h_sum / 2.0
-    elif h_sum < 360.0:
-        h_bar = (h_sum + 360.0) / 2.0
-    else:
-        h_bar = (h_sum - 360.0) / 2.0
-    t = (
-        1.0
-        - 0.17 * math.cos(math.radians(h_bar - 30.0))
-        + 0.24 * math.cos(math.radians(2.0 * h_bar))
-        + 0.32 * math.cos(math.radians(3.0 * h_bar + 6.0))
-        - 0.20 * math.cos(math.radians(4.0 * h_bar - 63.0))
-    )
-    d_theta = 30.0 * math.exp(-(((h_bar - 275.0) / 25.0) ** 2))
-    cp7 = cp_bar**7
-    r_c = 2.0 * math.sqrt(cp7 / (cp7 + p7))
-    lm = (l_bar - 50.0) ** 2
-    s_l = 1.0 + 0.015 * lm / math.sqrt(20.0 + lm)
-    s_c = 1.0 + 0.045 * cp_bar
-    s_h = 1.0 + 0.015 * cp_bar * t
-    r_t = -math.sin(math.radians(2.0 * d_theta)) * r_c
-    tl, tc, th = dl / s_l, dc / s_c, dhh / s_h
-    return math.sqrt(max(tl * tl + tc * tc + th * th + r_t * tc * th, 0.0))
 
 
 def _balanced(k: int, c: float, p: int, lin: F64, mids: F64) -> int:
@@ -301,20 +219,10 @@ def _de_from(l0: float, a0: float, b0: float, c0: float, c1: float, c2: float) -
     return float(_de00_c(l0, a0, b0, l1, a1, b1))
 
 
-def _allowance_move(
-    c0: float, c1: float, c2: float, target: float, budget: float, agrid: F64, w: F64
-) -> tuple[float, float, float]:
-    """How far the centre of ``c``'s pair moves (linear RGB) under the allowance (see the module doc).
-
-    The cheapest direction: with each channel moving inwards (up below 0.5, down above) by ``x_i``, the
-    room gained is ``w·x`` and ``ΔE00² ≈ xᵀMx`` (M from finite differences at ``c``); the least ``xᵀMx``
-    for ``w·x = 1``, ``x >= 0``, is found over the 7 sets of free channels. Its length: the least that
-    gives the full step, within ``budget``.
-    """
-    l0, a0, b0 = _lab_c(c0, c1, c2)
-    s0 = -1.0 if c0 > 0.5 else 1.0
-    s1 = -1.0 if c1 > 0.5 else 1.0
-    s2 = -1.0 if c2 > 0.5 else 1.0
+def _cost_metric(l0: float, a0: float, b0: float, c0: float, c1: float, c2: float, s0: float, s1: float,
+                 s2: float) -> F64:  # fmt: skip
+    """M of ``ΔE00² ≈ xᵀMx`` at linear colour ``c`` (CIELAB ``l0, a0, b0``) for channel moves ``x`` in the
+    directions ``s`` (±1 each), from finite differences."""
     h = 1e-3
     m = np.empty((3, 3))
     sg = (s0, s1, s2)
@@ -330,66 +238,101 @@ def _allowance_move(
             d[j] = h * sg[j]
             e = _de_from_c(l0, a0, b0, c0 + d[0], c1 + d[1], c2 + d[2])
             m[i, j] = m[j, i] = (e * e / (h * h) - m[i, i] - m[j, j]) / 2.0
+    return m
+
+
+def _free_set_move(m: F64, w: F64, subset: int) -> tuple[bool, float, float, float]:
+    """The least ``xᵀMx`` for ``w·x = 1`` with only the channels of ``subset`` (bit i: channel i) free:
+    whether it exists with ``x >= 0``, and ``x``."""
+    f0, f1, f2 = (subset & 1) != 0, (subset & 2) != 0, (subset & 4) != 0
+    y0 = y1 = y2 = 0.0
+    n = int(f0) + int(f1) + int(f2)
+    if n == 1:
+        k = 0 if f0 else (1 if f1 else 2)
+        if m[k, k] <= 0.0:
+            return False, 0.0, 0.0, 0.0
+        val = w[k] / m[k, k]
+        if k == 0:
+            y0 = val
+        elif k == 1:
+            y1 = val
+        else:
+            y2 = val
+    elif n == 2:
+        i = 0 if f0 else 1
+        j = 2 if f2 else 1
+        det = m[i, i] * m[j, j] - m[i, j] * m[i, j]
+        if det <= 0.0:
+            return False, 0.0, 0.0, 0.0
+        xi = (m[j, j] * w[i] - m[i, j] * w[j]) / det
+        xj = (m[i, i] * w[j] - m[i, j] * w[i]) / det
+        if xi < 0.0 or xj < 0.0:
+            return False, 0.0, 0.0, 0.0
+        if i == 0:
+            y0 = xi
+        else:
+            y1 = xi
+        if j == 2:
+            y2 = xj
+        else:
+            y1 = xj
+    else:
+        # 3x3: x = M^-1 g by cofactors
+        g0, g1, g2 = w[0], w[1], w[2]
+        a11, a12, a13 = m[0, 0], m[0, 1], m[0, 2]
+        a22, a23, a33 = m[1, 1], m[1, 2], m[2, 2]
+        c11 = a22 * a33 - a23 * a23
+        c12 = a13 * a23 - a12 * a33
+        c13 = a12 * a23 - a13 * a22
+        det = a11 * c11 + a12 * c12 + a13 * c13
+        if det <= 0.0:
+            return False, 0.0, 0.0, 0.0
+        c22 = a11 * a33 - a13 * a13
+        c23 = a12 * a13 - a11 * a23
+        c33 = a11 * a22 - a12 * a12
+        y0 = (c11 * g0 + c12 * g1 + c13 * g2) / det
+        y1 = (c12 * g0 + c22 * g1 + c23 * g2) / det
+        y2 = (c13 * g0 + c23 * g1 + c33 * g2) / det
+        if y0 < 0.0 or y1 < 0.0 or y2 < 0.0:
+            return False, 0.0, 0.0, 0.0
+    return True, y0, y1, y2
+
+
+def _cheapest_direction(m: F64, w: F64) -> tuple[float, float, float]:
+    """The inward channel move ``x >= 0`` that buys the most room ``w·x`` per unit of ``xᵀMx``, over the 7
+    sets of free channels; all channels alike if none is usable."""
     g0, g1, g2 = w[0], w[1], w[2]
     best_q = 0.0
     x0 = x1 = x2 = 0.0
     for subset in range(1, 8):  # bit i set: channel i free to move
-        f0, f1, f2 = (subset & 1) != 0, (subset & 2) != 0, (subset & 4) != 0
-        y0 = y1 = y2 = 0.0
-        n = int(f0) + int(f1) + int(f2)
-        if n == 1:
-            k = 0 if f0 else (1 if f1 else 2)
-            if m[k, k] <= 0.0:
-                continue
-            val = w[k] / m[k, k]
-            if k == 0:
-                y0 = val
-            elif k == 1:
-                y1 = val
-            else:
-                y2 = val
-        elif n == 2:
-            i = 0 if f0 else 1
-            j = 2 if f2 else 1
-            det = m[i, i] * m[j, j] - m[i, j] * m[i, j]
-            if det <= 0.0:
-                continue
-            xi = (m[j, j] * w[i] - m[i, j] * w[j]) / det
-            xj = (m[i, i] * w[j] - m[i, j] * w[i]) / det
-            if xi < 0.0 or xj < 0.0:
-                continue
-            if i == 0:
-                y0 = xi
-            else:
-                y1 = xi
-            if j == 2:
-                y2 = xj
-            else:
-                y1 = xj
-        else:
-            # 3x3: x = M^-1 g by cofactors
-            a11, a12, a13 = m[0, 0], m[0, 1], m[0, 2]
-            a22, a23, a33 = m[1, 1], m[1, 2], m[2, 2]
-            c11 = a22 * a33 - a23 * a23
-            c12 = a13 * a23 - a12 * a33
-            c13 = a12 * a23 - a13 * a22
-            det = a11 * c11 + a12 * c12 + a13 * c13
-            if det <= 0.0:
-                continue
-            c22 = a11 * a33 - a13 * a13
-            c23 = a12 * a13 - a11 * a23
-            c33 = a11 * a22 - a12 * a12
-            y0 = (c11 * g0 + c12 * g1 + c13 * g2) / det
-            y1 = (c12 * g0 + c22 * g1 + c23 * g2) / det
-            y2 = (c13 * g0 + c23 * g1 + c33 * g2) / det
-            if y0 < 0.0 or y1 < 0.0 or y2 < 0.0:
-                continue
+        ok, y0, y1, y2 = _free_set_move_c(m, w, subset)
+        if not ok:
+            continue
         q = g0 * y0 + g1 * y1 + g2 * y2  # room per unit of x^T M x along this direction
         if q > best_q:
             best_q = q
             x0, x1, x2 = y0, y1, y2
     if best_q <= 0.0:  # no usable metric (never seen): move every channel towards mid-grey alike
         x0 = x1 = x2 = 1.0
+    return x0, x1, x2
+
+
+def _allowance_move(
+    c0: float, c1: float, c2: float, target: float, budget: float, agrid: F64, w: F64
+) -> tuple[float, float, float]:
+    """How far the centre of ``c``'s pair moves (linear RGB) under the allowance (see the module doc).
+
+    The cheapest direction: with each channel moving inwards (up below 0.5, down above) by ``x_i``, the
+    room gained is ``w·x`` and ``ΔE00² ≈ xᵀMx`` (M from finite differences at ``c``); the least ``xᵀMx``
+    for ``w·x = 1``, ``x >= 0``, is found over the 7 sets of free channels. Its length: the least that
+    gives the full step, within ``budget``.
+    """
+    l0, a0, b0 = _lab_c(c0, c1, c2)
+    s0 = -1.0 if c0 > 0.5 else 1.0
+    s1 = -1.0 if c1 > 0.5 else 1.0
+    s2 = -1.0 if c2 > 0.5 else 1.0
+    m = _cost_metric_c(l0, a0, b0, c0, c1, c2, s0, s1, s2)
+    x0, x1, x2 = _cheapest_direction_c(m, w)
     d0, d1, d2 = s0 * x0, s1 * x1, s2 * x2
     # Longest move that stays in the RGB cube.
     s_max = 1e300
@@ -617,319 +560,29 @@ def _modulate_rows(
                 minus[j], minus[j + 1], minus[j + 2] = down & m8, (down >> sh8) & m8, (down >> sh16) & m8
 
 
-# --- compiling ----------------------------------------------------------------------------------------
-
-JIT_UNAVAILABLE: str | None = None
-"""Why numba cannot compile here (e.g. memory that is both writable and executable is forbidden, as
-under systemd's MemoryDenyWriteExecute), or None if it can. The ``ipt`` profile needs it."""
-
-
-def _unavailable(*_args: Any) -> Any:
-    raise PairsError(f"the ipt modulation profile needs numba, but {JIT_UNAVAILABLE}")
-
-
-def _jit(fn: Callable[..., Any]) -> Any:
-    """``fn`` compiled by numba (nogil, so worker threads run in parallel); cached on disk if possible.
-
-    Where numba cannot run, a stand-in that raises :class:`PairsError` when called, so that the module
-    (and the ``paper`` profile) still imports.
-    """
-    global JIT_UNAVAILABLE
-    try:
-        import numba
-    except (ImportError, OSError) as exc:  # OSError: llvmlite refused executable memory
-        JIT_UNAVAILABLE = f"numba cannot compile here ({type(exc).__name__}: {exc})"
-        return _unavailable
-    try:
-        return numba.njit(nogil=True, cache=True)(fn)
-    except RuntimeError:  # no writable cache location: compile in every process
-        return numba.njit(nogil=True)(fn)
-
-
-def _intrinsics() -> tuple[Any, Any, Any]:
-    """Three LLVM operations numba does not offer: an unaligned 32-bit load and store at a byte offset of a
-    uint8 array, and a prefetch of an array element (no bounds checks: the kernel keeps them in range)."""
-    try:
-        from llvmlite import ir
-        from numba import types
-        from numba.core import cgutils as numba_cgutils
-        from numba.extending import intrinsic
-    except (ImportError, OSError):
-        return _unavailable, _unavailable, _unavailable
-    cgutils: Any = numba_cgutils  # untyped
-
-    def pointer(context: Any, builder: Any, array_type: Any, array: Any, index: Any) -> Any:
-        ary = context.make_array(array_type)(context, builder, array)
-        return cgutils.get_item_pointer(context, builder, array_type, ary, [index], wraparound=False)
-
-    @intrinsic
-    def load_u32(typingctx: Any, array: Any, index: Any) -> Any:
-        def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-            ptr = pointer(context, builder, signature.args[0], args[0], args[1])
-            return builder.load(builder.bitcast(ptr, ir.IntType(32).as_pointer()), align=1)
-
-        return types.uint32(array, index), codegen
-
-    @intrinsic
-    def store_u32(typingctx: Any, array: Any, index: Any, value: Any) -> Any:
-        def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-            ptr = pointer(context, builder, signature.args[0], args[0], args[1])
-            word = context.cast(builder, args[2], signature.args[2], types.uint32)
-            builder.store(word, builder.bitcast(ptr, ir.IntType(32).as_pointer()), align=1)
-            return context.get_dummy_value()
-
-        return types.void(array, index, value), codegen
-
-    @intrinsic
-    def prefetch(typingctx: Any, array: Any, index: Any) -> Any:
-        def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-            ptr = pointer(context, builder, signature.args[0], args[0], args[1])
-            i8p, i32 = ir.IntType(8).as_pointer(), ir.IntType(32)
-            fnty = ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32])
-            fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0i8")
-            # read, keep in all cache levels, data cache
-            builder.call(fn, [builder.bitcast(ptr, i8p), i32(0), i32(3), i32(1)])
-            return context.get_dummy_value()
-
-        return types.void(array, index), codegen
-
-    return load_u32, store_u32, prefetch
-
-
-_load_u32, _store_u32, _prefetch = _intrinsics()
+_load_u32, _store_u32, _prefetch = intrinsics()
 
 # The compiled versions. Each function calls the compiled version of the ones above it, looked up as a
 # global when it is compiled (at its first call).
-_nearest_c: Any = _jit(_nearest)
-_floor_code_c: Any = _jit(_floor_code)
-_lstar_c: Any = _jit(_lstar)
-_lab_f_c: Any = _jit(_lab_f)
-_lab_c: Any = _jit(_lab)
-_de00_c: Any = _jit(_de00_py)
-_de_from_c: Any = _jit(_de_from)
-_amplitude_c: Any = _jit(_amplitude)
-_fill_c: Any = _jit(_fill)
-_step_c: Any = _jit(_step)
-_balanced_c: Any = _jit(_balanced)
-_allowance_move_c: Any = _jit(_allowance_move)
-_pair_around_c: Any = _jit(_pair_around)
-_fused_de_c: Any = _jit(_fused_de)
-_ipt_pair_c: Any = _jit(_ipt_pair)
-_fill_range_c: Any = _jit(_fill_range)
-_fill_codes_c: Any = _jit(_fill_codes)
-_compute_codes_c: Any = _jit(_compute_codes)
-_modulate_rows_c: Any = _jit(_modulate_rows)
+_nearest_c: Any = jit(_nearest)
+_floor_code_c: Any = jit(_floor_code)
+_de_from_c: Any = jit(_de_from)
+_amplitude_c: Any = jit(_amplitude)
+_fill_c: Any = jit(_fill)
+_step_c: Any = jit(_step)
+_balanced_c: Any = jit(_balanced)
+_cost_metric_c: Any = jit(_cost_metric)
+_free_set_move_c: Any = jit(_free_set_move)
+_cheapest_direction_c: Any = jit(_cheapest_direction)
+_allowance_move_c: Any = jit(_allowance_move)
+_pair_around_c: Any = jit(_pair_around)
+_fused_de_c: Any = jit(_fused_de)
+_ipt_pair_c: Any = jit(_ipt_pair)
+_fill_range_c: Any = jit(_fill_range)
+_fill_codes_c: Any = jit(_fill_codes)
+_compute_codes_c: Any = jit(_compute_codes)
+_modulate_rows_c: Any = jit(_modulate_rows)
 
-
-# --- the table ----------------------------------------------------------------------------------------
-
-
-def unpack(entries: U64) -> tuple[U8, U8]:
-    """The (+, -) codes (N×3 each) of packed table entries."""
-    shifts = np.array([0, 8, 16], dtype=np.uint64)
-    up = ((entries[:, None] >> shifts) & np.uint64(255)).astype(np.uint8)
-    down = (((entries[:, None] >> _SHIFT_DOWN) >> shifts) & np.uint64(255)).astype(np.uint8)
-    return up, down
-
-
-def colour_index(codes: U8) -> npt.NDArray[np.int64]:
-    """Table index of N×3 colours."""
-    c = codes.astype(np.int64)
-    out: npt.NDArray[np.int64] = c[:, 0] | (c[:, 1] << 8) | (c[:, 2] << 16)
-    return out
-
-
-class PairTable:
-    """The pairs of every 8-bit colour for one ΔL and clip allowance (see the module doc); get one with
-    :func:`pair_table`, which shares them in a process."""
-
-    def __init__(self, delta_l: float, clip_allowance_l8: float) -> None:
-        self.delta_l = float(delta_l)
-        self.clip_allowance_l8 = float(clip_allowance_l8)
-        self.budget_de00 = allowance_budget_de00(clip_allowance_l8) if clip_allowance_l8 > 0 else 0.0
-        """The allowance as CIEDE2000 (0: none)."""
-        self.agrid = amplitude_grid(delta_l)
-        # Written through once (128 MB) rather than np.zeros' untouched pages: faulting pages in one at a
-        # time, at random, as new colours come (a page per colour at first) costs far more per page.
-        self.table: U64 = np.empty(COLOURS, dtype=np.uint64)
-        self.table.fill(0)
-        self.lin = np.ascontiguousarray(CODE_TO_LINEAR)
-        self.mids = np.ascontiguousarray(_MIDS)
-        self.w = np.ascontiguousarray(LUMINANCE_WEIGHTS)
-        self.target = 2.0 * delta_l / L8_PER_LSTAR
-        self.complete = False
-        """Every entry is filled."""
-        self.lock = threading.Lock()
-        """Held while the table is being completed."""
-
-    def args(self) -> tuple[Any, ...]:
-        """The table and its constants, as the compiled functions take them."""
-        return self.table, self.lin, self.mids, self.agrid, self.w, self.target, self.budget_de00
-
-    def pairs(self, codes: U8) -> tuple[U8, U8]:
-        """The (+, -) codes of N colours (N×3 uint8): what a white tag pixel (mask +1) of that colour shows."""
-        codes = np.ascontiguousarray(codes, dtype=np.uint8).reshape(-1, 3)
-        _fill_codes_c(codes, *self.args())
-        return unpack(self.table[colour_index(codes)])
-
-    def fill(self, threads: int = 0, progress: Callable[[float], None] | None = None) -> None:
-        """Fill every entry not yet filled, in ``threads`` threads (0: one per core); ``progress`` is
-        called with the share done (0..1) as chunks finish."""
-        threads = threads if threads > 0 else max(1, os.cpu_count() or 1)
-        chunk = 1 << 16
-        starts = range(0, COLOURS, chunk)
-        args = self.args()
-        with ThreadPoolExecutor(threads, thread_name_prefix="ipt-pairs") as pool:
-            futures = [pool.submit(_fill_range_c, s, s + chunk, *args) for s in starts]
-            for done, fut in enumerate(futures, 1):
-                fut.result()
-                if progress is not None:
-                    progress(done / len(futures))
-        self.complete = True
-
-    def spot_check(self, entries: U64, count: int = 4096, seed: int = 0) -> int:
-        """How many of ``count`` random colours (and the 8 corners of the cube) have another entry in
-        ``entries`` (a whole table) than computing them again gives: 0 for a table made by this code."""
-        rng = np.random.default_rng(seed)
-        corners = [0, 0xFF, 0xFF00, 0xFFFF, 0xFF0000, 0xFF00FF, 0xFFFF00, 0xFFFFFF]
-        index = np.concatenate([rng.integers(0, COLOURS, count), np.array(corners, np.int64)])
-        codes = np.ascontiguousarray(np.stack([index & 255, (index >> 8) & 255, index >> 16], axis=1).astype(np.uint8))
-        fresh = np.empty(len(index), dtype=np.uint64)
-        _compute_codes_c(codes, fresh, *self.args()[1:])
-        return int(np.count_nonzero(fresh != entries[index]))
-
-    def complete_with_cache(self, cache_dir: os.PathLike[str] | None, log: Callable[[str], None]) -> str:
-        """Make the table complete: from the cache file in ``cache_dir`` if it holds this table, else by
-        computing it (progress through ``log``) and then writing the cache (``None``: no cache). Returns a
-        sentence saying which, and how long it took."""
-        with self.lock:
-            if self.complete:
-                return "colour table: already complete"
-            t0 = time.perf_counter()
-            path = None if cache_dir is None else cache_path(Path(cache_dir), self.delta_l, self.clip_allowance_l8)
-            problem = None
-            if path is not None and path.exists():
-                problem = read_cache(path, self)
-                if problem is None:
-                    return f"colour table: read {path} in {time.perf_counter() - t0:.2f} s"
-                log(f"colour table: {path}: {problem}; computing it again")
-            log(
-                f"colour table: computing the pairs of all {COLOURS:,} colours for ΔL {self.delta_l:g}, clip "
-                f"allowance {self.clip_allowance_l8:g} (once; a minute or less)"
-            )
-            next_report = [0.1]
-
-            def progress(share: float) -> None:
-                if share >= next_report[0] - 1e-9:
-                    log(f"colour table: {share:.0%} ({time.perf_counter() - t0:.0f} s)")
-                    next_report[0] += 0.1
-
-            self.fill(progress=progress)
-            took = time.perf_counter() - t0
-            if path is None:
-                return f"colour table: computed in {took:.1f} s (no cache folder: computed at every start)"
-            try:
-                write_cache(path, self)
-                remove_stale(path.parent)
-            except OSError as exc:
-                return (
-                    f"colour table: computed in {took:.1f} s; cannot keep it in {path} ({exc}): computed at every start"
-                )
-            return f"colour table: computed in {took:.1f} s, kept in {path}"
-
-
-_TABLES: dict[tuple[float, float], PairTable] = {}
-_TABLES_LOCK = threading.Lock()
-
-
-def pair_table(delta_l: float, clip_allowance_l8: float) -> PairTable:
-    """The process's table for ΔL and clip allowance (made, empty, on first use)."""
-    with _TABLES_LOCK:
-        key = (float(delta_l), float(clip_allowance_l8))
-        table = _TABLES.get(key)
-        if table is None:
-            table = _TABLES[key] = PairTable(delta_l, clip_allowance_l8)
-        return table
-
-
-# --- the cache file -----------------------------------------------------------------------------------
-
-_MAGIC: Final = b"IPTPAIRS"
-_HEADER_BYTES: Final = 4096
-"""The header (magic, then JSON padded with spaces) takes the first 4096 bytes; the entries follow,
-little-endian uint64, so that they are read straight into the table."""
-
-
-def default_cache_dir() -> Path:
-    """``$XDG_CACHE_HOME/ipt`` (``~/.cache/ipt`` when it is not set)."""
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "ipt"
-
-
-def cache_path(cache_dir: Path, delta_l: float, clip_allowance_l8: float) -> Path:
-    """The cache file of one table."""
-    return cache_dir / f"pairs-v{ALGORITHM_VERSION}-dl{delta_l:.6g}-a{clip_allowance_l8:.6g}.bin"
-
-
-def _header(table: PairTable, sha256: str) -> dict[str, Any]:
-    return {
-        "format": "ipt pair table",
-        "version": ALGORITHM_VERSION,
-        "delta_l": table.delta_l,
-        "clip_allowance_l8": table.clip_allowance_l8,
-        "entries": COLOURS,
-        "dtype": "<u8",
-        "sha256": sha256,
-    }
-
-
-def write_cache(path: Path, table: PairTable) -> None:
-    """Write the complete ``table`` to ``path`` (made beside it and renamed: never half a file)."""
-    if not table.complete:
-        raise PairsError("only a complete table is cached")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    data = table.table.astype("<u8", copy=False)
-    header = json.dumps(_header(table, hashlib.sha256(data.data).hexdigest())).encode()
-    block = _MAGIC + header.ljust(_HEADER_BYTES - len(_MAGIC), b" ")
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        f.write(block)
-        f.write(data.data)
-
-
-def read_cache(path: Path, table: PairTable) -> str | None:
-    """Read ``path`` into ``table`` and mark it complete; or say why not (the table is then left as it was
-    before, entries already filled lazily kept)."""
-    try:
-        with open(path, "rb") as f:
-            block = f.read(_HEADER_BYTES)
-            if len(block) < _HEADER_BYTES or not block.startswith(_MAGIC):
-                return "not a pair table"
-            try:
-                header = json.loads(block[len(_MAGIC) :].decode())
-            except (UnicodeDecodeError, ValueError):
-                return "unreadable header"
-            want = _header(table, "")
-            for key in ("format", "version", "delta_l", "clip_allowance_l8", "entries", "dtype"):
-                if not isinstance(header, dict) or header.get(key) != want[key]:
-                    return f"made for another table ({key})"
-            data = np.empty(COLOURS, dtype="<u8")
-            if f.readinto(data.data.cast("B")) != data.nbytes or f.read(1):
-                return "truncated or too long"
-    except OSError as exc:
-        return f"cannot read ({exc.strerror or exc})"
-    if hashlib.sha256(data.data).hexdigest() != header.get("sha256"):
-        return "checksum mismatch (damaged)"
-    if table.spot_check(data) != 0:  # made by other code that kept the version number
-        return "its entries differ from what this version computes"
-    # The entries filled lazily so far are the same in `data`; a kernel running now keeps the old array.
-    table.table = data.view(np.uint64)
-    table.complete = True
-    return None
-
-
-def remove_stale(cache_dir: Path) -> None:
-    """Delete cache files of other algorithm versions in ``cache_dir`` (they can never be read again)."""
-    with contextlib.suppress(OSError):
-        for p in cache_dir.glob("pairs-v*-dl*-a*.bin"):
-            if not p.name.startswith(f"pairs-v{ALGORITHM_VERSION}-"):
-                p.unlink(missing_ok=True)
+JIT_UNAVAILABLE: str | None = jit_module.JIT_UNAVAILABLE
+"""Why numba cannot compile here, or None if it can (:data:`ipt.sender.jit.JIT_UNAVAILABLE`, settled by
+the compiles above). The ``ipt`` profile needs it."""

@@ -23,7 +23,7 @@ import numpy.typing as npt
 
 from ipt.calib.floor import grid_pixels
 from ipt.config.models import ArenaConfig, ConfigError, FloorConfig, floor_homography_fits
-from ipt.sender.content import GeneratedScene, Scene
+from ipt.sender.content import ContentSource, GeneratedScene
 from ipt.sender.modulator import JIT_UNAVAILABLE, FrameTiming, make_modulator, phase_sign
 from ipt.sender.photos import PanningPhotoScene
 from ipt.sim.config import SimConfig, apply_arena_changes
@@ -86,7 +86,7 @@ def flight_of(sim: SimConfig) -> Flight:
     return Flight(path, float(np.deg2rad(f.heading_deg)), float(np.deg2rad(f.yaw_wobble_deg)), drift, vibration)
 
 
-def scene_for(sim: SimConfig, arena: ArenaConfig) -> Scene:
+def scene_for(sim: SimConfig, arena: ArenaConfig) -> ContentSource:
     """The content the flight's settings ask for (``content.kind``), at the projector's size."""
     pr = arena.projector
     c = sim.content
@@ -182,7 +182,7 @@ def survey_points(arena: ArenaConfig, sim: SimConfig) -> list[tuple[float, float
 class SimulatedArena:
     """Renders the camera's view frame by frame; deterministic for a given seed."""
 
-    def __init__(self, arena: ArenaConfig, sim: SimConfig, scene: Scene, tag_map: TagMap | None = None) -> None:
+    def __init__(self, arena: ArenaConfig, sim: SimConfig, scene: ContentSource, tag_map: TagMap | None = None) -> None:
         arena = apply_arena_changes(arena, sim.arena)
         self.arena, self.sim, self.scene = arena, sim, scene
         self.tag_map = tag_map if tag_map is not None else grid_tag_map(arena)

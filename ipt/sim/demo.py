@@ -57,7 +57,7 @@ from ipt.receiver.daemon import DaemonStats, run_daemon
 from ipt.receiver.pipeline import FrameResult
 from ipt.runtime import line_writer, run_loop
 from ipt.sender.modulator import frames_per_input
-from ipt.sender.scene import ArScene
+from ipt.sender.overlay import ArOverlay
 from ipt.sender.server import SenderStats, run_sender
 from ipt.sim.arena import scene_for
 from ipt.sim.config import SimCameraConfig, SimConfig, apply_arena_changes, describe_flight
@@ -329,7 +329,7 @@ class _ClosedLoop:
                     paced=False,
                     listen=(LISTEN_HOST, 0),
                     packet_filter=_CountingFilter(self.lockstep),
-                    ar_scene=ArScene(self.arena),
+                    overlay=ArOverlay(self.arena),
                     log=line_writer(sender_log),
                     install_signal_handlers=False,
                     stop=self.sender_stop,

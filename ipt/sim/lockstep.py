@@ -18,7 +18,7 @@ from ipt.config.models import ArenaConfig
 from ipt.errors import IptError
 from ipt.protocol import PacketFilter, PosePacket
 from ipt.receiver.capture import CapturedFrame, CaptureError, capture_time_us
-from ipt.sender.content import Scene
+from ipt.sender.content import ContentSource
 from ipt.sim.arena import SimulatedArena
 from ipt.sim.config import SimConfig
 from ipt.sim.flight import FlightState
@@ -114,7 +114,7 @@ class LockstepProjector:
     def quit_requested(self) -> bool:
         return False
 
-    def gated(self, scene: Scene) -> Scene:
+    def gated(self, scene: ContentSource) -> ContentSource:
         """``scene`` as the sender must see it: input frame ``i`` only once the camera needs it."""
         return _GatedScene(scene, self)
 
@@ -170,7 +170,7 @@ class LockstepProjector:
 class _GatedScene:
     """The sender's content, handed out only as fast as the simulated camera asks for it."""
 
-    def __init__(self, scene: Scene, projector: LockstepProjector) -> None:
+    def __init__(self, scene: ContentSource, projector: LockstepProjector) -> None:
         self._scene, self._projector = scene, projector
 
     def frame(self, index: int, rate_hz: float) -> U8:

@@ -16,7 +16,7 @@ from ipt.config.models import ArenaConfig
 from ipt.errors import IptError
 from ipt.fileio import output_group, write_text_atomic
 from ipt.geometry import quat_wxyz_from_matrix
-from ipt.sender.content import Scene
+from ipt.sender.content import ContentSource
 from ipt.sim.arena import SimulatedArena, survey_points
 from ipt.sim.config import SimConfig
 from ipt.sim.render import camera_info_of
@@ -40,7 +40,7 @@ class SimError(IptError):
 def simulate_to_folder(
     arena: ArenaConfig,
     sim: SimConfig,
-    scene: Scene,
+    scene: ContentSource,
     out_dir: Path,
     seconds: float,
     tag_map: TagMap | None = None,

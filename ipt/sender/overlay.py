@@ -1,8 +1,8 @@
 """The AR overlay: where each vehicle is, drawn on the content before it is modulated.
 
 Pure: poses and times go in, pixels come out; no sockets, no clocks. The sender feeds every accepted
-:class:`~ipt.protocol.PosePacket` to :meth:`ArScene.update` with its own monotonic time, and calls
-:meth:`ArScene.draw` on each new input frame before modulation, so the tags stay hidden under the
+:class:`~ipt.protocol.PosePacket` to :meth:`ArOverlay.update` with its own monotonic time, and calls
+:meth:`ArOverlay.draw` on each new input frame before modulation, so the tags stay hidden under the
 overlay like under any other content.
 
 What is drawn, per vehicle, at its arena position converted to projector pixels:
@@ -16,7 +16,7 @@ What is drawn, per vehicle, at its arena position converted to projector pixels:
 
 A vehicle not heard from for ``fade_after_s`` fades out linearly and is dropped after ``forget_after_s``.
 At most ``max_vehicles`` (:data:`DEFAULT_MAX_VEHICLES`) are kept: a new one while that many others are
-still shown is refused and counted (:attr:`ArScene.refused`), so no flood of vehicle ids can make a
+still shown is refused and counted (:attr:`ArOverlay.refused`), so no flood of vehicle ids can make a
 frame's overlay work grow (the sender's packet filter refuses them earlier, with the same limit).
 
 Speed: nothing is done per frame pixel. The marker is drawn (and, when fading, blended) in a small box
@@ -104,7 +104,7 @@ class VehicleTrack:
     """Recent positions as (u_px, v_px, time_s), oldest first, in edge-origin projector pixels."""
 
 
-class ArScene:
+class ArOverlay:
     """Per-vehicle state from pose packets, and its drawing on projector-sized RGB frames.
 
     Args:
