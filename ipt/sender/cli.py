@@ -220,14 +220,10 @@ def _gpu_path(args: argparse.Namespace, arena: ArenaConfig, mask: Any) -> tuple[
 
 def _run(make: Callable[[], Coroutine[Any, Any, T]]) -> T:
     """Run a coroutine on uvloop where it is available, else on asyncio's own loop."""
-    import asyncio  # here, not at the top: asyncio alone takes longer to import than everything else up to main()
+    # Imported here, not at the top: asyncio alone takes longer to import than everything else up to main().
+    from ipt.runtime import run_loop
 
-    try:
-        import uvloop
-    except ImportError:
-        return asyncio.run(make())
-    with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
-        return runner.run(make())
+    return run_loop(make())
 
 
 def _check_flags(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
