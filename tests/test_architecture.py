@@ -54,9 +54,9 @@ def test_sender_does_not_import_the_receiver(module: str) -> None:
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "ipt"
 
-ALLOWED_RECEIVER_TO_SIM = {("ipt.receiver.cli", "ipt.sim.capture")}
-"""The one edge from the receiver to the simulator: ``ipt-receiver run --source sim`` makes the simulated camera
-in the command line (inside the function that does it, never at module level) and hands it to the daemon."""
+ALLOWED_RECEIVER_TO_SIM: set[tuple[str, str]] = set()
+"""Edges from the receiver to the simulator allowed: none. ``ipt-receiver run --source sim`` finds the simulated
+camera as an entry point (``ipt.capture_sources`` in pyproject.toml) and hands it to the daemon."""
 
 
 @dataclass(frozen=True)
@@ -229,8 +229,9 @@ def test_the_scan_covers_the_package() -> None:
     edges = all_imports()
     sources = {e.source for e in edges}
     assert {"ipt.receiver.daemon", "ipt.receiver.cli", "ipt.sender.server", "ipt.sim.demo"} <= sources
-    # the receiver's command line makes the simulated camera inside a function: the scan sees it
-    assert any(e.source == "ipt.receiver.cli" and e.target == "ipt.sim.capture" and not e.module_level for e in edges)
+    # function-level imports are seen too: the receiver's command line imports its capture module inside one
+    inside = [e for e in edges if e.source == "ipt.receiver.cli" and not e.module_level]
+    assert any(e.target.startswith("ipt.receiver.capture") for e in inside)
 
 
 def test_the_receiver_imports_neither_the_sender_nor_the_simulator_nor_the_demo() -> None:

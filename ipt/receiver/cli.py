@@ -12,7 +12,7 @@ import math
 import os
 import sys
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -136,14 +136,23 @@ def _run_daemon(args: argparse.Namespace) -> int:
     return 0
 
 
-def _simulated_camera(cfg: ReceiverConfig, capture_stop: threading.Event) -> CaptureSource:
-    """The ``sim`` source: the simulator's camera, made here and handed to the daemon, which does not import
-    the simulator (the one place of the receiver that does, and only for this source)."""
-    from ipt.config.camera_info import load_camera_info
-    from ipt.config.models import load_arena_config
-    from ipt.sim.capture import sim_source
+SOURCE_PLUGINS = "ipt.capture_sources"
+"""The entry-point group of capture sources the receiver does not make itself (pyproject.toml): ``sim``, the
+simulator's camera (:func:`ipt.sim.capture.receiver_sim_source`). The receiver's code imports nothing of the
+simulator; an installation without it says so in one line."""
 
-    return sim_source(cfg, load_arena_config(cfg.arena), load_camera_info(cfg.camera), capture_stop)
+
+def _simulated_camera(cfg: ReceiverConfig, capture_stop: threading.Event) -> CaptureSource:
+    """The ``sim`` source: the simulator's camera, found as a plug-in and handed to the daemon."""
+    from importlib.metadata import entry_points
+
+    from ipt.receiver.capture import CaptureError
+
+    found = list(entry_points(group=SOURCE_PLUGINS, name="sim"))
+    if not found:
+        raise CaptureError(f"--source sim: no simulator in this installation ('{SOURCE_PLUGINS}' has no 'sim')")
+    factory: Callable[[ReceiverConfig, threading.Event], CaptureSource] = found[0].load()
+    return factory(cfg, capture_stop)
 
 
 class _ListCameras(argparse.Action):

@@ -122,3 +122,13 @@ def sim_source(cfg: ReceiverConfig, arena: ArenaConfig, camera: CameraInfo, stop
     fps = cfg.fps if cfg.fps is not None else SimCameraConfig().fps
     sim = SimConfig(camera=sim_camera_from(camera, fps))
     return SimCapture(arena, sim, fps, cfg.realtime, sleep=stop.wait, grey=grey)
+
+
+def receiver_sim_source(cfg: ReceiverConfig, stop: threading.Event) -> SimCapture:
+    """:func:`sim_source` with the arena and camera files of ``cfg``: the factory ``ipt-receiver`` finds
+    under the name ``sim`` in the ``ipt.capture_sources`` entry points (pyproject.toml), so that the
+    receiver's code imports nothing of the simulator."""
+    from ipt.config.camera_info import load_camera_info
+    from ipt.config.models import load_arena_config
+
+    return sim_source(cfg, load_arena_config(cfg.arena), load_camera_info(cfg.camera), stop)
