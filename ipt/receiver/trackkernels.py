@@ -60,12 +60,15 @@ def _jit(fn: Callable[..., Any]) -> Any:
 
 def ensure() -> None:
     """Compile the kernels (or load them from numba's disk cache), once per process."""
-    global bilinear
+    global bilinear, slopes, system_row
     with _lock:
         if _ready.is_set():
             return
-        # The kernels call bilinear: it must be compiled first, and be this module's global when they are.
+        # The kernels call bilinear, slopes (which calls bilinear) and system_row: each must be compiled
+        # before its callers, and be this module's global when they are.
         bilinear = _jit(_bilinear)
+        slopes = _jit(_slopes)
+        system_row = _jit(_system_row)
         for kernel in (measure, peaks, band_signs, cell_agreement):
             kernel.compiled = _jit(kernel.py_func)
         _ready.set()
@@ -86,6 +89,34 @@ def _bilinear(image: F32, x: float, y: float) -> float:
 
 
 bilinear: Any = _bilinear  # compiled by ensure()
+
+
+def _slopes(image: F32, u: float, v: float, nx: float, ny: float, radius: int, sign: float, out: F32) -> None:
+    """The ``2·radius`` slopes of ``image`` along the unit normal (nx, ny) through (u, v), between the
+    ``2·radius + 1`` profile samples at offsets −radius..radius, times ``sign``, into ``out``."""
+    before = bilinear(image, u - radius * nx, v - radius * ny)
+    for o in range(1, 2 * radius + 1):
+        now = bilinear(image, u + (o - radius) * nx, v + (o - radius) * ny)
+        out[o - 1] = (now - before) * sign
+        before = now
+
+
+slopes: Any = _slopes  # compiled by ensure()
+
+
+def _system_row(g0: float, g1: float, g2: float, p0: float, p1: float, p2: float, out: F64) -> None:
+    """One row of the track's linear system into ``out``: the image normal times d(u, v)/d(camera point)
+    is g = (g0, g1, g2); times d(camera point)/d(δ rotation, Δt) that is (RP × g)ᵀ for the rotation
+    (nᵀ·(−[RP]×)), with RP = (p0, p1, p2), and g for the translation."""
+    out[0] = p1 * g2 - p2 * g1
+    out[1] = p2 * g0 - p0 * g2
+    out[2] = p0 * g1 - p1 * g0
+    out[3] = g0
+    out[4] = g1
+    out[5] = g2
+
+
+system_row: Any = _system_row  # compiled by ensure()
 
 
 def _measure(
@@ -161,23 +192,9 @@ def _measure(
             continue
         nx /= length
         ny /= length
-        sign = step_sign[i]
-        before = bilinear(image, u - radius * nx, v - radius * ny)
-        for o in range(1, width + 1):
-            now = bilinear(image, u + (o - radius) * nx, v + (o - radius) * ny)
-            raw[count, o - 1] = (now - before) * sign
-            before = now
+        slopes(image, u, v, nx, ny, radius, step_sign[i], raw[count])
         band[count] = min(int(v * bands / h), bands - 1)
-        # The image normal times d(u, v)/d(δ, Δt): nᵀ·(−[RP]×) = (RP × n)ᵀ for the rotation, n for t.
-        g0 = nx * d00
-        g1 = ny * d11
-        g2 = nx * d02 + ny * d12
-        a_rows[count, 0] = p1 * g2 - p2 * g1
-        a_rows[count, 1] = p2 * g0 - p0 * g2
-        a_rows[count, 2] = p0 * g1 - p1 * g0
-        a_rows[count, 3] = g0
-        a_rows[count, 4] = g1
-        a_rows[count, 5] = g2
+        system_row(nx * d00, ny * d11, nx * d02 + ny * d12, p0, p1, p2, a_rows[count])
         idx[count] = i
         place[count] = v / (h - 1) - 0.5
         count += 1
