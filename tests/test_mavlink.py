@@ -56,6 +56,7 @@ from ipt.receiver.mavlink import (
     quality_percent,
     upper_triangle_21,
 )
+from ipt.receiver.mavsession import MavlinkSession
 from ipt.receiver.pipeline import FrameResult
 from ipt.receiver.pose import PoseEstimate, solve_pose
 from ipt.sim.run import CAMERA_NAME, VIDEO_NAME
@@ -223,7 +224,7 @@ def test_covariance_grows_when_fewer_tags_are_seen() -> None:
         variances[n] = (np.diag(s.covariance_6x6)[:3].sum(), s.quality)
         # what goes on the wire decodes to the same numbers (float32)
         mav = mavlink2.MAVLink(None, srcSystem=1, srcComponent=197)
-        out = MavlinkOutput.__new__(MavlinkOutput)
+        out = MavlinkSession.__new__(MavlinkSession)  # only the message builder: no link, no clock
         out.mav, out.dialect = mav, mavlink2
         decoded = mavlink2.MAVLink(None).parse_buffer(bytes(out._odometry_message(s).pack(mav)))
         assert decoded is not None
