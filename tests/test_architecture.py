@@ -268,15 +268,18 @@ def test_no_import_cycle_in_the_receiver_counting_function_level_imports() -> No
 
 
 def _reason_literals(path: Path) -> set[str]:
-    """The texts a module gives as a frame's reason: the fifth argument of ``FrameResult(...)``, what is
-    assigned to ``reason`` (or unpacked into it), and what a ``..._problem`` or ``_doubtful`` function returns."""
+    """The reasons a module gives a frame (``FrameReason.X`` as that text, a bare string as itself): the
+    fifth argument of ``FrameResult(...)``, what is assigned to ``reason`` (or unpacked into it), and what a
+    ``..._problem`` or ``_doubtful`` function returns."""
     found: set[str] = set()
     tree = ast.parse(path.read_text(encoding="utf-8"))
 
     def text(node: ast.AST) -> None:
         if isinstance(node, ast.Constant) and isinstance(node.value, str):
-            found.add(node.value)
-        elif isinstance(node, ast.IfExp):  # "first_frame" if ... else "no_tags"
+            found.add(node.value)  # a bare text: the test below fails on it
+        elif isinstance(node, ast.Attribute) and getattr(node.value, "id", None) == "FrameReason":
+            found.add(f"FrameReason.{node.attr}")
+        elif isinstance(node, ast.IfExp):  # FrameReason.FIRST_FRAME if ... else FrameReason.NO_TAGS
             text(node.body)
             text(node.orelse)
 
@@ -303,5 +306,7 @@ def test_every_reason_the_receiver_gives_is_a_frame_reason() -> None:
 
     receiver = PACKAGE / "receiver"
     found = set().union(*(_reason_literals(receiver / n) for n in ("pipeline.py", "gates.py", "framecheck.py")))
-    assert {"pose", "first_frame", "no_tags", "time_gap", "dark", "motion_jump"} <= found  # the scan finds them
-    assert found - {r.value for r in FrameReason} == set()
+    named = {f"FrameReason.{r.name}" for r in FrameReason}
+    wanted = {"POSE", "FIRST_FRAME", "NO_TAGS", "TIME_GAP", "DARK", "MOTION_JUMP"}
+    assert {f"FrameReason.{n}" for n in wanted} <= found  # the scan finds them
+    assert found - named == set(), "a reason given as bare text, or a name that is not a FrameReason"

@@ -13,6 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from ipt.receiver.reasons import FrameReason
+
 #: A frame whose brightest pixels (99th percentile of the sample) stay below this 8-bit level is dark:
 #: black, the lens covered, or all in shadow with no ambient light. The ipt profile's signal mask takes
 #: nothing below this level for lit floor either (:func:`ipt.receiver.demodulator.signal_mask`).
@@ -33,11 +35,11 @@ def shape_problem(frame: Any, height: int, width: int) -> str | None:
     """``"bad_frame"`` unless ``frame`` is an H×W (grey) or H×W×3 (RGB) uint8 array, ``"wrong_size"`` if it
     is one of another size than ``height``×``width``, else ``None``."""
     if not isinstance(frame, np.ndarray) or frame.dtype != np.uint8:
-        return "bad_frame"
+        return FrameReason.BAD_FRAME
     if frame.ndim not in (2, 3) or (frame.ndim == 3 and frame.shape[2] != 3):
-        return "bad_frame"
+        return FrameReason.BAD_FRAME
     if frame.shape[:2] != (height, width):
-        return "wrong_size"
+        return FrameReason.WRONG_SIZE
     return None
 
 
@@ -46,11 +48,11 @@ def exposure_problem(frame: np.ndarray[Any, np.dtype[np.uint8]]) -> str | None:
     :func:`shape_problem` accepted, else ``None``."""
     sample = frame[::STEP, ::STEP]
     if sample.size == 0:
-        return "dark"
+        return FrameReason.DARK
     if np.percentile(sample, 99) < DARK_LEVEL:
-        return "dark"
+        return FrameReason.DARK
     if np.count_nonzero(sample >= SATURATED_LEVEL) > SATURATED_FRACTION * sample.size:
-        return "saturated"
+        return FrameReason.SATURATED
     return None
 
 

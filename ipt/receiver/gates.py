@@ -13,6 +13,7 @@ from ipt.config.models import PipelineConfig
 from ipt.receiver.frameresult import FrameResult, _Frame
 from ipt.receiver.motion import MotionTrack
 from ipt.receiver.pose import PoseEstimate
+from ipt.receiver.reasons import FrameReason
 from ipt.receiver.scales import gate_growth
 
 #: The motion gate compares with accepted poses this close in time.
@@ -41,16 +42,16 @@ class PoseGates:
                 # Nothing to check it against yet (the start, or after a gap): only a pose whose own
                 # uncertainty is within the same bound goes out; the rest only feed the track.
                 if float(np.linalg.norm(pose.position_std_m)) > bound_m:
-                    return "unconfirmed"
+                    return FrameReason.UNCONFIRMED
             elif float(np.linalg.norm(pose.position_m - predicted[0])) > bound_m:
-                return "inconsistent"
+                return FrameReason.INCONSISTENT
         if cfg.max_speed_mps is not None and self._accepted:
             last_us, last = min(self._accepted, key=lambda a: abs(a[0] - t_us))
             dt_us = abs(t_us - last_us)
             if 0 < dt_us <= GATE_WINDOW_US:
                 allowed_m = 0.05 + cfg.max_speed_mps * dt_us * 1e-6
                 if float(np.linalg.norm(pose.position_m - last.position_m)) > allowed_m:
-                    return "motion_jump"
+                    return FrameReason.MOTION_JUMP
         return None
 
     def _gated(self, frame: _Frame, pose: PoseEstimate, tags: int, method: str, partner: int) -> FrameResult:
@@ -60,9 +61,9 @@ class PoseGates:
         # on what it let through could lock onto a wrong track and reject every good pose after it.
         self._track.add(t_us, pose.position_m, pose.r_arena_cam, float(np.linalg.norm(pose.position_std_m)))
         reset = False
-        if doubt in ("inconsistent", "unconfirmed"):
+        if doubt in (FrameReason.INCONSISTENT, FrameReason.UNCONFIRMED):
             return FrameResult(frame.index, t_us, None, tags, doubt, method=method, partner=partner)
-        if doubt == "motion_jump":
+        if doubt == FrameReason.MOTION_JUMP:
             self._gated_in_a_row += 1
             if self._gated_in_a_row < GATE_RESET_AFTER:
                 return FrameResult(frame.index, t_us, None, tags, doubt, method=method, partner=partner)
@@ -70,4 +71,4 @@ class PoseGates:
             self._accepted.clear()
         self._gated_in_a_row = 0
         self._accepted.append((t_us, pose))
-        return FrameResult(frame.index, t_us, pose, tags, "pose", reset, method, partner)
+        return FrameResult(frame.index, t_us, pose, tags, FrameReason.POSE, reset, method, partner)

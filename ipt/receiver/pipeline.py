@@ -55,6 +55,7 @@ from ipt.receiver.gates import PoseGates
 from ipt.receiver.imagealign import AlignTarget, alignment_features, floor_warp_between, warp_image
 from ipt.receiver.motion import MotionTrack, floor_warp
 from ipt.receiver.pose import PoseEstimate, solve_pose
+from ipt.receiver.reasons import FrameReason
 from ipt.receiver.scales import DetectScale, ScaleChooser
 from ipt.receiver.track import (
     MapEdges,
@@ -93,6 +94,8 @@ GOOD_QUALITY = 0.3
 LOST_AFTER_US = 50_000
 #: A coarse search whose normalised correlation peak is weaker than this is not followed.
 MIN_COARSE_SCORE = 0.1
+
+
 class Pipeline(PoseGates):
     """The receiver's per-frame processing, for either profile (see :meth:`PipelineConfig.profile`)."""
 
@@ -172,7 +175,7 @@ class Pipeline(PoseGates):
             self._restart()  # a jump in the video, or time going backwards
         new = self._frame(index, frame, capture_time_us)
         if gap:  # its reason unless a later frame pairs with it
-            new.failure = FrameResult(index, capture_time_us, None, 0, "time_gap")
+            new.failure = FrameResult(index, capture_time_us, None, 0, FrameReason.TIME_GAP)
         t0 = self._lap("lightness", t0)
         self._history.append(new)
         self._pending.append(new)
@@ -218,7 +221,9 @@ class Pipeline(PoseGates):
         out = []
         while self._pending and self._pending[0].final:
             f = self._pending.popleft()
-            result = f.result or FrameResult(f.index, f.time_us, None, 0, "first_frame" if not f.tried else "no_tags")
+            result = f.result or FrameResult(
+                f.index, f.time_us, None, 0, FrameReason.FIRST_FRAME if not f.tried else FrameReason.NO_TAGS
+            )
             if self._detector_failed:
                 result = replace(result, detector_failed=True)
                 self._detector_failed = False
@@ -265,7 +270,7 @@ class Pipeline(PoseGates):
     # -- the paper's way -----------------------------------------------------------------------------
 
     def _paper(self, new: _Frame) -> FrameResult:
-        result = new.failure or FrameResult(new.index, new.time_us, None, 0, "first_frame")
+        result = new.failure or FrameResult(new.index, new.time_us, None, 0, FrameReason.FIRST_FRAME)
         t0 = time.perf_counter()
         for prev in self._partners(new, earlier=True):
             new.tried.add(prev.index)
@@ -275,16 +280,18 @@ class Pipeline(PoseGates):
                 dets, sign = self._detect(demod.binary, self._predicted_phase(new) or 1)
             except DetectorError:
                 self._lap("detect", t0)
-                return FrameResult(new.index, new.time_us, None, 0, "detector_failed")
+                return FrameResult(new.index, new.time_us, None, 0, FrameReason.DETECTOR_FAILED)
             t0 = self._lap("detect", t0)
             if not dets:
-                result = FrameResult(new.index, new.time_us, None, 0, "no_tags", partner=prev.index)
+                result = FrameResult(new.index, new.time_us, None, 0, FrameReason.NO_TAGS, partner=prev.index)
                 continue
             new.phase, prev.phase = sign, -sign
             pose = solve_pose(dets, self.tag_map, self.camera, self.cfg.pose)
             self._lap("pose", t0)
             if pose is None:
-                return FrameResult(new.index, new.time_us, None, len(dets), "pose_rejected", partner=prev.index)
+                return FrameResult(
+                    new.index, new.time_us, None, len(dets), FrameReason.POSE_REJECTED, partner=prev.index
+                )
             return self._gated(new, pose, len(dets), "apriltag", prev.index)
         return result
 
@@ -403,12 +410,14 @@ class Pipeline(PoseGates):
         target.tried.add(other.index)
         pair = self._pair(a, b)
         if pair is None:
-            target.failure = FrameResult(target.index, target.time_us, None, 0, "no_alignment", partner=other.index)
+            target.failure = FrameResult(
+                target.index, target.time_us, None, 0, FrameReason.NO_ALIGNMENT, partner=other.index
+            )
             return
         diff = self._difference_in(pair, target is b)
         warp_other_to_target = pair.warp if target is b else np.asarray(np.linalg.inv(pair.warp), np.float64)
         t0 = time.perf_counter()
-        reason = "no_tags"
+        reason = FrameReason.NO_TAGS
         guess = self._initial_pose(target, other, warp_other_to_target)
         tracked: TrackResult | None = None
         if self.tracking and guess is not None:
@@ -418,10 +427,10 @@ class Pipeline(PoseGates):
                 tracked = self._track_from(diff, self._coarse(diff, init), target.signal)
             t0 = self._lap("track", t0)
             if tracked is None:
-                reason = "lost"
+                reason = FrameReason.LOST
             elif self.cfg.pose.track.verify_every and self._since_verify >= self.cfg.pose.track.verify_every:
                 if not self._verified(tracked, diff, t0):
-                    tracked, reason = None, "track_disagrees"
+                    tracked, reason = None, FrameReason.TRACK_DISAGREES
                 t0 = time.perf_counter()
         candidate: _Candidate | None = None
         if tracked is not None:
@@ -434,7 +443,7 @@ class Pipeline(PoseGates):
             try:
                 candidate = self._acquire(target, other, diff)
             except DetectorError:
-                target.failure = FrameResult(target.index, target.time_us, None, 0, "detector_failed")
+                target.failure = FrameResult(target.index, target.time_us, None, 0, FrameReason.DETECTOR_FAILED)
                 self._detector_failed = True
                 return
             t0 = self._lap("detect", t0)
@@ -540,7 +549,7 @@ class Pipeline(PoseGates):
             target.phase, other.phase = sign, -sign
             pose = solve_pose(dets, self.tag_map, self.pinhole, self.cfg.pose)
             if pose is None:
-                target.failure = FrameResult(target.index, target.time_us, None, len(dets), "pose_rejected")
+                target.failure = FrameResult(target.index, target.time_us, None, len(dets), FrameReason.POSE_REJECTED)
                 return None
             r_cam = pose.r_arena_cam.T
             rvec, _ = cv2.Rodrigues(r_cam)
