@@ -66,7 +66,7 @@ from ipt.receiver.outputs import PacketMaker, UdpPoseSender
 from ipt.receiver.pipeline import FrameResult, Pipeline
 from ipt.receiver.reasons import FrameReason
 from ipt.receiver.rosoutputs import RosOutputs
-from ipt.runtime import LatencyHistogram, run_loop, write_line
+from ipt.runtime import Histogram, run_loop, write_line
 from ipt.tagmap import grid_tag_map
 
 if TYPE_CHECKING:
@@ -150,9 +150,9 @@ class _Meter:
     def __init__(self) -> None:
         self.frames = self.poses = 0
         self.reasons: Counter[str] = Counter()
-        self.latency = LatencyHistogram()
+        self.latency = Histogram(bin_ms=0.1, limit_ms=10_000.0)
         self.i_frames = self.i_poses = 0
-        self.i_latency = LatencyHistogram()
+        self.i_latency = Histogram(bin_ms=0.1, limit_ms=10_000.0)
         self.i_start = time.monotonic()
 
     def frame(self, reason: str) -> None:
@@ -163,8 +163,8 @@ class _Meter:
     def pose(self, latency_s: float) -> None:
         self.poses += 1
         self.i_poses += 1
-        self.latency.add(latency_s)
-        self.i_latency.add(latency_s)
+        self.latency.add(latency_s * 1e3)
+        self.i_latency.add(latency_s * 1e3)
 
     def interval_line(self, drops: int, send_errors: int) -> str:
         now = time.monotonic()
@@ -553,4 +553,4 @@ def run(
     return run_loop(run_daemon(cfg, max_frames=max_frames, source=source, capture_stop=capture_stop))
 
 
-__all__ = ["DaemonStats", "LatencyHistogram", "make_source", "run", "run_daemon"]
+__all__ = ["DaemonStats", "make_source", "run", "run_daemon"]

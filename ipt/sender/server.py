@@ -63,6 +63,7 @@ from ipt.config.models import ArenaConfig
 from ipt.errors import IptError
 from ipt.memory import keep_freed_memory, warm
 from ipt.protocol import PacketFilter
+from ipt.runtime import Histogram
 from ipt.sender.clock import FrameClock, Verdict
 from ipt.sender.content import ContentSource, GeneratedScene
 from ipt.sender.display import Sink
@@ -71,7 +72,7 @@ from ipt.sender.options import DEFAULT_LISTEN, SenderOptions
 from ipt.sender.overlay import DEFAULT_MAX_VEHICLES, ArOverlay
 from ipt.sender.pairtable import default_cache_dir
 from ipt.sender.render import EARLY_ROWS, Rendered, Renderer, Worker
-from ipt.sender.stats import Histogram, SenderStats
+from ipt.sender.stats import SenderStats
 from ipt.tagmap import grid_tag_map
 
 __all__ = [

@@ -10,49 +10,10 @@ from __future__ import annotations
 import math
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any, Final
-
-import numpy as np
+from typing import Any
 
 from ipt.protocol import ACCEPTED
-
-
-class Histogram:
-    """Durations in milliseconds, in 0.05 ms bins up to 2 s: bounded memory however long the run."""
-
-    BIN_MS: Final = 0.05
-    BINS: Final = 40_000
-
-    def __init__(self) -> None:
-        self.counts = np.zeros(self.BINS + 1, dtype=np.int64)
-        self.n = 0
-        self.max_ms = 0.0
-        self.total_ms = 0.0
-
-    def add(self, ms: float) -> None:
-        self.counts[min(self.BINS, max(0, int(ms / self.BIN_MS)))] += 1
-        self.n += 1
-        self.total_ms += ms
-        self.max_ms = max(self.max_ms, ms)
-
-    def percentile(self, p: float) -> float:
-        """The ``p``-th percentile (bin centre), NaN when empty."""
-        if self.n == 0:
-            return math.nan
-        rank = max(1, math.ceil(p / 100.0 * self.n))
-        index = int(np.searchsorted(np.cumsum(self.counts), rank))
-        return self.max_ms if index >= self.BINS else min(self.max_ms, (index + 0.5) * self.BIN_MS)
-
-    @property
-    def mean_ms(self) -> float:
-        """Mean of the durations added (NaN when empty)."""
-        return self.total_ms / self.n if self.n else math.nan
-
-    def clear(self) -> None:
-        self.counts[:] = 0
-        self.n = 0
-        self.max_ms = 0.0
-        self.total_ms = 0.0
+from ipt.runtime import Histogram
 
 
 @dataclass
