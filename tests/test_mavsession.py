@@ -6,11 +6,26 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 
 from ipt.config.receiver import MavlinkConfig
+from ipt.geometry import rot_z
 from ipt.receiver.capture import CapturedFrame
 from ipt.receiver.frameresult import FrameResult
+from ipt.receiver.mavframes import R_FRD_CAM_DOWNWARD
 from ipt.receiver.mavlinks import load_dialect
 from ipt.receiver.mavsession import HEARTBEAT_PERIOD_S, WATCH_PERIOD_S, MavlinkSession, Outgoing
-from tests.test_mavlink import _pose
+from ipt.receiver.pose import PoseEstimate
+
+
+def _pose() -> PoseEstimate:
+    """A level drone 0.8 m up, nose 0.4 rad from arena x, camera looking down, millimetre covariances."""
+    r_arena_cam = rot_z(0.4) @ np.diag([1.0, -1.0, -1.0]) @ R_FRD_CAM_DOWNWARD
+    return PoseEstimate(
+        np.array([0.3, -0.2, 0.8]),
+        r_arena_cam,
+        (1, 2, 3),
+        0.4,
+        np.diag([1e-6, 4e-6, 9e-6]),
+        np.diag([1e-6, 2e-6, 3e-6]),
+    )
 
 
 def _session(**cfg: object) -> tuple[MavlinkSession, list[str]]:
