@@ -158,6 +158,9 @@ def test_chooser_tries_both_tag_sizes_and_cycles_the_rest(shipped_map: TagMap) -
     assert tries[1] != tries[0]
     chooser.forget()
     assert chooser.to_try(11)[0] == both[0], "a gap forgets the height: 0.8 m again"
+    chooser.to_try(12)
+    chooser.seen_at(2.5)  # a pose found while frame 12 is being solved: its next attempt starts the cycle
+    assert chooser.to_try(12)[0] == chooser.at(2.5)
 
 
 def test_track_leaves_out_tags_too_small_to_see(shipped_map: TagMap) -> None:

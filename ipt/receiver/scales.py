@@ -102,8 +102,9 @@ class ScaleChooser:
         self.height_m: float | None = None
         """The last height a pose was found at (m), or None."""
         self._turn = -1
-        """The place in the cycle of :meth:`to_try` (-1: the next frame starts it)."""
+        """The place in the cycle of :meth:`to_try` (-1: the next call starts it)."""
         self._frame: int | None = None
+        """The frame :attr:`_turn` is for (None: none yet, or the cycle starts again)."""
         self._search = self._unique([self.at(h) for h in SEARCH_HEIGHTS_M])
 
     @staticmethod
@@ -122,12 +123,17 @@ class ScaleChooser:
         """A pose was found at ``height_m``: the next frames start from its scale."""
         if math.isfinite(height_m) and height_m > 0:
             self.height_m = height_m
-            self._turn = -1
+            self._restart_cycle()
 
     def forget(self) -> None:
         """After a gap or a jump in the video: the height is unknown again (search as at the start)."""
         self.height_m = None
-        self._turn = -1
+        self._restart_cycle()
+
+    def _restart_cycle(self) -> None:
+        """The next call of :meth:`to_try`, for any frame (the current one too), takes the cycle's first
+        scale."""
+        self._turn, self._frame = -1, None
 
     def sizes_at(self, height_m: float) -> list[DetectScale]:
         """A scale for each tag size of the map that can be decoded from ``height_m`` (whole in the image,
