@@ -72,6 +72,8 @@ class Backend(Protocol):
 
     def settings(self) -> dict[str, float]: ...
 
+    def wait_ready(self) -> None: ...
+
     def close(self) -> None: ...
 
 
@@ -88,6 +90,9 @@ class InlineBackend:
 
     def settings(self) -> dict[str, float]:
         return pupil_settings(self.det)
+
+    def wait_ready(self) -> None:
+        """Ready since it was made (nothing starts in the background)."""
 
     def close(self) -> None:
         self._finalizer()
@@ -115,10 +120,8 @@ class TagDetector:
 
     def wait_ready(self) -> None:
         """Return once the detector can take a frame; :class:`DetectorError` if its helper did not start."""
-        wait = getattr(self.backend, "wait_ready", None)
-        if wait is not None:
-            with self._lock:
-                wait()
+        with self._lock:
+            self.backend.wait_ready()
 
     @property
     def isolated(self) -> bool:

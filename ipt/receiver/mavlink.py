@@ -108,7 +108,6 @@ class MavlinkOutput:
         self._clock_s, self._clock_ns = clock_s, clock_ns
         self._link: UdpLink | SerialPort | None = None
         self._broken = asyncio.Event()
-        self._wake = asyncio.Event()
         self._tasks: list[asyncio.Task[None]] = []
         self._last_link_error: str | None = None
 
