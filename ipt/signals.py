@@ -87,11 +87,13 @@ def _handle(signum: int, frame: FrameType | None) -> None:
     _state.received = signum
     if _state.quiet:
         return
-    aio = sys.modules.get("asyncio")  # not imported yet: no event loop can be running
+    # asyncio not imported yet, or half way through its import (the signal came during it): no event
+    # loop can be running then.
+    running_loop = getattr(sys.modules.get("asyncio"), "get_running_loop", None)
     try:
-        if aio is None:
+        if running_loop is None:
             raise RuntimeError("no running event loop")
-        aio.get_running_loop()
+        running_loop()
     except RuntimeError:
         raise Interrupted(signum) from None
     # An event loop runs: raising now could land in one of its callbacks, which would only log it.

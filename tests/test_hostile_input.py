@@ -810,6 +810,22 @@ def test_signals_raise_while_working_and_are_routed_to_a_loop() -> None:
     assert signal.getsignal(signal.SIGHUP) == before[1]
 
 
+def test_a_signal_during_the_import_of_asyncio_is_an_interruption(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The module is in sys.modules but has no get_running_loop yet: CI once saw the handler fail there
+    # with an AttributeError (a traceback and status 1 instead of the daemon's final line).
+    import types
+
+    restore = signals.install()
+    try:
+        monkeypatch.setitem(sys.modules, "asyncio", types.ModuleType("asyncio"))
+        with pytest.raises(signals.Interrupted) as caught:
+            signal.raise_signal(signal.SIGHUP)  # Python handlers run before raise_signal returns
+        assert caught.value.exit_status == 129
+    finally:
+        monkeypatch.undo()
+        restore()
+
+
 def test_the_spelt_out_final_lines_match_the_statistics() -> None:
     from ipt.config.models import MAX_RATE_HZ, MIN_CAMERA_RATE_HZ, PROFILES
     from ipt.receiver.cli import EMPTY_FINAL_LINE, MAX_FPS, MIN_FPS
