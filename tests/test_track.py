@@ -239,3 +239,22 @@ def test_compiled_kernels_agree_with_their_python_source() -> None:
     on = np.array([True, False, True, True])
     args = (image, k, r, t, cells, tags, value, on, signs, valid)
     assert tk.cell_agreement(*args) == pytest.approx(tk.cell_agreement.py_func(*args))
+
+
+def test_slope_noise_is_the_median_of_the_sampled_slopes() -> None:
+    # The compiled kernel and its Python source give numpy's median of |diff[y, x+2] − diff[y, x]| (every
+    # fourth row, every second column) where valid, or of all of them when nothing is valid.
+    from ipt.receiver import trackkernels as tk
+    from ipt.receiver.track import slope_noise
+
+    rng = np.random.default_rng(5)
+    for h, w in ((90, 160), (91, 161), (360, 640)):
+        diff = rng.normal(0, 2, (h, w)).astype(np.float32)
+        valid = np.where(rng.random((h, w)) < 0.6, 255, 0).astype(np.uint8)
+        slopes = np.abs(np.diff(diff[::4, ::2], axis=1))
+        inside = valid[::4, ::2][:, 1:] > 0
+        assert slope_noise(diff, valid) == max(float(np.median(slopes[inside].astype(np.float64))), 1e-3)
+        assert slope_noise(diff, None) == max(float(np.median(slopes.astype(np.float64))), 1e-3)
+        assert slope_noise(diff, np.zeros((h, w), np.uint8)) == slope_noise(diff, None)
+        assert tk.slope_noise.py_func(diff, valid) == slope_noise(diff, valid)
+    assert slope_noise(np.zeros((8, 8), np.float32), None) == 1e-3
