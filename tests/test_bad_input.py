@@ -138,3 +138,15 @@ def test_the_daemon_counts_bad_frames_of_a_folder_and_exits_cleanly(short_flight
     assert "unreadable frames skipped 2" in final[0]  # the small image and the broken JPEG
     assert "38 frames (38 captured)" in final[0]
     assert "030.jpg" in done.stderr  # the skipped file is named
+
+
+def test_the_dark_test_by_counting_is_numpys_percentile() -> None:
+    # exposure_problem decides "99th percentile below the dark level" by counting where that settles it:
+    # the same answer as np.percentile on samples of every size, around the level and far from it.
+    from ipt.receiver.framecheck import _percentile_99_below
+
+    rng = np.random.default_rng(0)
+    for _ in range(5000):
+        spread = np.clip(rng.normal(rng.integers(0, 30), rng.integers(1, 10), rng.integers(1, 400)), 0, 255)
+        sample, level = spread.astype(np.uint8), int(rng.integers(5, 20))
+        assert _percentile_99_below(sample, level) == (np.percentile(sample, 99) < level)

@@ -49,11 +49,24 @@ def exposure_problem(frame: np.ndarray[Any, np.dtype[np.uint8]]) -> str | None:
     sample = frame[::STEP, ::STEP]
     if sample.size == 0:
         return FrameReason.DARK
-    if np.percentile(sample, 99) < DARK_LEVEL:
+    if _percentile_99_below(sample, DARK_LEVEL):
         return FrameReason.DARK
     if np.count_nonzero(sample >= SATURATED_LEVEL) > SATURATED_FRACTION * sample.size:
         return FrameReason.SATURATED
     return None
+
+
+def _percentile_99_below(sample: np.ndarray[Any, np.dtype[np.uint8]], level: int) -> bool:
+    """``np.percentile(sample, 99) < level``, decided by counting where the count settles it (the 99th
+    percentile lies between the sorted sample's values at ranks floor((n − 1)·0.99) and the next): a
+    tenth of the cost of the percentile, which is taken only when the level falls between those two."""
+    lo = int((sample.size - 1) * 0.99)
+    below = int(np.count_nonzero(sample < level))
+    if below >= lo + 3:  # both values below the level (with a rank to spare either way)
+        return True
+    if below <= lo - 1:  # both at or above it
+        return False
+    return bool(np.percentile(sample, 99) < level)
 
 
 def frame_problem(frame: Any, height: int, width: int) -> str | None:
