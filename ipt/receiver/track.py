@@ -310,7 +310,8 @@ class _Fit:
         valid: npt.NDArray[np.uint8] | None,
     ) -> None:
         self.edges, self.k, self.size, self.settings, self.valid = edges, camera_matrix, size, settings, valid
-        self.obj, self.nrm = edges.points_m[chosen], edges.normals_m[chosen]
+        # (take and compress below: numpy's fancy indexing of rows costs several times more, same result)
+        self.obj, self.nrm = edges.points_m.take(chosen, axis=0), edges.normals_m.take(chosen, axis=0)
         self.step_value, self.owner = edges.step[chosen], edges.tag[chosen]
         self.step_sign = np.sign(self.step_value).astype(np.float64)
         self.step_size = np.abs(self.step_value).astype(np.float64)
@@ -355,21 +356,22 @@ class _Fit:
         for _ in range(2):  # robust: drop samples far from the fit (from the median absolute deviation)
             if keep.sum() < 12:
                 return False
-            sol = self._solve(a_rows[keep], offsets[keep])
+            sol = self._solve(np.compress(keep, a_rows, axis=0), offsets[keep])
             res = offsets - a_rows @ sol
             scale = max(1.4826 * _median(np.abs(res[keep])), 0.25)
             keep = strong & (np.abs(res) < 3.0 * scale)
         # (the number of tags seen: bincount costs a tenth of np.unique here)
         if keep.sum() < s.min_inliers or np.count_nonzero(np.bincount(self.owner[idx][keep])) < s.min_tags:
             return False
-        sol = self._solve(a_rows[keep], offsets[keep])
+        a_kept = np.compress(keep, a_rows, axis=0)
+        sol = self._solve(a_kept, offsets[keep])
         self.idx, self.a_rows, self.offsets, self.inliers, self.sol = idx, a_rows, offsets, keep, sol
         rot, _ = cv2.Rodrigues(sol[:3].reshape(3, 1))
         self.r = np.asarray(rot, np.float64) @ r
         self.t = t + sol[3:6]
         if s.rolling_shutter:
             self.sweep = self.sweep + sol[6:]
-        self.converged = float(np.abs(a_rows[keep] @ sol).max()) < CONVERGED_PX
+        self.converged = float(np.abs(a_kept @ sol).max()) < CONVERGED_PX
         return True
 
     def _normal(self, a: F64) -> F64:
@@ -389,10 +391,11 @@ class _Fit:
 
     def result(self, diff: F32, valid: npt.NDArray[np.uint8] | None) -> TrackResult | None:
         inl = self.inliers
-        residual = self.offsets[inl] - self.a_rows[inl] @ self.sol
+        a_inl = np.compress(inl, self.a_rows, axis=0)
+        residual = self.offsets[inl] - a_inl @ self.sol
         rms = float(np.sqrt(np.mean(residual**2)))
         try:
-            full = np.linalg.inv(self._normal(self.a_rows[inl]))
+            full = np.linalg.inv(self._normal(a_inl))
             cov = np.asarray(max(rms, 0.1) ** 2 * full[:6, :6], np.float64)
         except np.linalg.LinAlgError:
             return None
