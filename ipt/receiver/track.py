@@ -235,8 +235,9 @@ def _median(values: npt.NDArray[np.floating[Any]]) -> float:
 
 def slope_noise(diff: F32, valid: npt.NDArray[np.uint8] | None) -> float:
     """The median absolute slope of ``diff`` along rows (where valid): what a step must stand out from.
-    (Every fourth row, every second column: :func:`ipt.receiver.trackkernels.slope_noise`.)"""
-    return float(trackkernels.slope_noise(diff, _NO_MASK if valid is None else valid))
+    (Every fourth row, every second column, gathered in one compiled pass: :func:`~ipt.receiver.trackkernels.
+    slopes_sampled`.)"""
+    return max(_median(trackkernels.slopes_sampled(diff, _NO_MASK if valid is None else valid)), 1e-3)
 
 
 def track_pose(

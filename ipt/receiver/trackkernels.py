@@ -69,7 +69,7 @@ def ensure() -> None:
         bilinear = _jit(_bilinear)
         slopes = _jit(_slopes)
         system_row = _jit(_system_row)
-        for kernel in (measure, peaks, band_signs, cell_agreement, slope_noise):
+        for kernel in (measure, peaks, band_signs, cell_agreement, slopes_sampled):
             kernel.compiled = _jit(kernel.py_func)
         _ready.set()
 
@@ -327,15 +327,14 @@ def _cell_agreement(
 cell_agreement = _Kernel(_cell_agreement)
 
 
-def _slope_noise(diff: F32, valid: U8) -> float:
-    """The median absolute difference of horizontal neighbours two pixels apart, on every fourth row and
-    every second column of ``diff``, where ``valid`` (same grid, the right-hand pixel) is not 0 (all of them
-    when none is, or when ``valid`` is empty); at least 1e-3."""
+def _slopes_sampled(diff: F32, valid: U8) -> F32:
+    """The absolute differences of horizontal neighbours two pixels apart, on every fourth row and every
+    second column of ``diff``, in row order, where ``valid`` (same grid, the right-hand pixel) is not 0 (all
+    of them when none is, or when ``valid`` is empty)."""
     h, w = diff.shape
     use_valid = valid.shape[0] == h and valid.shape[1] == w
-    rows = (h + 3) // 4
     cols = (w + 1) // 2 - 1
-    values = np.empty(rows * max(cols, 0), np.float32)
+    values = np.empty(((h + 3) // 4) * max(cols, 0), np.float32)
     count = 0
     if use_valid:
         for y in range(0, h, 4):
@@ -348,19 +347,10 @@ def _slope_noise(diff: F32, valid: U8) -> float:
             for c in range(1, cols + 1):
                 values[count] = abs(diff[y, 2 * c] - diff[y, 2 * c - 2])
                 count += 1
-    if count == 0:
-        return 1e-3
-    chosen = values[:count]
-    half = count // 2
-    if count % 2:
-        median = np.float64(np.partition(chosen, half)[half])
-    else:  # the two middle values' mean in float64 (numba's float() of a float32 stays float32)
-        part = np.partition(chosen, half - 1)
-        median = 0.5 * (np.float64(part[half - 1]) + np.float64(part[half:].min()))
-    return max(median, 1e-3)
+    return values[:count]
 
 
-slope_noise = _Kernel(_slope_noise)
+slopes_sampled = _Kernel(_slopes_sampled)
 
 
 def warm() -> None:
@@ -376,8 +366,8 @@ def warm() -> None:
     peaks(np.zeros((1, 4), np.float32), np.zeros(1, np.int64), np.ones(2), np.ones(1))
     band_signs(np.zeros((1, 4), np.float32), np.zeros(1, np.int64), 2)
     cell_agreement(image, k, rt, t, one, np.zeros(1, np.int64), np.ones(1), np.ones(1, np.bool_), np.ones(2), no_mask)
-    slope_noise(image, no_mask)
-    slope_noise(image, np.zeros((8, 8), np.uint8))
+    slopes_sampled(image, no_mask)
+    slopes_sampled(image, np.zeros((8, 8), np.uint8))
 
 
 _warming = False
