@@ -209,6 +209,21 @@ def luminance(frame: U8, method: str = "luma") -> U8:
     return lightness(frame, method)
 
 
+def percentiles_u8(values: U8, percents: tuple[float, ...]) -> tuple[float, ...]:
+    """``np.percentile(values, percents)`` of 8-bit values, exactly (numpy's linear interpolation between the
+    same two order statistics, by the same floating-point steps), from their histogram: a fifth of the cost."""
+    n = values.size
+    cumulative = np.cumsum(np.bincount(values.ravel(), minlength=256))
+    out = []
+    for q in percents:
+        virtual = (n - 1) * (q / 100)
+        lo = min(int(np.floor(virtual)), n - 1)
+        gamma = virtual - np.floor(virtual)
+        a, b = (int(np.searchsorted(cumulative, i, side="right")) for i in (lo, min(lo + 1, n - 1)))
+        out.append(b - (b - a) * (1 - gamma) if gamma >= 0.5 else a + (b - a) * gamma)
+    return tuple(float(v) for v in out)
+
+
 #: Lightness below ``DARK_FRACTION`` of the way from the frame's darkest tenth to its median is taken for
 #: floor without projector light (the drone's shadow, beyond the projection): no signal can be there.
 DARK_FRACTION = 0.35
@@ -219,8 +234,7 @@ DARK_MARGIN_PX = 5
 def signal_mask(lum: U8, coverage: U8 | None = None) -> U8:
     """255 where the frame may carry the hidden tags: lit by the projector, inside the sensor's view."""
     _h, w = lum.shape
-    small = lum[::4, ::4]
-    low, mid = np.percentile(small, (10, 50))
+    low, mid = percentiles_u8(lum[::4, ::4], (10, 50))
     level = max(12.0, low + DARK_FRACTION * (mid - low))
     # 255 where lum > level (for 8-bit pixels OpenCV compares with floor(level): the same test, 5x cheaper)
     lit = np.asarray(cv2.threshold(lum, level, 255, cv2.THRESH_BINARY)[1], np.uint8)
@@ -285,10 +299,13 @@ def pair_difference(
     """
     h, w = later.shape
     moved = np.asarray(cv2.warpPerspective(earlier, warp, (w, h), flags=cv2.INTER_LINEAR), np.float32)
-    moved_signal = cv2.warpPerspective(earlier_signal, warp, (w, h), flags=cv2.INTER_NEAREST)
-    both = np.minimum(later_signal, moved_signal)
-    seen = np.full((h, w), 255, np.uint8) if coverage is None else coverage.copy()
-    seen = np.minimum(seen, cv2.warpPerspective(seen, warp, (w, h), flags=cv2.INTER_NEAREST))
+    seen = np.full((h, w), 255, np.uint8) if coverage is None else coverage
+    # Both masks in one nearest-neighbour warp of 16-bit pixels (the signal in the low byte, the coverage in
+    # the high one): the same pixels as two 8-bit warps, in less than half their time.
+    packed = np.left_shift(seen, 8, dtype=np.uint16) | earlier_signal
+    masks = np.asarray(cv2.warpPerspective(packed, warp, (w, h), flags=cv2.INTER_NEAREST), np.uint16)
+    both = np.minimum(later_signal, (masks & 0xFF).astype(np.uint8))
+    seen = np.minimum(seen, (masks >> 8).astype(np.uint8))
     now = later.astype(np.float32)
     sample = both[::4, ::4] > 0
     if sample.sum() < 50:
