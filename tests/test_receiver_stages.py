@@ -21,6 +21,7 @@ from ipt.receiver.demodulator import (
     estimate_shift,
     lightness,
     pair_difference,
+    percentiles_u8,
 )
 from ipt.receiver.detector import DetectorError, TagDetection, TagDetector
 from ipt.receiver.imagealign import AlignTarget, alignment_features, floor_warp_between, phase_correlate, translation
@@ -611,3 +612,14 @@ def test_the_kept_grey_to_lightness_table_is_opencvs_conversion() -> None:
     assert _LUMA_TO_L.dtype == np.uint8
     assert _LUMA_TO_L.shape == (256,)
     np.testing.assert_array_equal(_LUMA_TO_L, _luma_to_lightness_table())
+
+
+def test_percentiles_of_8_bit_values_are_numpys() -> None:
+    # signal_mask takes its levels from a histogram: the same floats as np.percentile, on every sample size
+    # (odd, even, one value) and every percent from 0 to 100.
+    rng = np.random.default_rng(1)
+    for trial in range(3000):
+        n = int(rng.choice([1, 2, 3, 7, 10, 101, 1000, 14400]))
+        values = np.clip(rng.normal(rng.integers(0, 255), rng.integers(1, 60), n), 0, 255).astype(np.uint8)
+        percents = (10.0, 50.0) if trial % 2 else (float(rng.integers(0, 101)), 99.0)
+        assert percentiles_u8(values, percents) == tuple(float(v) for v in np.percentile(values, percents))

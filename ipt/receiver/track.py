@@ -406,8 +406,10 @@ class _Fit:
         h = diff.shape[0]
         bands = self.settings.bands
         flipped = (int(other.min() * h / bands), int((other.max() + 1) * h / bands) - 1) if len(other) else None
-        tags = tuple(sorted({self.edges.tag_ids[t] for t in np.unique(self.owner[self.idx][inl])}))
-        agreement = _cell_agreement(diff, self.k, self.edges, self.r, self.t, np.unique(self.owner), band_sign, valid)
+        # (the tags present, by bincount: np.unique's sort costs ten times more)
+        tags = tuple(sorted({self.edges.tag_ids[t] for t in np.flatnonzero(np.bincount(self.owner[self.idx][inl]))}))
+        present = np.flatnonzero(np.bincount(self.owner))
+        agreement = _cell_agreement(diff, self.k, self.edges, self.r, self.t, present, band_sign, valid)
         rvec, _ = cv2.Rodrigues(self.r)
         return TrackResult(
             np.asarray(rvec, np.float64).reshape(3),
