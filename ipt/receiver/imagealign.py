@@ -129,9 +129,10 @@ class AlignTarget:
         norm = np.array([[s, 0.0, -1.0], [0.0, s, -h / w], [0.0, 0.0, 1.0]])  # pixels → centred, scaled
         x = (cols * s - 1.0).astype(np.float32)
         y = (rows * s - h / w).astype(np.float32)
-        ix, iy = gx[rows, cols] / s, gy[rows, cols] / s  # gradients per normalised unit
-        sd = np.stack([ix * x, ix * y, ix, iy * x, iy * y, iy, -(ix * x + iy * y) * x, -(ix * x + iy * y) * y], axis=1)
         flat_idx = rows * w + cols
+        # (take from the flattened images: the same values as gx[rows, cols], at a fifth of the cost)
+        ix, iy = gx.ravel().take(flat_idx) / s, gy.ravel().take(flat_idx) / s  # gradients per normalised unit
+        sd = np.stack([ix * x, ix * y, ix, iy * x, iy * y, iy, -(ix * x + iy * y) * x, -(ix * x + iy * y) * y], axis=1)
         return cls(
             features,
             weight,
@@ -140,7 +141,7 @@ class AlignTarget:
             cols,
             norm,
             flat_idx,
-            features.ravel()[flat_idx],
+            features.ravel().take(flat_idx),
         )
 
 
