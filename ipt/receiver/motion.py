@@ -35,6 +35,14 @@ def _rotvec(r: F64) -> F64:
     return np.asarray(vec, np.float64).reshape(3)
 
 
+def _median(values: F64) -> float:
+    """``np.median`` of a non-empty 1-D array, exactly, without its overhead on the few values here."""
+    n = len(values)
+    half = n // 2
+    part = np.partition(values, half if n % 2 else (half - 1, half))
+    return float(part[half]) if n % 2 else float((part[half - 1] + part[half]) / 2)
+
+
 def _matrix(rotvec: F64) -> F64:
     mat, _ = cv2.Rodrigues(rotvec.reshape(3, 1))
     return np.asarray(mat, np.float64)
@@ -116,7 +124,7 @@ class MotionTrack:
             coef_p, *_ = np.linalg.lstsq((design * root_w)[inliers], (positions * root_w)[inliers], rcond=None)
             residual = np.linalg.norm(positions - design @ coef_p, axis=1)
             z = residual / std_m
-            scale = max(1.4826 * float(np.median(z[inliers])), 1.0)
+            scale = max(1.4826 * _median(z[inliers]), 1.0)
             keep = (residual <= MIN_OUTLIER_M) | (z <= 3.0 * scale)
             if keep.sum() < MIN_POSES or np.array_equal(keep, inliers):
                 break
