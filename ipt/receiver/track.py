@@ -353,11 +353,14 @@ class _Fit:
             # Six more unknowns: the change of pose from the top row to the bottom one, kept small by a prior.
             a_rows = np.hstack([rows, rows * place[:, None]])
         keep = strong.copy()
+        fitted = np.zeros(0, np.bool_)  # the samples ``sol`` was fitted to: the same ones give the same fit
         sol = np.zeros(a_rows.shape[1])
         for _ in range(2):  # robust: drop samples far from the fit (from the median absolute deviation)
             if keep.sum() < 12:
                 return False
-            sol = self._solve(np.compress(keep, a_rows, axis=0), offsets[keep])
+            if np.array_equal(keep, fitted):
+                break  # the same fit, the same cut: nothing would change
+            sol, fitted = self._solve(np.compress(keep, a_rows, axis=0), offsets[keep]), keep
             res = offsets - a_rows @ sol
             scale = max(1.4826 * _median(np.abs(res[keep])), 0.25)
             keep = strong & (np.abs(res) < 3.0 * scale)
@@ -365,7 +368,8 @@ class _Fit:
         if keep.sum() < s.min_inliers or np.count_nonzero(np.bincount(self.owner[idx][keep])) < s.min_tags:
             return False
         a_kept = np.compress(keep, a_rows, axis=0)
-        sol = self._solve(a_kept, offsets[keep])
+        if not np.array_equal(keep, fitted):
+            sol = self._solve(a_kept, offsets[keep])
         self.idx, self.a_rows, self.offsets, self.inliers, self.sol = idx, a_rows, offsets, keep, sol
         rot, _ = cv2.Rodrigues(sol[:3].reshape(3, 1))
         self.r = np.asarray(rot, np.float64) @ r
