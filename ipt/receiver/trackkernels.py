@@ -3,8 +3,9 @@
 One Gauss-Newton step of :mod:`ipt.receiver.track` projects a few hundred edge samples, reads the difference
 image along each sample's normal and finds the step's sub-pixel offset. Written as numpy array operations,
 that is some sixty small array calls per step (~1 ms at 640×360, most of it call overhead); here it is two
-loops over the samples (~0.1 ms). Pure: arrays in, arrays out. Where numba cannot compile (no executable
-memory), the same functions run as plain Python: correct, only slower.
+loops over the samples (~0.1 ms). The difference's noise level (:func:`ipt.receiver.track.slope_noise`) gathers
+its sampled slopes here too. Pure: arrays in, arrays out. Where numba cannot compile (no executable memory),
+the same functions run as plain Python: correct, only slower.
 """
 
 from __future__ import annotations
