@@ -288,6 +288,14 @@ def pair_difference(
     gain = float(((x - xm) * (y - ym)).mean()) / var if var > 1e-6 else 1.0
     gain = min(max(gain, 0.5), 2.0)
     diff = now - (gain * moved + (ym - gain * xm))
+    return valid_difference(diff, seen, sample, sigma_px)
+
+
+def valid_difference(diff: F32, seen: U8, sample: npt.NDArray[np.bool_], sigma_px: float) -> PairDifference:
+    """The :class:`PairDifference` of a raw difference: the pixels outside ``seen`` (0/255; changed in
+    place) and those that changed more than the tags can (with their neighbours) left out, the rest
+    smoothed. ``sample`` marks the pixels of ``diff[::4, ::4]`` that both frames light."""
+    w = diff.shape[1]
     magnitude = np.abs(diff[::4, ::4][sample])
     amplitude = max(float(np.median(magnitude)), 0.5)
     changed_px = np.abs(diff) > CHANGE_FACTOR * amplitude * 2.0
