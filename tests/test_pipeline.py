@@ -191,6 +191,26 @@ def test_consistency_gate_rejects_a_pose_off_the_recent_motion(short_flight: Pat
     assert reasons[9:] == ["pose"] * 3  # the doubtful pose did not drag the prediction along
 
 
+def test_with_a_rolling_shutter_the_consistency_gate_allows_for_the_pose_s_own_uncertainty(
+    short_flight: Path,
+) -> None:
+    # The same 25 mm step off the line, from poses whose own uncertainty is 10 mm (a rolling shutter's sweep
+    # fitted): 3 sigma is 30 mm, so it passes; 45 mm off it would not; a global shutter keeps the 15 mm.
+    xs = [0.005 * k for k in range(12)]
+    xs[8] += 0.025
+    stds = [0.010] * 12
+    cfg = PipelineConfig()
+    rolling = cfg.model_copy(
+        update={
+            "pose": cfg.pose.model_copy(update={"track": cfg.pose.track.model_copy(update={"rolling_shutter": True})})
+        }
+    )
+    assert [r.reason for r in _gate(_pipeline(short_flight, rolling), xs, stds)] == ["pose"] * 12
+    assert _gate(_pipeline(short_flight, cfg), xs, stds)[8].reason == "inconsistent"
+    xs[8] += 0.020
+    assert _gate(_pipeline(short_flight, rolling), xs, stds)[8].reason == "inconsistent"
+
+
 def test_consistency_gate_follows_a_track_that_really_moved(short_flight: Path) -> None:
     # The first poses were a wrong lock 40 mm off; every later one agrees on the true place. The gate
     # rejects them only until they outnumber the wrong ones in its window, then follows.

@@ -320,6 +320,14 @@ def pair_difference(
     np.multiply(moved, gain, out=moved)
     np.add(moved, ym - gain * xm, out=moved)
     diff = np.subtract(now, moved, out=now)
+    return valid_difference(diff, seen, sample, sigma_px)
+
+
+def valid_difference(diff: F32, seen: U8, sample: npt.NDArray[np.bool_], sigma_px: float) -> PairDifference:
+    """The :class:`PairDifference` of a raw difference: the pixels outside ``seen`` (0/255; changed in
+    place) and those that changed more than the tags can (with their neighbours) left out, the rest
+    smoothed. ``sample`` marks the pixels of ``diff[::4, ::4]`` that both frames light."""
+    w = diff.shape[1]
     amplitude = max(_median_f32(np.abs(diff[::4, ::4][sample])), 0.5)
     changed_px = np.abs(diff) > CHANGE_FACTOR * amplitude * 2.0
     valid = seen

@@ -20,6 +20,10 @@ from ipt.receiver.scales import gate_growth
 GATE_WINDOW_US = 250_000
 #: After this many gated poses in a row the track is re-initialised (the earlier pose was the wrong one).
 GATE_RESET_AFTER = 4
+#: With a rolling shutter's sweep fitted, the consistency gate's bound is at least this many times the
+#: pose's own position uncertainty: the sweep's six unknowns make a right pose less certain (its σ about
+#: 8 mm, not 1), and a fixed 15 mm turned away a third of the rolling flight's right poses.
+ROLLING_GATE_SIGMAS = 3.0
 
 
 class PoseGates:
@@ -37,6 +41,8 @@ class PoseGates:
         cfg = self.cfg.pose
         if cfg.max_prediction_error_m is not None:
             bound_m = cfg.max_prediction_error_m * gate_growth(float(pose.position_m[2]))
+            if cfg.track.rolling_shutter:
+                bound_m = max(bound_m, ROLLING_GATE_SIGMAS * float(np.linalg.norm(pose.position_std_m)))
             predicted = self._track.pose_at(t_us)
             if predicted is None:
                 # Nothing to check it against yet (the start, or after a gap): only a pose whose own

@@ -38,6 +38,7 @@ import numpy.typing as npt
 from ipt.config.camera_info import CameraInfo
 from ipt.config.models import PipelineConfig
 from ipt.receiver import trackkernels
+from ipt.receiver.bridge import ContentBridge
 from ipt.receiver.demodulator import (
     PairDifference,
     Undistorter,
@@ -96,7 +97,7 @@ LOST_AFTER_US = 50_000
 MIN_COARSE_SCORE = 0.1
 
 
-class Pipeline(PoseGates):
+class Pipeline(PoseGates, ContentBridge):
     """The receiver's per-frame processing, for either profile (see :meth:`PipelineConfig.profile`)."""
 
     def __init__(self, tag_map: TagMap, camera: CameraInfo, cfg: PipelineConfig, projector_hz: float = 60.0) -> None:
@@ -129,6 +130,7 @@ class Pipeline(PoseGates):
         self._history: deque[_Frame] = deque(maxlen=HISTORY)
         self._pending: deque[_Frame] = deque()
         self._pairs: dict[tuple[int, int], _Pair | None] = {}
+        self._bridged: set[int] = set()
         self._track = MotionTrack()
         """The motion of the poses that went out (or were held back), in frame order: the gates' reference."""
         self._guide = MotionTrack()
@@ -231,6 +233,7 @@ class Pipeline(PoseGates):
             out.append(result)
         live = {f.index for f in self._history}
         self._pairs = {k: v for k, v in self._pairs.items() if k[0] in live and k[1] in live}
+        self._bridged &= live
         return out
 
     def _lap(self, stage: str, t0: float) -> float:
@@ -326,6 +329,7 @@ class Pipeline(PoseGates):
                 self._solve(partner, new, partner)
             if new.best is not None and new.best.quality >= GOOD_QUALITY:
                 break
+        self._bridge_pending(new)
         for f in self._pending:
             if not f.final and new.index - f.index >= self.lookahead:
                 self._finish(f)
@@ -451,6 +455,9 @@ class Pipeline(PoseGates):
             target.failure = FrameResult(target.index, target.time_us, None, 0, reason, partner=other.index)
             return
         self._lap("pose", t0)
+        self._add_candidate(target, candidate)
+
+    def _add_candidate(self, target: _Frame, candidate: _Candidate) -> None:
         target.candidates.append(candidate)
         if target.best is None or candidate.quality > target.best.quality:
             target.best = candidate

@@ -1,0 +1,76 @@
+"""The bridge across a content change (ipt.receiver.bridge): a frame exposed while the video changed has its
+tags back from the frames before and after it, where either pair alone shows only the content."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from ipt.receiver.bridge import bridge_difference
+from ipt.receiver.demodulator import pair_difference
+
+H, W = 180, 320
+F32 = npt.NDArray[np.float32]
+
+
+def _texture(seed: int) -> F32:
+    """Grass-like content: fine random texture, 8-bit range, a few pixels of grain."""
+    rng = np.random.default_rng(seed)
+    noise = rng.normal(0.0, 1.0, (H + 40, W + 40)).astype(np.float32)
+    grain = cv2.GaussianBlur(noise, (0, 0), 1.5)
+    return np.asarray(110 + 40 * grain / grain.std(), np.float32)
+
+
+def _tags() -> F32:
+    """A blocky ±1 pattern in cells of 12 px: the hidden map's cells."""
+    rng = np.random.default_rng(7)
+    cells = rng.choice([-1.0, 1.0], size=(H // 12 + 1, W // 12 + 1)).astype(np.float32)
+    return np.asarray(np.kron(cells, np.ones((12, 12), np.float32))[:H, :W], np.float32)
+
+
+def _shift(img: F32, dx: float, dy: float) -> F32:
+    """``img`` seen by a camera moved by (dx, dy) pixels, cropped to the frame."""
+    m = np.array([[1.0, 0.0, -dx - 20], [0.0, 1.0, -dy - 20]])
+    return np.asarray(cv2.warpAffine(img, m, (W, H), flags=cv2.INTER_LINEAR), np.float32)
+
+
+def _u8(img: F32) -> npt.NDArray[np.uint8]:
+    return np.clip(np.round(img), 0, 255).astype(np.uint8)
+
+
+def _translation(dx: float, dy: float) -> npt.NDArray[np.float64]:
+    return np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
+
+
+def test_a_frame_across_a_content_change_gets_its_tags_from_the_frames_around_it() -> None:
+    old, new = _texture(1), _texture(2)
+    tags = 3.0 * np.pad(_tags(), 20)  # the ±ΔL pattern on the floor, in floor pixels
+    # The camera drifts 1.5 px a frame to the right; the frame between was exposed 65 % on the old video
+    # in the − phase and 35 % on the new in the + phase; the frames around it one phase each.
+    before = _shift(old + tags, -3.0, 0.0)
+    target = 0.65 * _shift(old - tags, 0.0, 0.0) + 0.35 * _shift(new + tags, 0.0, 0.0)
+    after = _shift(new - tags, 3.0, 0.0)
+    truth_tags = _shift(tags, 0.0, 0.0)
+    lit = np.full((H, W), 255, np.uint8)
+    # The warps a prediction gives, 2 px off the truth in opposite directions (a vibrating camera).
+    warps = (_translation(-3.0 + 2.0, 0.0), _translation(3.0, 2.0))
+    bridged = bridge_difference(_u8(before), _u8(target), _u8(after), warps, (lit, lit, lit))
+    assert bridged is not None
+    plain = pair_difference(_u8(before), _u8(target), _translation(-3.0, 0.0), lit, lit)
+
+    def agreement(diff: F32) -> float:
+        inner = (slice(20, H - 20), slice(20, W - 20))
+        return float(abs(np.corrcoef(diff[inner].ravel(), truth_tags[inner].ravel())[0, 1]))
+
+    assert agreement(bridged.diff) > 0.8  # the tags, whatever their sign
+    assert agreement(plain.diff) < 0.3  # a pair alone: the content's change drowns them
+
+
+def test_a_frame_no_mix_of_its_neighbours_explains_is_refused() -> None:
+    lit = np.full((H, W), 255, np.uint8)
+    before, after = _u8(_shift(_texture(1), 0, 0)), _u8(_shift(_texture(2), 0, 0))
+    unrelated = _u8(_shift(_texture(3), 0, 0))
+    assert bridge_difference(before, unrelated, after, (np.eye(3), np.eye(3)), (lit, lit, lit)) is None
+    dark = np.zeros((H, W), np.uint8)
+    assert bridge_difference(before, unrelated, after, (np.eye(3), np.eye(3)), (lit, dark, lit)) is None
