@@ -18,6 +18,8 @@ from typing import Any, TextIO, TypeVar
 import numpy as np
 import numpy.typing as npt
 
+from ipt import signals
+
 T = TypeVar("T")
 
 
@@ -32,7 +34,7 @@ def loop_factory() -> Callable[[], asyncio.AbstractEventLoop] | None:
 
 def run_loop(main: Coroutine[Any, Any, T]) -> T:
     """Run ``main`` to its end on a fresh event loop (uvloop when installed) and close the loop."""
-    with asyncio.Runner(loop_factory=loop_factory()) as runner:
+    with signals.kept_while_a_loop_runs(), asyncio.Runner(loop_factory=loop_factory()) as runner:
         return runner.run(main)
 
 

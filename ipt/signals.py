@@ -10,9 +10,12 @@ Every command-line tool installs the handler of this module first thing in ``mai
   128 + the signal's number (130 for SIGINT, 143 for SIGTERM, 129 for SIGHUP).
 - **A daemon** (the sender, the receiver) routes the signals to its own orderly stop as soon as its
   event loop runs (:func:`route_to_loop`): the loop wakes at once, the daemon stops in order and prints
-  its final statistics line, exit status 0. A signal that arrives while the loop runs but before the
-  route is set up is kept and delivered when it is; one that arrives before the loop runs raises
-  :class:`Interrupted`, which the daemon's ``main`` turns into the same final line and status.
+  its final statistics line, exit status 0. A signal that arrives while the loop is set up or runs but
+  before the route is set up is kept and delivered when it is (:func:`kept_while_a_loop_runs`); one
+  that arrives before (while the daemon reads its configuration) raises :class:`Interrupted`, which the
+  daemon's ``main`` turns into the same final line and status.
+- A signal that lands inside an import is delivered again once the import is over: raised there, it
+  could come out as an ImportError or be lost.
 - Only the first signal acts. Later ones, while the program is already stopping, are noted and
   otherwise ignored, so that a cleanup is never cut short half way.
 
@@ -22,6 +25,7 @@ SIGHUP is not a reload: it stops a program like SIGTERM (a closed terminal, ``ki
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import sys
 import threading
@@ -76,16 +80,40 @@ class _State:
     """The first stop signal since :func:`install`, if any."""
     quiet = False
     """No more raising: the program is at its end (a daemon's loop has finished)."""
+    keep = False
+    """No raising: an event loop is being set up or runs (:func:`kept_while_a_loop_runs`)."""
 
 
 _state = _State()
 
 
+#: While an import runs, a stop signal is delivered again this much later (seconds), until the import is over.
+IMPORT_RETRY_S = 0.005
+
+
+def _importing(frame: FrameType | None) -> bool:
+    """True if ``frame`` (where the signal landed) is inside an import: Python's import machinery is on the
+    stack."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame = frame.f_back
+    return False
+
+
 def _handle(signum: int, frame: FrameType | None) -> None:
     if _state.received is not None:
         return  # already stopping: never cut a cleanup short
+    if _importing(frame):
+        # Raising inside an import can come out as an ImportError (a C extension's initialisation turns
+        # any exception into one) or vanish (in the import locks' weakref callbacks): a traceback or a
+        # signal lost. The signal comes again once the import is over.
+        retry = threading.Timer(IMPORT_RETRY_S, os.kill, (os.getpid(), signum))
+        retry.daemon = True
+        retry.start()
+        return
     _state.received = signum
-    if _state.quiet:
+    if _state.quiet or _state.keep:
         return
     # asyncio not imported yet, or half way through its import (the signal came during it): no event
     # loop can be running then.
@@ -138,6 +166,20 @@ def blocked() -> Iterator[None]:
         yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+@contextlib.contextmanager
+def kept_while_a_loop_runs() -> Iterator[None]:
+    """Within: a stop signal is kept, never raised. For the whole life of a daemon's event loop, its
+    set-up included: an interruption raised while uvloop starts the loop (before asyncio calls it running)
+    left the loop half started and the program ended in a traceback. The daemon routes the signals to its
+    loop (:func:`route_to_loop`), which delivers a kept one at once."""
+    before = _state.keep
+    _state.keep = True
+    try:
+        yield
+    finally:
+        _state.keep = before
 
 
 def route_to_loop(loop: asyncio.AbstractEventLoop, stop: Callable[[int], None]) -> Callable[[], None]:
