@@ -1,5 +1,5 @@
 """The frames no pair can solve because their exposure spans a content change: a pose from the frame
-before and the frame after together (:func:`ipt.receiver.demodulator.bridge_difference`). A mix-in of
+before and the frame after together (:func:`bridge_difference`). A mix-in of
 :class:`ipt.receiver.pipeline.Pipeline`, whose state and stages it uses.
 
 Why. The sender shows each video frame for two projector frames, so the video changes at every other
@@ -28,8 +28,9 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ipt.receiver.demodulator import DIFF_SIGMA_PX, PairDifference, Undistorter, valid_difference
+from ipt.receiver.demodulator import DIFF_SIGMA_PX, PairDifference, Undistorter, valid_difference, warp_masks
 from ipt.receiver.frameresult import _Candidate, _Frame
+from ipt.receiver.imagealign import translation
 
 if TYPE_CHECKING:
     from ipt.receiver.track import TrackResult
@@ -50,8 +51,7 @@ MAX_REFINE_PX = 12.0
 
 def _shifted(warp: F64, d: F64) -> F64:
     """``warp`` followed by a shift of the image by ``-d`` (so the result at x samples the source at x + d)."""
-    t = np.array([[1.0, 0.0, -d[0]], [0.0, 1.0, -d[1]], [0.0, 0.0, 1.0]])
-    return np.asarray(t @ warp, np.float64)
+    return np.asarray(translation(-float(d[0]), -float(d[1])) @ warp, np.float64)
 
 
 def _refine_step(
@@ -148,8 +148,8 @@ def bridge_difference(
     for image, warp, d, signal in zip(images, warps, shifts, (signals[0], signals[2]), strict=True):
         m = _shifted(warp, d)
         flat.append(np.asarray(cv2.warpPerspective(image, m, (w, h), flags=cv2.INTER_LINEAR), np.float32))
-        lit = np.minimum(lit, cv2.warpPerspective(signal, m, (w, h), flags=cv2.INTER_NEAREST))
-        seen = np.minimum(seen, cv2.warpPerspective(sensor, m, (w, h), flags=cv2.INTER_NEAREST))
+        moved_signal, moved_sensor = warp_masks(signal, sensor, m)
+        lit, seen = np.minimum(lit, moved_signal), np.minimum(seen, moved_sensor)
     diff = np.asarray(now - (g[0] * flat[0] + g[1] * flat[1] + g[2]), np.float32)
     return valid_difference(diff, seen, lit[::4, ::4] > 0, sigma_px)
 
@@ -169,13 +169,11 @@ class ContentBridge:
         def _initial_pose(
             self, target: _Frame, other: _Frame, warp_other_to_target: F64
         ) -> tuple[tuple[F64, F64], bool] | None: ...
-        def _coarse(self, diff: PairDifference, init: tuple[F64, F64]) -> tuple[F64, F64]: ...
-        def _track_from(
-            self, diff: PairDifference, init: tuple[F64, F64], lit: npt.NDArray[np.uint8] | None = None
+        def _track_guessed(
+            self, diff: PairDifference, guess: tuple[tuple[F64, F64], bool], lit: U8 | None
         ) -> TrackResult | None: ...
         def _candidate(self, tracked: TrackResult, partner: int) -> _Candidate: ...
         def _add_candidate(self, target: _Frame, candidate: _Candidate) -> None: ...
-        def _predicted_warp(self, a: _Frame, b: _Frame) -> F64 | None: ...
         def _predicted_warp(self, a: _Frame, b: _Frame) -> F64 | None: ...
 
     def _bridge_pending(self, new: _Frame) -> None:
@@ -214,10 +212,7 @@ class ContentBridge:
         guess = self._initial_pose(target, before, to_target[0])
         if diff is None or guess is None:
             return
-        init, close = guess
-        tracked = self._track_from(diff, init if close else self._coarse(diff, init), target.signal)
-        if tracked is None and close:
-            tracked = self._track_from(diff, self._coarse(diff, init), target.signal)
+        tracked = self._track_guessed(diff, guess, target.signal)
         self._lap("track", t0)
         if tracked is not None:
             self._add_candidate(target, self._candidate(tracked, before.index))

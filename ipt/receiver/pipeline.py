@@ -74,6 +74,8 @@ from ipt.tagmap import TagMap, pixel_to_arena
 U8 = npt.NDArray[np.uint8]
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
+Guess = tuple[tuple[F64, F64], bool]
+"""A first guess of a frame's pose, OpenCV's (rvec, tvec), and whether it is close (:meth:`Pipeline._initial_pose`)."""
 
 #: Frames kept for pairing.
 HISTORY = 6
@@ -425,10 +427,7 @@ class Pipeline(PoseGates, ContentBridge):
         guess = self._initial_pose(target, other, warp_other_to_target)
         tracked: TrackResult | None = None
         if self.tracking and guess is not None:
-            init, close = guess
-            tracked = self._track_from(diff, init if close else self._coarse(diff, init), target.signal)
-            if tracked is None and close:  # the partner's pose or the pair's homography was off: search
-                tracked = self._track_from(diff, self._coarse(diff, init), target.signal)
+            tracked = self._track_guessed(diff, guess, target.signal)
             t0 = self._lap("track", t0)
             if tracked is None:
                 reason = FrameReason.LOST
@@ -504,9 +503,16 @@ class Pipeline(PoseGates, ContentBridge):
             return None
         return result
 
-    def _initial_pose(
-        self, target: _Frame, other: _Frame, warp_other_to_target: F64
-    ) -> tuple[tuple[F64, F64], bool] | None:
+    def _track_guessed(self, diff: PairDifference, guess: Guess, lit: U8 | None) -> TrackResult | None:
+        """The pose tracked from ``guess``: from its start if close, else from a search around it; a close start
+        that fails is searched around too (the partner's pose or the pair's homography was off)."""
+        init, close = guess
+        tracked = self._track_from(diff, init if close else self._coarse(diff, init), lit)
+        if tracked is None and close:
+            tracked = self._track_from(diff, self._coarse(diff, init), lit)
+        return tracked
+
+    def _initial_pose(self, target: _Frame, other: _Frame, warp_other_to_target: F64) -> Guess | None:
         """A first guess of ``target``'s pose and whether it is close (within a few pixels): the partner's
         pose carried by the pair's homography (close), else the recent motion's prediction (not)."""
         if other.rt is not None:
