@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -12,6 +13,7 @@ from ipt.config.camera_info import load_camera_info
 from ipt.config.models import ConfigError, DemodulationConfig, PipelineConfig, load_arena_config
 from ipt.receiver.pipeline import FrameResult, Pipeline, _Frame
 from ipt.receiver.pose import PoseEstimate
+from ipt.receiver.reasons import FrameReason
 from ipt.tagmap import grid_tag_map
 from ipt.tum import read_tum
 from ipt.videoio import open_frames
@@ -250,3 +252,38 @@ def test_an_uncertain_first_pose_waits_for_the_track(short_flight: Path) -> None
     # (it still feeds the motion fit), a well-determined one goes out.
     reasons = [r.reason for r in _gate(_pipeline(short_flight, PipelineConfig()), [0.0, 0.0], [0.03, 0.004])]
     assert reasons == ["unconfirmed", "pose"]
+
+
+SPOILED = 40
+"""The frame whose fits the test below spoils (the motion is well known by then)."""
+
+
+@pytest.mark.parametrize("spoil", ["wrong", "lost"])
+def test_a_frame_the_motion_doubts_is_tracked_again_from_where_the_motion_puts_it(
+    short_flight: Path,
+    frames: list,  # type: ignore[type-arg]
+    spoil: str,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # Frame 40's fits are made wrong (5 cm off, as a fit settled in the wrong basin) or lost on every pair;
+    # the second look tracks it again from the motion of the frames around it, on its real pairs.
+    truth = read_tum(short_flight / "groundtruth.tum")
+    solve = Pipeline._solve
+
+    def spoiled_solve(self: Pipeline, a: _Frame, b: _Frame, target: _Frame) -> None:
+        solve(self, a, b, target)
+        if target.index == SPOILED:
+            off = [replace(c.pose, position_m=c.pose.position_m + [0.05, 0.0, 0.0]) for c in target.candidates]
+            target.candidates = [replace(c, pose=p) for c, p in zip(target.candidates, off, strict=True)]
+            if spoil == "lost":
+                target.candidates = []
+                target.failure = FrameResult(target.index, target.time_us, None, 0, FrameReason.LOST)
+
+    monkeypatch.setattr(Pipeline, "_solve", spoiled_solve)
+    looked = _run(_pipeline(short_flight, PipelineConfig()), frames)[SPOILED]
+    assert looked.pose is not None
+    assert np.linalg.norm(looked.pose.position_m - truth.positions_m[SPOILED]) < 0.005
+    monkeypatch.setattr(Pipeline, "_second_look", lambda self, f: None)
+    unlooked = _run(_pipeline(short_flight, PipelineConfig()), frames)[SPOILED]
+    assert unlooked.pose is None
+    assert unlooked.reason == ("inconsistent" if spoil == "wrong" else "lost")

@@ -58,6 +58,7 @@ from ipt.receiver.motion import MotionTrack, floor_warp
 from ipt.receiver.pose import PoseEstimate, solve_pose
 from ipt.receiver.reasons import FrameReason
 from ipt.receiver.scales import DetectScale, ScaleChooser
+from ipt.receiver.secondlook import SecondLook
 from ipt.receiver.track import (
     MapEdges,
     MaskRenderer,
@@ -99,14 +100,13 @@ LOST_AFTER_US = 50_000
 MIN_COARSE_SCORE = 0.1
 
 
-class Pipeline(PoseGates, ContentBridge):
+class Pipeline(PoseGates, ContentBridge, SecondLook):
     """The receiver's per-frame processing, for either profile (see :meth:`PipelineConfig.profile`)."""
 
     def __init__(self, tag_map: TagMap, camera: CameraInfo, cfg: PipelineConfig, projector_hz: float = 60.0) -> None:
         self.tag_map, self.camera, self.cfg = tag_map, camera, cfg
         self.projector_hz = projector_hz
-        # First: its helper process imports for a few tenths of a second while the rest is set up here (a
-        # restarted daemon's first pose comes that much sooner).
+        # First: its helper process imports (0.2-0.4 s) while the rest is set up: a restarted daemon poses sooner.
         self.detector = TagDetector(cfg.detector, known_ids=tag_map.by_id, wait=False)
         demod = cfg.demodulation
         self.ipt = demod.alignment == "gradient"
@@ -337,17 +337,17 @@ class Pipeline(PoseGates, ContentBridge):
                 self._finish(f)
 
     def _finish(self, f: _Frame) -> None:
-        """Judge ``f``'s candidates (in frame order: earlier frames are final already): the best fit that
-        the recent motion does not doubt, or else the best fit, which the gates then hold back."""
+        """Judge ``f``'s candidates (earlier frames are final already), after a second look if the recent motion
+        doubts them all: the best fit it does not doubt, or else the best fit, which the gates then hold back."""
         f.final = True
+        self._second_look(f)
         if not f.candidates:
             f.result = f.failure
             return
         ranked = sorted(f.candidates, key=lambda c: -c.quality)
         best = next((c for c in ranked if self._doubtful(f.time_us, c.pose) is None), ranked[0])
         f.result = self._gated(f, best.pose, best.tags, best.method, best.partner)
-        if f.result.pose is None:
-            f.rt = None
+        f.rt = best.rt if f.result.pose is not None else None
 
     def _pair(self, a: _Frame, b: _Frame) -> _Pair | None:
         """The alignment and difference of ``a`` (earlier) and ``b`` (later), computed once."""

@@ -1,0 +1,101 @@
+"""A second look at a frame whose fits the recent motion doubts, or whose track was lost on every pair: the
+track once more, started from where that motion puts the camera (:meth:`SecondLook._second_look`). A
+mix-in of :class:`ipt.receiver.pipeline.Pipeline`, whose state and stages it uses.
+
+Why. A frame's track starts from its partner's pose carried by the pair's homography. On a vibrating drone
+over moving video that homography is now and then a few pixels off, the fit settles in a wrong basin (the
+poses the consistency gate turned away on shadow-vibration were 36 mm off, median) or finds no basin at
+all (``lost``), while the motion of the frames around it knows within millimetres where the camera is.
+Started from there, the same fit on the same pair usually lands on the right pose. The result is still the
+image's: the fit is free, and the gates judge it like any other candidate (only a fit they do not doubt
+joins the frame's candidates).
+
+Measured on the suite's renderings (replayed, 8 s flights, before → after): shadow-vibration 90.9 →
+97.9 % (inconsistent 50 → 10, lost 36 → 9; MAE 1.8 / 1.6 / 0.6 → 2.2 / 1.8 / 0.7 mm, max 19 mm),
+moving-content 93.9 → 94.9 %.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from ipt.receiver.reasons import FrameReason
+
+if TYPE_CHECKING:
+    from ipt.receiver.demodulator import PairDifference
+    from ipt.receiver.frameresult import _Candidate, _Frame, _Pair
+    from ipt.receiver.motion import MotionTrack
+    from ipt.receiver.pose import PoseEstimate
+    from ipt.receiver.track import TrackResult
+
+F64 = npt.NDArray[np.float64]
+U8 = npt.NDArray[np.uint8]
+
+#: A frame whose track was lost is looked at again on at most this many of its pairs (best phase first).
+LOST_PAIRS = 2
+
+
+class SecondLook:
+    """The second look, as a method of :class:`~ipt.receiver.pipeline.Pipeline` (which has what is declared
+    here)."""
+
+    tracking: bool
+    _history: deque[_Frame]
+    _track: MotionTrack
+
+    if TYPE_CHECKING:  # the pipeline's own stages and gates
+
+        def _doubtful(self, t_us: int, pose: PoseEstimate) -> str | None: ...
+        def _pair(self, a: _Frame, b: _Frame) -> _Pair | None: ...
+        def _difference_in(self, pair: _Pair, target_is_later: bool) -> PairDifference: ...
+        def _phase_error(self, dt_us: int) -> float: ...
+        def _track_guessed(
+            self, diff: PairDifference, guess: tuple[tuple[F64, F64], bool], lit: U8 | None
+        ) -> TrackResult | None: ...
+        def _candidate(self, tracked: TrackResult, partner: int) -> _Candidate: ...
+        def _add_candidate(self, target: _Frame, candidate: _Candidate) -> None: ...
+
+    def _second_look(self, f: _Frame) -> None:
+        """If no candidate of ``f`` fits the recent motion (all doubted, or the track lost on every pair), track
+        it again from the motion's prediction on its pairs with the frames still kept; the first fit the gates
+        do not doubt joins its candidates."""
+        if not self.tracking or not f.tried:
+            return
+        partners = list(self._history)
+        if f.candidates:
+            if any(self._doubtful(f.time_us, c.pose) is None for c in f.candidates):
+                return
+            by_index = {p.index: p for p in partners}
+            ranked = sorted(f.candidates, key=lambda c: -c.quality)
+            others = [by_index[i] for i in dict.fromkeys(c.partner for c in ranked) if i in by_index]
+        elif f.failure is not None and f.failure.reason == FrameReason.LOST:
+            others = [p for p in partners if p.index in f.tried]
+            others.sort(
+                key=lambda p: (round(self._phase_error(f.time_us - p.time_us) * 20), abs(f.time_us - p.time_us))
+            )
+            others = others[:LOST_PAIRS]
+        else:
+            return
+        predicted = self._track.pose_at(f.time_us)
+        if predicted is None:
+            return
+        position, r_arena_cam = predicted
+        rvec, _ = cv2.Rodrigues(r_arena_cam.T)
+        init = (np.asarray(rvec, np.float64).reshape(3), -r_arena_cam.T @ position)
+        for other in others:
+            a, b = (other, f) if other.index < f.index else (f, other)
+            pair = self._pair(a, b)
+            if pair is None:
+                continue
+            tracked = self._track_guessed(self._difference_in(pair, f is b), (init, True), f.signal)
+            if tracked is None:
+                continue
+            candidate = self._candidate(tracked, other.index)
+            if self._doubtful(f.time_us, candidate.pose) is None:
+                self._add_candidate(f, candidate)
+                return
