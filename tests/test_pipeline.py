@@ -273,7 +273,8 @@ def test_a_frame_the_motion_doubts_is_tracked_again_from_where_the_motion_puts_i
     def spoiled_solve(self: Pipeline, a: _Frame, b: _Frame, target: _Frame) -> None:
         solve(self, a, b, target)
         if target.index == SPOILED:
-            off = [replace(c.pose, position_m=c.pose.position_m + [0.05, 0.0, 0.0]) for c in target.candidates]
+            shift_m = np.array([0.05, 0.0, 0.0])
+            off = [replace(c.pose, position_m=c.pose.position_m + shift_m) for c in target.candidates]
             target.candidates = [replace(c, pose=p) for c, p in zip(target.candidates, off, strict=True)]
             if spoil == "lost":
                 target.candidates = []
