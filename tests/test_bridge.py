@@ -6,6 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import numpy.typing as npt
+import pytest
 
 from ipt.receiver.bridge import bridge_difference
 from ipt.receiver.demodulator import pair_difference
@@ -74,3 +75,35 @@ def test_a_frame_no_mix_of_its_neighbours_explains_is_refused() -> None:
     assert bridge_difference(before, unrelated, after, (np.eye(3), np.eye(3)), (lit, lit, lit)) is None
     dark = np.zeros((H, W), np.uint8)
     assert bridge_difference(before, unrelated, after, (np.eye(3), np.eye(3)), (lit, dark, lit)) is None
+
+
+def test_which_neighbours_keep_the_tags_of_a_frame_across_a_content_change() -> None:
+    # 32.5 % of the frame's exposure before the flip (old video, - phase), the rest after (new video, +).
+    # Its neighbours one frame away lie inside those projector frames; two frames away they straddle the
+    # flips before and after it with the same shares (see ipt.receiver.bridge).
+    alpha, old, new = 0.325, _texture(1), _texture(2)
+    tags = 3.0 * np.pad(_tags(), 20)
+    still = (0.0, 0.0)
+
+    def seen(content: F32, phase: float) -> npt.NDArray[np.uint8]:
+        return _u8(_shift(content + phase * tags, *still))
+
+    target = _u8(alpha * _shift(old - tags, *still) + (1 - alpha) * _shift(new + tags, *still))
+    two_before, one_before = seen(old, 2 * alpha - 1), seen(old, -1.0)
+    one_after, two_after = seen(new, 1.0), seen(new, 2 * alpha - 1)
+    truth_tags = _shift(tags, *still)
+    lit = np.full((H, W), 255, np.uint8)
+    flat = (np.eye(3), np.eye(3))
+
+    def tags_left(before: npt.NDArray[np.uint8], after: npt.NDArray[np.uint8]) -> float:
+        """The amplitude of the tags in the bridged difference, in units of one phase's ±ΔL."""
+        bridged = bridge_difference(before, target, after, flat, (lit, lit, lit))
+        assert bridged is not None
+        inner = (slice(20, H - 20), slice(20, W - 20))
+        d, t = bridged.diff[inner].ravel(), truth_tags[inner].ravel()
+        return abs(float(np.cov(d, t)[0, 1] / np.var(t)))
+
+    # (A pair of opposite phases has 2.)
+    assert tags_left(one_before, one_after) < 0.05  # 0: any mix that explains the content cancels them
+    assert tags_left(two_before, one_after) == pytest.approx(2 * alpha**2, abs=0.05)  # 0.21
+    assert tags_left(two_before, two_after) == pytest.approx(abs(2 - 4 * alpha), abs=0.05)  # 0.70

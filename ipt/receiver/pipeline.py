@@ -132,7 +132,7 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
         self._history: deque[_Frame] = deque(maxlen=HISTORY)
         self._pending: deque[_Frame] = deque()
         self._pairs: dict[tuple[int, int], _Pair | None] = {}
-        self._bridged: set[int] = set()
+        self._bridged: dict[int, int] = {}
         self._track = MotionTrack()
         """The motion of the poses that went out (or were held back), in frame order: the gates' reference."""
         self._guide = MotionTrack()
@@ -235,7 +235,7 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
             out.append(result)
         live = {f.index for f in self._history}
         self._pairs = {k: v for k, v in self._pairs.items() if k[0] in live and k[1] in live}
-        self._bridged &= live
+        self._bridged = {k: n for k, n in self._bridged.items() if k in live}
         return out
 
     def _lap(self, stage: str, t0: float) -> float:
