@@ -11,6 +11,7 @@ import pytest
 
 from ipt.config.camera_info import load_camera_info
 from ipt.config.models import ConfigError, DemodulationConfig, PipelineConfig, load_arena_config
+from ipt.receiver.detector import DetectorError
 from ipt.receiver.pipeline import FrameResult, Pipeline, _Frame
 from ipt.receiver.pose import PoseEstimate
 from ipt.receiver.reasons import FrameReason
@@ -288,3 +289,26 @@ def test_a_frame_the_motion_doubts_is_tracked_again_from_where_the_motion_puts_i
     unlooked = _run(_pipeline(short_flight, PipelineConfig()), frames)[SPOILED]
     assert unlooked.pose is None
     assert unlooked.reason == ("inconsistent" if spoil == "wrong" else "lost")
+
+
+def test_a_detector_failure_is_flagged_on_exactly_one_result(
+    short_flight: Path,
+    frames: list,  # type: ignore[type-arg]
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The first detection fails (its helper died): however many results come out after it, and whichever
+    # frame it was for, one of them carries the failure, which is what the daemon reports (once).
+    p = _pipeline(short_flight, PipelineConfig())
+    detect, calls = p.detector.detect, {"n": 0}
+
+    def failing_once(gray: np.ndarray, decimate: float | None = None) -> tuple:  # type: ignore[type-arg]
+        calls["n"] += 1
+        if calls["n"] == 1:
+            raise DetectorError("helper process failed (test)")
+        return detect(gray, decimate)
+
+    monkeypatch.setattr(p.detector, "detect", failing_once)
+    results = _run(p, frames[:30])
+    assert calls["n"] > 1
+    assert sum(r.detector_failed for r in results) == 1
+    assert sum(r.pose is not None for r in results) >= 20  # and it went on

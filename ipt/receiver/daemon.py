@@ -424,8 +424,9 @@ class _DaemonRun:
 
     def deliver_result(self, frame: CapturedFrame, result: FrameResult, stages: dict[str, float]) -> int:
         """One frame's result to every output; the number of datagrams sent."""
-        failed = result.reason == FrameReason.DETECTOR_FAILED or result.detector_failed
-        if failed and self.errors_reported < MAX_ERROR_REPORTS:
+        # One failure, one line: the pipeline flags the first result that comes out after it (the frame that
+        # failed may come out later, or keep a pose from another pair).
+        if result.detector_failed and self.errors_reported < MAX_ERROR_REPORTS:
             self.errors_reported += 1
             write_line(
                 self.out, f"{PROG}: frame {frame.index}: the tag detector's helper process failed; starting another"

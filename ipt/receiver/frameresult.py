@@ -36,8 +36,9 @@ class FrameResult:
     partner: int | None = None
     """The frame it was paired with."""
     detector_failed: bool = False
-    """The tag detector's helper process failed while this frame was processed (the frame may still have
-    a pose: the track does not need AprilTag)."""
+    """The tag detector's helper process failed since the result before this one came out (while this frame
+    or a later one was processed): set on exactly one result per failure, which the daemon reports. The
+    frame may still have a pose: the track does not need AprilTag."""
 
 
 @dataclass

@@ -285,7 +285,7 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
                 dets, sign = self._detect(demod.binary, self._predicted_phase(new) or 1)
             except DetectorError:
                 self._lap("detect", t0)
-                return FrameResult(new.index, new.time_us, None, 0, FrameReason.DETECTOR_FAILED)
+                return FrameResult(new.index, new.time_us, None, 0, FrameReason.DETECTOR_FAILED, detector_failed=True)
             t0 = self._lap("detect", t0)
             if not dets:
                 result = FrameResult(new.index, new.time_us, None, 0, FrameReason.NO_TAGS, partner=prev.index)
