@@ -22,10 +22,9 @@ opposite phases has 2). So a frame is bridged with its next later partner and, i
 with the one after it (no later result: a frame waits for the partner two frames on anyway):
 moving-content 94.7 → 95.3 % (33 frames bridged, 30 of them with the partner two frames on; a frame
 whose next frame found its pose with another partner is first paired with the one after it anyway), fast
-unchanged (78.3 %)
-at a cost: 343 bridges tried instead of 219, its difference stage 19.0 ms a frame instead of 14.1 (two
-replays side by side, one per core). Trying the second only when a mix explained the frame the first time
-kept fast at 281 tries but moving-content at 95.0 %.
+unchanged (78.3 %) at a cost: 343 bridges tried instead of 219, its difference stage 19.0 ms a frame
+instead of 14.1 (two replays side by side, one per core). Trying the second only when a mix explained the
+frame the first time kept fast at 281 tries but moving-content at 95.0 %.
 
 Measured (8 s suite flights, before → after): moving-content 90.4 → 93.9 %, shadow-vibration 88.3 →
 90.3 %, take-off 68.2 → 70.4 % (0.7-1.2 m 89.6 → 91.5 %), smooth 99.8 → 100 %; MAE unchanged within

@@ -10,9 +10,10 @@ Started from there, the same fit on the same pair usually lands on the right pos
 image's: the fit is free, and the gates judge it like any other candidate (only a fit they do not doubt
 joins the frame's candidates).
 
-Measured on the suite's renderings (replayed, 8 s flights, before → after): shadow-vibration 90.9 →
-97.9 % (inconsistent 50 → 10, lost 36 → 9; MAE 1.8 / 1.6 / 0.6 → 2.2 / 1.8 / 0.7 mm, max 19 mm),
-moving-content 93.9 → 94.9 %.
+Measured (``benchmarks/suite.py``, 8 s flights, the same renderings, aa6affa → 60ad9b6): shadow-vibration
+90.9 → 97.5 % (inconsistent 50 → 8, lost 36 → 14; MAE 1.8 / 1.6 / 0.6 → 2.0 / 1.8 / 0.6 mm, worst 18 mm),
+moving-content 93.9 → 94.7 %, rolling (told) 88.6 → 94.5 %, independent 83.1 → 89.0 %, fast 76.7 → 78.3 %,
+take-off 70.0 → 72.2 %; no pose over 10 cm on any flight whose arena file is right.
 """
 
 from __future__ import annotations
