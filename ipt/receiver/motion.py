@@ -14,6 +14,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from ipt.receiver.track import _median
+
 F64 = npt.NDArray[np.float64]
 
 #: Poses older than this (before the newest) are not used for the fit.
@@ -33,14 +35,6 @@ MAX_HORIZON_US = 100_000
 def _rotvec(r: F64) -> F64:
     vec, _ = cv2.Rodrigues(r)
     return np.asarray(vec, np.float64).reshape(3)
-
-
-def _median(values: F64) -> float:
-    """``np.median`` of a non-empty 1-D array, exactly, without its overhead on the few values here."""
-    n = len(values)
-    half = n // 2
-    part = np.partition(values, half if n % 2 else (half - 1, half))
-    return float(part[half]) if n % 2 else float((part[half - 1] + part[half]) / 2)
 
 
 def _matrix(rotvec: F64) -> F64:

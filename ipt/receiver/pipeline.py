@@ -55,7 +55,7 @@ from ipt.receiver.frameresult import FrameResult, _Candidate, _Frame, _Pair
 from ipt.receiver.gates import PoseGates
 from ipt.receiver.imagealign import AlignTarget, alignment_features, floor_warp_between, warp_image
 from ipt.receiver.motion import MotionTrack, floor_warp
-from ipt.receiver.pose import PoseEstimate, solve_pose
+from ipt.receiver.pose import PoseEstimate, rt_of, solve_pose
 from ipt.receiver.reasons import FrameReason
 from ipt.receiver.scales import DetectScale, ScaleChooser
 from ipt.receiver.secondlook import SecondLook
@@ -256,11 +256,14 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
             return others[-1:] if earlier else []
         span_us = MAX_PAIR_PERIODS * 1e6 / self.projector_hz
         others = [f for f in others if abs(frame.time_us - f.time_us) <= span_us]
-        scored = [(self._phase_error(frame.time_us - f.time_us), abs(frame.time_us - f.time_us), f) for f in others]
-        # Phase errors within a twentieth of a period are equal here (capture times are whole microseconds):
-        # of those, the closer partner first.
-        good = sorted((s for s in scored if s[0] < MAX_PHASE_ERROR), key=lambda s: (round(s[0] * 20), s[1]))
-        return [f for _, _, f in good[:MAX_PARTNERS]]
+        good = [f for f in others if self._phase_error(frame.time_us - f.time_us) < MAX_PHASE_ERROR]
+        return sorted(good, key=lambda f: self._partner_rank(frame, f))[:MAX_PARTNERS]
+
+    def _partner_rank(self, frame: _Frame, other: _Frame) -> tuple[int, int]:
+        """Sorts ``frame``'s partners best first: phase errors within a twentieth of a period are equal here
+        (capture times are whole microseconds), and of those the closer partner comes first."""
+        dt_us = frame.time_us - other.time_us
+        return round(self._phase_error(dt_us) * 20), abs(dt_us)
 
     def _predicted_phase(self, frame: _Frame) -> int | None:
         """+1 if ``frame`` probably showed the +ΔL phase, from what earlier poses revealed."""
@@ -520,11 +523,7 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
             if carried is not None:
                 return carried, True
         predicted = self._guide.pose_at(target.time_us)
-        if predicted is None:
-            return None
-        position, r_arena_cam = predicted
-        rvec, _ = cv2.Rodrigues(r_arena_cam.T)
-        return (np.asarray(rvec, np.float64).reshape(3), -r_arena_cam.T @ position), False
+        return None if predicted is None else (rt_of(*predicted), False)
 
     def _carry(self, rt: tuple[F64, F64], warp: F64) -> tuple[F64, F64] | None:
         """The pose whose view of the floor is that of ``rt`` carried by the image homography ``warp``."""
@@ -564,9 +563,7 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
             if pose is None:
                 target.failure = FrameResult(target.index, target.time_us, None, len(dets), FrameReason.POSE_REJECTED)
                 return None
-            r_cam = pose.r_arena_cam.T
-            rvec, _ = cv2.Rodrigues(r_cam)
-            start = (np.asarray(rvec, np.float64).reshape(3), -r_cam @ pose.position_m)
+            start = rt_of(pose.position_m, pose.r_arena_cam)
             if self.tracking:
                 refined = self._track_from(diff, self._coarse(diff, start), target.signal)
                 if refined is not None:

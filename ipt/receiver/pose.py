@@ -34,6 +34,13 @@ def _pose_of(rvec: F64, tvec: F64) -> tuple[F64, F64]:
     return -r_arena_cam @ tvec.reshape(3), r_arena_cam
 
 
+def rt_of(position_m: F64, r_arena_cam: F64) -> tuple[F64, F64]:
+    """OpenCV's (rvec, tvec), arena → camera, of the camera at ``position_m`` turned by ``r_arena_cam``: the
+    inverse of what a PnP solution gives the pose from."""
+    rvec, _ = cv2.Rodrigues(r_arena_cam.T)
+    return np.asarray(rvec, np.float64).reshape(3), -r_arena_cam.T @ position_m
+
+
 def _covariances(obj: F64, rvec: F64, tvec: F64, camera: CameraInfo, sigma_px: float) -> tuple[F64, F64]:
     """Position and attitude covariances: sigma² (JᵀJ)⁻¹ of the PnP fit, carried to the camera pose."""
     _, jac = cv2.projectPoints(obj, rvec, tvec, camera.camera_matrix, camera.dist_coeffs)

@@ -21,10 +21,10 @@ from __future__ import annotations
 from collections import deque
 from typing import TYPE_CHECKING
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 
+from ipt.receiver.pose import rt_of
 from ipt.receiver.reasons import FrameReason
 
 if TYPE_CHECKING:
@@ -54,7 +54,7 @@ class SecondLook:
         def _doubtful(self, t_us: int, pose: PoseEstimate) -> str | None: ...
         def _pair(self, a: _Frame, b: _Frame) -> _Pair | None: ...
         def _difference_in(self, pair: _Pair, target_is_later: bool) -> PairDifference: ...
-        def _phase_error(self, dt_us: int) -> float: ...
+        def _partner_rank(self, frame: _Frame, other: _Frame) -> tuple[int, int]: ...
         def _track_guessed(
             self, diff: PairDifference, guess: tuple[tuple[F64, F64], bool], lit: U8 | None
         ) -> TrackResult | None: ...
@@ -76,18 +76,14 @@ class SecondLook:
             others = [by_index[i] for i in dict.fromkeys(c.partner for c in ranked) if i in by_index]
         elif f.failure is not None and f.failure.reason == FrameReason.LOST:
             others = [p for p in partners if p.index in f.tried]
-            others.sort(
-                key=lambda p: (round(self._phase_error(f.time_us - p.time_us) * 20), abs(f.time_us - p.time_us))
-            )
+            others.sort(key=lambda p: self._partner_rank(f, p))
             others = others[:LOST_PAIRS]
         else:
             return
         predicted = self._track.pose_at(f.time_us)
         if predicted is None:
             return
-        position, r_arena_cam = predicted
-        rvec, _ = cv2.Rodrigues(r_arena_cam.T)
-        init = (np.asarray(rvec, np.float64).reshape(3), -r_arena_cam.T @ position)
+        init = rt_of(*predicted)
         for other in others:
             a, b = (other, f) if other.index < f.index else (f, other)
             pair = self._pair(a, b)
