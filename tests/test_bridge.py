@@ -40,6 +40,20 @@ def _u8(img: F32) -> npt.NDArray[np.uint8]:
     return np.clip(np.round(img), 0, 255).astype(np.uint8)
 
 
+def _linear(l8: F32) -> F32:
+    """Linear light (relative luminance, 0..1) of 8-bit CIELAB L, by the CIE's formula."""
+    lstar = np.clip(l8, 0, 255) * 100 / 255
+    return np.asarray(np.where(lstar > 8, ((lstar + 16) / 116) ** 3, lstar / (24389 / 27)), np.float32)
+
+
+def _exposed(*parts: tuple[float, F32]) -> npt.NDArray[np.uint8]:
+    """What the camera records (8-bit L) when its exposure is split between pictures (share, 8-bit L): it adds
+    their light."""
+    y = sum(share * _linear(img) for share, img in parts)
+    lstar = np.where(y > 216 / 24389, 116 * np.cbrt(y) - 16, y * 24389 / 27)
+    return _u8(np.asarray(lstar * 2.55, np.float32))
+
+
 def _translation(dx: float, dy: float) -> npt.NDArray[np.float64]:
     return np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
 
@@ -50,21 +64,23 @@ def test_a_frame_across_a_content_change_gets_its_tags_from_the_frames_around_it
     # The camera drifts 1.5 px a frame to the right; the frame between was exposed 65 % on the old video
     # in the − phase and 35 % on the new in the + phase; the frames around it one phase each.
     before = _shift(old + tags, -3.0, 0.0)
-    target = 0.65 * _shift(old - tags, 0.0, 0.0) + 0.35 * _shift(new + tags, 0.0, 0.0)
+    target = _exposed((0.65, _shift(old - tags, 0.0, 0.0)), (0.35, _shift(new + tags, 0.0, 0.0)))
     after = _shift(new - tags, 3.0, 0.0)
     truth_tags = _shift(tags, 0.0, 0.0)
     lit = np.full((H, W), 255, np.uint8)
     # The warps a prediction gives, 2 px off the truth in opposite directions (a vibrating camera).
     warps = (_translation(-3.0 + 2.0, 0.0), _translation(3.0, 2.0))
-    bridged = bridge_difference(_u8(before), _u8(target), _u8(after), warps, (lit, lit, lit))
+    bridged = bridge_difference(_u8(before), target, _u8(after), warps, (lit, lit, lit))
     assert bridged is not None
-    plain = pair_difference(_u8(before), _u8(target), _translation(-3.0, 0.0), lit, lit)
+    plain = pair_difference(_u8(before), target, _translation(-3.0, 0.0), lit, lit)
 
     def agreement(diff: F32) -> float:
         inner = (slice(20, H - 20), slice(20, W - 20))
         return float(abs(np.corrcoef(diff[inner].ravel(), truth_tags[inner].ravel())[0, 1]))
 
-    assert agreement(bridged.diff) > 0.8  # the tags, whatever their sign
+    # The tags, whatever their sign (each weighted by the slope of lightness where it lies: the camera adds
+    # light). A mix of the frames' lightness instead of their light leaves the content's edges: 0.33.
+    assert agreement(bridged.diff) > 0.6
     assert agreement(plain.diff) < 0.3  # a pair alone: the content's change drowns them
 
 
@@ -85,12 +101,15 @@ def test_which_neighbours_keep_the_tags_of_a_frame_across_a_content_change() -> 
     tags = 3.0 * np.pad(_tags(), 20)
     still = (0.0, 0.0)
 
-    def seen(content: F32, phase: float) -> npt.NDArray[np.uint8]:
-        return _u8(_shift(content + phase * tags, *still))
+    def seen(content: F32, before_flip: float, after_flip: float) -> npt.NDArray[np.uint8]:
+        """A frame of ``content`` whose exposure spans a flip of the phase from ``before_flip`` to
+        ``after_flip`` (the same on both sides: inside one projector frame)."""
+        first, second = _shift(content + before_flip * tags, *still), _shift(content + after_flip * tags, *still)
+        return _exposed((alpha, first), (1 - alpha, second))
 
-    target = _u8(alpha * _shift(old - tags, *still) + (1 - alpha) * _shift(new + tags, *still))
-    two_before, one_before = seen(old, 2 * alpha - 1), seen(old, -1.0)
-    one_after, two_after = seen(new, 1.0), seen(new, 2 * alpha - 1)
+    target = _exposed((alpha, _shift(old - tags, *still)), (1 - alpha, _shift(new + tags, *still)))
+    two_before, one_before = seen(old, 1.0, -1.0), seen(old, -1.0, -1.0)
+    one_after, two_after, three_after = seen(new, 1.0, 1.0), seen(new, 1.0, -1.0), seen(new, -1.0, -1.0)
     truth_tags = _shift(tags, *still)
     lit = np.full((H, W), 255, np.uint8)
     flat = (np.eye(3), np.eye(3))
@@ -103,7 +122,9 @@ def test_which_neighbours_keep_the_tags_of_a_frame_across_a_content_change() -> 
         d, t = bridged.diff[inner].ravel(), truth_tags[inner].ravel()
         return abs(float(np.cov(d, t)[0, 1] / np.var(t)))
 
-    # (A pair of opposite phases has 2.)
+    # (A pair of opposite phases has 2.) The shares are those of the frames' lightness; the camera adds their
+    # light, so a tag counts by the slope of lightness where it lies: on this texture about nine tenths.
     assert tags_left(one_before, one_after) < 0.05  # 0: any mix that explains the content cancels them
-    assert tags_left(two_before, one_after) == pytest.approx(2 * alpha**2, abs=0.05)  # 0.21
-    assert tags_left(two_before, two_after) == pytest.approx(abs(2 - 4 * alpha), abs=0.05)  # 0.70
+    assert tags_left(two_before, one_after) == pytest.approx(2 * alpha**2, rel=0.15)  # 0.21
+    assert tags_left(two_before, two_after) == pytest.approx(abs(2 - 4 * alpha), rel=0.15)  # 0.70
+    assert tags_left(one_before, three_after) == pytest.approx(2 - 2 * alpha, rel=0.15)  # 1.35: the same phase

@@ -41,7 +41,9 @@ class DemodulationConfig(StrictModel):
         description="A frame whose earlier partners give no pose may wait for this many later frames and be "
         "paired with one of them (its pose goes out that much later, in order). Needed whenever the content "
         "changes between two projector frames (half the pairs of a 30 fps video at 60 Hz) or an exposure "
-        "straddles a flip. 0: each pose as soon as its frame is processed, from earlier frames only.",
+        "straddles a flip. 0: each pose as soon as its frame is processed, from earlier frames only. With 2, a "
+        "frame no pair solved waits one frame more, for the bridge across a content change with the frame three "
+        "on (ipt.receiver.bridge).",
     )
     undistort: bool = Field(
         True,

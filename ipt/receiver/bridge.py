@@ -46,8 +46,10 @@ import numpy.typing as npt
 from ipt.receiver.demodulator import DIFF_SIGMA_PX, PairDifference, Undistorter, valid_difference, warp_masks
 from ipt.receiver.frameresult import _Candidate, _Frame
 from ipt.receiver.imagealign import translation
+from ipt.receiver.pose import Pose, pose_of, rt_of
 
 if TYPE_CHECKING:
+    from ipt.receiver.motion import MotionTrack
     from ipt.receiver.track import TrackResult
 
 F64 = npt.NDArray[np.float64]
@@ -65,6 +67,19 @@ MAX_BRIDGES = 2
 #: A shift correction larger than this (pixels) means the fit locked onto something else: no bridge. The
 #: poses' prediction of a vibrating camera is often a few pixels off (1° is 8 px at 640 px wide).
 MAX_REFINE_PX = 12.0
+#: A frame no pair solved is also bridged with the frame before it and the frame three after it (the same
+#: phase, two projector periods apart; see the module's note), so it waits for that frame one frame longer.
+WIDE_AFTER = 3
+
+_L_STAR = np.arange(256, dtype=np.float64) * 100 / 255
+#: 8-bit CIELAB L → linear light (relative luminance Y, 0..255): the camera adds light, not lightness.
+_TO_LINEAR = np.asarray(255 * np.where(_L_STAR > 8, ((_L_STAR + 16) / 116) ** 3, _L_STAR / 903.3), np.float32)
+
+
+def _lightness_u8(linear: F32) -> F32:
+    """8-bit CIELAB L (as a float) of linear light on :data:`_TO_LINEAR`'s scale; the inverse of that table."""
+    y = np.maximum(linear, 0) / 255
+    return np.asarray(2.55 * np.where(y > 216 / 24389, 116 * np.cbrt(y) - 16, 903.3 * y), np.float32)
 
 
 def _shifted(warp: F64, d: F64) -> F64:
@@ -139,12 +154,14 @@ def bridge_difference(
     lock onto the content, which moved); each is corrected by a shift, jointly with the mix (gains g₁, g₂
     and an offset, g₁ + g₂ ≈ 1: the share of old and new content), by Gauss-Newton on the content, which
     dominates. The tags, whose phase differs between the three frames, do not cancel. ``signals`` are the
-    three frames' signal masks (before, target, after).
+    three frames' signal masks (before, target, after). The mix is fitted in linear light, as the camera
+    adds the two pictures, and the difference taken in lightness (8-bit L, as a pair's): a mix of the
+    lightness instead leaves a residue wherever the picture changed, more than ΔL at strong edges.
     """
     h, w = target.shape
     sensor = np.full((h, w), 255, np.uint8) if coverage is None else coverage
-    now = target.astype(np.float32)
-    images = (before.astype(np.float32), after.astype(np.float32))
+    now = _TO_LINEAR[target]
+    images = (_TO_LINEAR[before], _TO_LINEAR[after])
     shifts = [np.zeros(2), np.zeros(2)]
     g = np.array([0.5, 0.5, 0.0])
     for blur_px, stride in REFINE_LEVELS:
@@ -168,7 +185,7 @@ def bridge_difference(
         flat.append(np.asarray(cv2.warpPerspective(image, m, (w, h), flags=cv2.INTER_LINEAR), np.float32))
         moved_signal, moved_sensor = warp_masks(signal, sensor, m)
         lit, seen = np.minimum(lit, moved_signal), np.minimum(seen, moved_sensor)
-    diff = np.asarray(now - (g[0] * flat[0] + g[1] * flat[1] + g[2]), np.float32)
+    diff = np.asarray(target.astype(np.float32) - _lightness_u8(g[0] * flat[0] + g[1] * flat[1] + g[2]), np.float32)
     return valid_difference(diff, seen, lit[::4, ::4] > 0, sigma_px)
 
 
@@ -179,39 +196,81 @@ class ContentBridge:
     undistort: Undistorter | None
     _history: deque[_Frame]
     _bridged: dict[int, int]
-    """How many times the bridge has been tried on each frame."""
+    """How many times the bridge has been tried on each frame with a later partner."""
+    _track: MotionTrack
+    projector_hz: float
+    lookahead: int
 
     if TYPE_CHECKING:  # the pipeline's own stages
 
         def _lap(self, stage: str, t0: float) -> float: ...
-        def _initial_pose(
-            self, target: _Frame, other: _Frame, warp_other_to_target: F64
-        ) -> tuple[tuple[F64, F64], bool] | None: ...
         def _track_guessed(
             self, diff: PairDifference, guess: tuple[tuple[F64, F64], bool], lit: U8 | None
         ) -> TrackResult | None: ...
         def _candidate(self, tracked: TrackResult, partner: int) -> _Candidate: ...
         def _add_candidate(self, target: _Frame, candidate: _Candidate) -> None: ...
-        def _predicted_warp(self, a: _Frame, b: _Frame) -> F64 | None: ...
+        def _predicted_warp(self, a: _Frame, b: _Frame, poses: tuple[Pose, Pose] | None = None) -> F64 | None: ...
 
     def _bridge_pending(self, new: _Frame) -> None:
         """Try the bridge on each frame that ``new`` has just been paired with, that no pair gave a pose and
         that was paired with an earlier frame too: its earliest partner, it and ``new``; once with each of its
-        first :data:`MAX_BRIDGES` later partners (see the module's note on which neighbours keep the tags)."""
+        first :data:`MAX_BRIDGES` later partners; and on the frame :data:`WIDE_AFTER` before ``new``, with the
+        frame before it and ``new`` when those two show the same phase (see the module's note on which
+        neighbours keep the tags)."""
         if not self.tracking:
             return
         for target in self._history:
-            if target.final or target.best is not None or self._bridged.get(target.index, 0) >= MAX_BRIDGES:
+            if target.final or target.best is not None:
+                continue
+            if new.index - target.index == WIDE_AFTER:
+                before = next((f for f in self._history if f.index == target.index - 1), None)
+                if before is not None and self._same_phase(before, new):
+                    self._bridge(before, target, new)
                 continue
             befores = [f for f in self._history if f.index < target.index and f.index in target.tried]
-            if new.index not in target.tried or not befores:
+            if self._bridged.get(target.index, 0) >= MAX_BRIDGES or new.index not in target.tried or not befores:
                 continue
             self._bridged[target.index] = self._bridged.get(target.index, 0) + 1
             self._bridge(min(befores, key=lambda f: f.index), target, new)
 
+    def _bridge_wait(self, frame: _Frame) -> int:
+        """How many frames longer than the pipeline's lookahead ``frame`` waits: one for a frame no pair gave a
+        pose, which may still be bridged with the frame :data:`WIDE_AFTER` after it, when the lookahead is the
+        default two frames (a shorter one was chosen for its latency; a longer one waits long enough)."""
+        return int(self.lookahead == WIDE_AFTER - 1 and self.tracking and frame.best is None and bool(frame.tried))
+
+    def _same_phase(self, a: _Frame, b: _Frame) -> bool:
+        """Whether ``a`` and ``b`` are a whole even number of projector periods apart (within a quarter)."""
+        periods = abs(b.time_us - a.time_us) * 1e-6 * self.projector_hz
+        return periods > 1 and abs(periods - 2 * round(periods / 2)) < 0.25
+
+    def _bridge_pose(self, frame: _Frame) -> Pose | None:
+        """``frame``'s pose for the bridge's warps: found (or its best candidate yet); else between the nearest
+        frames within :data:`WIDE_AFTER` before and after it that have one, in proportion to time (on a vibrating
+        camera far closer than the recent motion's prediction, which is the last resort)."""
+        known = [(f, p) for f in self._history if abs(f.index - frame.index) <= WIDE_AFTER and (p := _found(f))]
+        own = next((p for f, p in known if f is frame), None)
+        if own is not None:
+            return own
+        before = [(f, p) for f, p in known if f.index < frame.index]
+        after = [(f, p) for f, p in known if f.index > frame.index]
+        if not before or not after:
+            return self._track.pose_at(frame.time_us)
+        (f0, (p0, r0)), (f1, (p1, r1)) = before[-1], after[0]
+        s = (frame.time_us - f0.time_us) / (f1.time_us - f0.time_us)
+        turn, _ = cv2.Rodrigues(r0.T @ r1)
+        partial, _ = cv2.Rodrigues(s * turn)
+        return p0 + s * (p1 - p0), np.asarray(r0 @ partial, np.float64)
+
     def _bridge(self, before: _Frame, target: _Frame, after: _Frame) -> None:
         t0 = time.perf_counter()
-        to_target = (self._predicted_warp(before, target), self._predicted_warp(after, target))
+        poses = (self._bridge_pose(before), self._bridge_pose(target), self._bridge_pose(after))
+        if poses[0] is None or poses[1] is None or poses[2] is None:
+            return
+        to_target = (
+            self._predicted_warp(before, target, (poses[0], poses[1])),
+            self._predicted_warp(after, target, (poses[2], poses[1])),
+        )
         if to_target[0] is None or to_target[1] is None:
             return
         assert before.signal is not None
@@ -226,12 +285,15 @@ class ContentBridge:
             self.undistort.coverage if self.undistort is not None else None,
         )
         t0 = self._lap("difference", t0)
-        # The guess from the predicted warp: starting from the one the content fit corrected did no better
-        # (moving-content 93.4 % against 93.9 %).
-        guess = self._initial_pose(target, before, to_target[0])
-        if diff is None or guess is None:
+        if diff is None:
             return
-        tracked = self._track_guessed(diff, guess, target.signal)
+        tracked = self._track_guessed(diff, (rt_of(*poses[1]), True), target.signal)
         self._lap("track", t0)
         if tracked is not None:
             self._add_candidate(target, self._candidate(tracked, before.index))
+
+
+def _found(frame: _Frame) -> Pose | None:
+    """``frame``'s pose, or its best candidate's while it waits for later partners."""
+    rt = frame.rt if frame.rt is not None else frame.best.rt if frame.best is not None else None
+    return None if rt is None else pose_of(*rt)

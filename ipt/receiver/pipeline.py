@@ -55,7 +55,7 @@ from ipt.receiver.frameresult import FrameResult, _Candidate, _Frame, _Pair
 from ipt.receiver.gates import PoseGates
 from ipt.receiver.imagealign import AlignTarget, alignment_features, floor_warp_between, warp_image
 from ipt.receiver.motion import MotionTrack, floor_warp
-from ipt.receiver.pose import PoseEstimate, rt_of, solve_pose
+from ipt.receiver.pose import Pose, PoseEstimate, pose_of, rt_of, solve_pose
 from ipt.receiver.reasons import FrameReason
 from ipt.receiver.scales import DetectScale, ScaleChooser
 from ipt.receiver.secondlook import SecondLook
@@ -336,7 +336,7 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
                 break
         self._bridge_pending(new)
         for f in self._pending:
-            if not f.final and new.index - f.index >= self.lookahead:
+            if not f.final and new.index - f.index >= self.lookahead + self._bridge_wait(f):
                 self._finish(f)
 
     def _finish(self, f: _Frame) -> None:
@@ -374,21 +374,17 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
         self._pairs[key] = pair
         return pair
 
-    def _predicted_warp(self, a: _Frame, b: _Frame) -> F64 | None:
-        """The floor homography from ``a`` to ``b`` from their poses (found or predicted), if trusted."""
+    def _predicted_warp(self, a: _Frame, b: _Frame, poses: tuple[Pose, Pose] | None = None) -> F64 | None:
+        """The floor homography from ``a`` to ``b`` from their ``poses``, else the ones found or predicted, if
+        trusted."""
         if not self.cfg.demodulation.predict_warp:
             return None
         k = self.pinhole.camera_matrix
-        poses = []
-        for f in (a, b):
-            if f.rt is not None:
-                r_cam_arena, _ = cv2.Rodrigues(f.rt[0])
-                poses.append((-r_cam_arena.T @ f.rt[1], r_cam_arena.T))
-            else:
-                predicted = self._track.pose_at(f.time_us)
-                if predicted is None:
-                    return None
-                poses.append(predicted)
+        if poses is None:
+            found = [pose_of(*f.rt) if f.rt is not None else self._track.pose_at(f.time_us) for f in (a, b)]
+            if found[0] is None or found[1] is None:
+                return None
+            poses = (found[0], found[1])
         warp = floor_warp(k, poses[0], poses[1])
         if warp is None:
             return None

@@ -23,12 +23,15 @@ from ipt.receiver.detector import TagDetection
 from ipt.tagmap import TagMap
 
 F64 = npt.NDArray[np.float64]
+Pose = tuple[F64, F64]
+"""A camera pose: (position_m, r_arena_cam)."""
 
 #: Floor on the corner noise used for the covariance (a perfect fit does not make a perfect pose).
 MIN_CORNER_SIGMA_PX = 0.3
 
 
-def _pose_of(rvec: F64, tvec: F64) -> tuple[F64, F64]:
+def pose_of(rvec: F64, tvec: F64) -> tuple[F64, F64]:
+    """(position_m, r_arena_cam) of the camera whose OpenCV (rvec, tvec), arena → camera, a PnP fit gives."""
     r_cam_arena, _ = cv2.Rodrigues(rvec)
     r_arena_cam = np.asarray(r_cam_arena, np.float64).T
     return -r_arena_cam @ tvec.reshape(3), r_arena_cam
@@ -56,14 +59,14 @@ def _covariances(obj: F64, rvec: F64, tvec: F64, camera: CameraInfo, sigma_px: f
 def pose_covariances(rvec: F64, tvec: F64, cov_rt: F64) -> tuple[F64, F64]:
     """The covariance of (rvec, tvec) (6x6, OpenCV's arena → camera) carried to the camera's position in
     the arena and to a small rotation about the arena axes (each 3x3)."""
-    position0, r0 = _pose_of(rvec, tvec)
+    position0, r0 = pose_of(rvec, tvec)
     jp = np.zeros((3, 6))
     ja = np.zeros((3, 6))
     eps = 1e-6
     for i in range(6):
         d = np.zeros(6)
         d[i] = eps
-        position1, r1 = _pose_of(rvec.reshape(3) + d[:3], tvec.reshape(3) + d[3:])
+        position1, r1 = pose_of(rvec.reshape(3) + d[:3], tvec.reshape(3) + d[3:])
         jp[:, i] = (position1 - position0) / eps
         # The small rotation about arena axes: r1 r0ᵀ ≈ I + [δ]×. (cv2.Rodrigues returns 0 for angles this
         # small, which once made every attitude covariance zero.)
@@ -107,7 +110,7 @@ class PoseEstimate:
 def estimate_from(rvec: F64, tvec: F64, cov_rt: F64, tag_ids: tuple[int, ...], rms_px: float) -> PoseEstimate:
     """A :class:`PoseEstimate` from OpenCV's (rvec, tvec) and their covariance."""
     rvec, tvec = np.asarray(rvec, np.float64), np.asarray(tvec, np.float64)
-    position_m, r_arena_cam = _pose_of(rvec, tvec)
+    position_m, r_arena_cam = pose_of(rvec, tvec)
     cov_p, cov_a = pose_covariances(rvec, tvec, cov_rt)
     return PoseEstimate(position_m, r_arena_cam, tag_ids, rms_px, cov_p, cov_a)
 
@@ -167,7 +170,7 @@ def solve_pose(
         rms = float(np.sqrt(np.mean(err**2)))
         if not np.isfinite(rms) or rms > max_rms:
             return None
-        position_m, r_arena_cam = _pose_of(rvec, tvec)
+        position_m, r_arena_cam = pose_of(rvec, tvec)
         cov_p, cov_a = _covariances(obj, rvec, tvec, camera, max(rms, MIN_CORNER_SIGMA_PX))
         return PoseEstimate(position_m, r_arena_cam, ids, rms, cov_p, cov_a)
     return None
