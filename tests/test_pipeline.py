@@ -312,3 +312,32 @@ def test_a_detector_failure_is_flagged_on_exactly_one_result(
     assert calls["n"] > 1
     assert sum(r.detector_failed for r in results) == 1
     assert sum(r.pose is not None for r in results) >= 20  # and it went on
+
+
+def test_a_frame_whose_only_good_pair_is_with_a_later_frame_that_has_its_pose_still_gets_that_pair(
+    short_flight: Path,
+    frames: list,  # type: ignore[type-arg]
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # Frame 20's pairs fail except the one with frame 21, which finds its own pose with frame 19 first (a
+    # projector period before: the better phase). Frame 21 is still paired with 20, for 20's sake. (No bridge,
+    # which would otherwise try frame 20 with the frames around it.)
+    only, truth = 20, read_tum(short_flight / "groundtruth.tum")
+    solve = Pipeline._solve
+
+    def one_good_pair(self: Pipeline, a: _Frame, b: _Frame, target: _Frame) -> None:
+        other = b if target is a else a
+        if target.index == only and other.index != only + 1:
+            target.tried.add(other.index)
+            target.failure = FrameResult(target.index, target.time_us, None, 0, FrameReason.LOST)
+            return
+        solve(self, a, b, target)
+
+    monkeypatch.setattr(Pipeline, "_solve", one_good_pair)
+    monkeypatch.setattr(Pipeline, "_bridge", lambda self, before, target, after: None)
+    results = _run(_pipeline(short_flight, PipelineConfig()), frames)
+    assert results[only + 1].pose is not None
+    assert results[only + 1].partner == only - 1
+    assert results[only].partner == only + 1
+    assert results[only].pose is not None
+    assert np.linalg.norm(results[only].pose.position_m - truth.positions_m[only]) < 0.005

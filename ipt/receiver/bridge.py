@@ -16,21 +16,31 @@ phase −S) and 1 − α after it (new content N, phase +S): its tags are (1 −
 away lie wholly inside those two projector frames (O − S and N + S): any mix of them that explains the
 content, α and 1 − α, cancels the tags exactly. Two frames away they straddle the flips before and after
 it as it does, with the same α (O + (2α − 1)S, N + (2α − 1)S). With the earlier one at two frames, the
-later one at one frame leaves 2α²·S and the later one at two frames |2 − 4α|·S: each is weak where the
-other is not (α = 0.325 on the suite's flights, 1.3 ms of a 4 ms exposure: 0.21 against 0.70; a pair of
-opposite phases has 2). So a frame is bridged with its next later partner and, if that gives no pose,
-with the one after it (no later result: a frame waits for the partner two frames on anyway):
-moving-content 94.7 → 95.3 % (33 frames bridged, 30 of them with the partner two frames on; a frame
-whose next frame found its pose with another partner is first paired with the one after it anyway), fast
-unchanged (78.3 %) at a cost: 343 bridges tried instead of 219, its difference stage 19.0 ms a frame
-instead of 14.1 (two replays side by side, one per core). Trying the second only when a mix explained the
-frame the first time kept fast at 281 tries but moving-content at 95.0 %.
+later one at one frame leaves 2α²·S and the later one at two frames |2 − 4α|·S. The frame one before and
+the frame three after lie inside the old and the new projector frame of the same phase (O − S, N − S):
+they leave (2 − 2α)·S, at least S whenever the frame is mostly new content (α = 0.325 on the suite's
+flights, 1.3 ms of a 4 ms exposure: 0.21, 0.70 and 1.35; a pair of opposite phases has 2). So a frame is
+bridged with its earliest partner and its next later partner, then the one after it, as they come, and
+last with the frame before it and the frame three on, for which it waits one frame longer (at the default
+lookahead of two frames; its result comes out 25 ms after it instead of 17).
 
-Measured (8 s suite flights, before → after): moving-content 90.4 → 93.9 %, shadow-vibration 88.3 →
-90.3 %, take-off 68.2 → 70.4 % (0.7-1.2 m 89.6 → 91.5 %), smooth 99.8 → 100 %; MAE unchanged within
-0.1 mm, no pose over 10 cm. The warps come from the poses (found or predicted), corrected by the fit:
-the pairs' own alignment, made from the images, locks onto the moving content instead (2 of 38 frames
-bridged with it, 17 of 38 with the poses' warps corrected, on moving-content's first 460 frames).
+Light, not lightness. The camera adds the light of the two pictures; a mix of their lightness (CIELAB L,
+what the pipeline works in) leaves a residue wherever the picture changed, larger than ΔL at strong
+edges. The mix is fitted on linear light (a 256-entry table) and the difference taken in lightness.
+
+Warps. They come from the poses of the three frames, corrected by the fit: the pairs' own alignment, made
+from the images, locks onto the moving content instead. The frame being bridged has none, and the recent
+motion's prediction misses a vibrating camera by pixels (5-20 px on the fast flight), so its pose is put
+between the nearest frames before and after it that have one, in proportion to time, and its track starts
+there.
+
+Measured on the suite's renderings (diagnostic replays, one flight per core; moving-content / fast): the
+first bridge 93.9 % on moving-content (90.4 % without); the second later partner 95.3 / 78.3 %; the mix in
+linear light 96.7 / 82.9 %; with the frames one before and three on 97.6 / 83.2 %; the frame's pose
+between its neighbours' 99.0 / 84.1 % (at cbd8279: shadow-vibration 98.0 → 98.6 %, independent 88.6 →
+92.4 %, take-off's 0.7-1.2 m band 94.3 → 99.1 %, `ipt demo` 94.1 → 97.8 %). The frames one before and
+three on alone, without the other two bridges, cost a third of the difference stage on fast (4.2 against
+12-24 ms a frame) but gave 81.5 %.
 """
 
 from __future__ import annotations

