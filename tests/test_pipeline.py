@@ -13,7 +13,7 @@ from ipt.config.camera_info import load_camera_info
 from ipt.config.models import ConfigError, DemodulationConfig, PipelineConfig, load_arena_config
 from ipt.receiver.detector import DetectorError
 from ipt.receiver.pipeline import FrameResult, Pipeline, _Frame
-from ipt.receiver.pose import PoseEstimate
+from ipt.receiver.pose import PoseEstimate, rt_of
 from ipt.receiver.reasons import FrameReason
 from ipt.tagmap import grid_tag_map
 from ipt.tum import read_tum
@@ -341,3 +341,67 @@ def test_a_frame_whose_only_good_pair_is_with_a_later_frame_that_has_its_pose_st
     assert results[only].partner == only + 1
     assert results[only].pose is not None
     assert np.linalg.norm(results[only].pose.position_m - truth.positions_m[only]) < 0.005
+
+
+def test_a_frame_no_pair_solved_waits_for_the_bridge_with_the_frame_three_on(
+    short_flight: Path,
+    frames: list,  # type: ignore[type-arg]
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # Every pair of frame 20 fails (as across a content change on textured video): it comes out one frame later
+    # than the others (when frame 23 arrives, not 22), after the bridges with its partners and the last one,
+    # with frame 19 and frame 23 (the same phase, two projector periods apart), whose pose it takes.
+    failing, truth = 20, read_tum(short_flight / "groundtruth.tum")
+    solve, bridge = Pipeline._solve, Pipeline._bridge
+    bridged: list[tuple[int, int, int]] = []
+
+    def failing_pairs(self: Pipeline, a: _Frame, b: _Frame, target: _Frame) -> None:
+        if target.index == failing:
+            target.tried.add((b if target is a else a).index)
+            target.failure = FrameResult(target.index, target.time_us, None, 0, FrameReason.LOST)
+            return
+        solve(self, a, b, target)
+
+    def last_bridge_only(self: Pipeline, before: _Frame, target: _Frame, after: _Frame) -> None:
+        bridged.append((before.index, target.index, after.index))
+        if after.index - target.index == 3:
+            bridge(self, before, target, after)
+
+    monkeypatch.setattr(Pipeline, "_solve", failing_pairs)
+    monkeypatch.setattr(Pipeline, "_bridge", last_bridge_only)
+    p = _pipeline(short_flight, PipelineConfig())
+    came_out_with: dict[int, int] = {}
+    results: dict[int, FrameResult] = {}
+    for k, f in enumerate(frames[:40]):
+        for r in p.process(k, f, _t_us(k)):
+            came_out_with[r.index], results[r.index] = k, r
+    assert came_out_with[failing] == failing + 3
+    assert came_out_with[failing + 1] == failing + 3  # in frame order, as it would have anyway
+    assert came_out_with[failing - 1] == failing + 1
+    assert [b for b in bridged if b[1] == failing][-1] == (failing - 1, failing, failing + 3)
+    assert results[failing].pose is not None
+    assert np.linalg.norm(results[failing].pose.position_m - truth.positions_m[failing]) < 0.005
+
+
+def test_the_bridge_puts_a_frame_without_a_pose_between_its_neighbours(short_flight: Path) -> None:
+    p = _pipeline(short_flight, PipelineConfig())
+    lum = np.zeros((4, 4), np.uint8)
+    turn = cv2.Rodrigues(np.array([0.0, 0.0, 0.3]))[0]  # 0.3 rad about the optical axis over 3 frames
+    poses = {
+        9: (np.array([0.0, 0.0, 1.0]), np.diag([1.0, -1.0, -1.0])),
+        12: (np.array([0.3, -0.6, 1.3]), np.diag([1.0, -1.0, -1.0]) @ turn),
+    }
+    for k in range(8, 14):
+        f = _Frame(k, _t_us(k), lum)
+        if k in poses:
+            f.rt = rt_of(*poses[k])
+        p._history.append(f)
+    middle = p._history[2]  # frame 10: a third of the way from frame 9 to frame 12 (whole microseconds)
+    s = (_t_us(10) - _t_us(9)) / (_t_us(12) - _t_us(9))
+    position_m, r_arena_cam = p._bridge_pose(middle)  # type: ignore[misc]
+    np.testing.assert_allclose(position_m, s * np.array([0.3, -0.6, 0.3]) + [0, 0, 1], atol=1e-9)
+    third = cv2.Rodrigues(np.array([0.0, 0.0, 0.3 * s]))[0]
+    np.testing.assert_allclose(r_arena_cam, np.diag([1.0, -1.0, -1.0]) @ third, atol=1e-9)
+    own = p._bridge_pose(p._history[1])  # frame 9 has its own pose
+    assert own is not None
+    np.testing.assert_allclose(own[0], poses[9][0], atol=1e-9)
