@@ -19,8 +19,8 @@ import contextlib
 import contextvars
 import errno
 import os
+import secrets
 import stat
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -33,7 +33,9 @@ DISK_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EFBIG})
 """The ``errno`` values that mean the file system cannot take the file, whatever was being written."""
 
 _PARTIAL = ".partial"
-_RANDOM_CHARS = 8  # what tempfile adds to a name
+_RANDOM_CHARS = 8  # the random part of a temporary name
+#: A new temporary file, never an existing one or a link (as :func:`tempfile.mkstemp` makes it).
+_CREATE_FLAGS = os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
 _MAX_TEMP_SUFFIX_BYTES = 16  # a longer "suffix" is not a file type: left out of the temporary name
 
 
@@ -162,19 +164,32 @@ def atomic_path(target: str | Path) -> Iterator[Path]:
     """
     t = Path(target)
     parent = t.parent if str(t.parent) else Path(".")
-    try:
-        prefix, suffix = _temp_affixes(t, parent)
-        fd, tmp = tempfile.mkstemp(dir=parent, prefix=prefix, suffix=suffix)
-    except OSError as exc:
-        raise _write_error(t, exc) from None
-    except ValueError:  # a NUL character in the name
-        raise WriteError(errno.EINVAL, "the name contains a NUL character", str(t)) from None
-    tmp_path = Path(tmp)
     group = _GROUP.get()
     kept = False
+    tmp_path: Path | None = None
     try:
+        # The temporary file's name is known (and cleaned up by ``finally``) before the file exists: a stop
+        # signal's exception can come between any two statements, and one that came between making the file
+        # and entering a ``try`` left a hidden .partial file behind.
+        try:
+            prefix, suffix = _temp_affixes(t, parent)
+            for _ in range(100):
+                tmp_path = parent / f"{prefix}{secrets.token_hex(_RANDOM_CHARS // 2)}{suffix}"
+                try:
+                    fd = os.open(tmp_path, _CREATE_FLAGS, _FILE_MODE)
+                    break
+                except FileExistsError:
+                    tmp_path = None
+            else:
+                raise FileExistsError(errno.EEXIST, "no free temporary name", str(parent))
+        except OSError as exc:
+            tmp_path = None  # nothing was made (and a read-only disk refuses even to unlink what is not there)
+            raise _write_error(t, exc) from None
+        except ValueError:  # a NUL character in the name
+            tmp_path = None
+            raise WriteError(errno.EINVAL, "the name contains a NUL character", str(t)) from None
         os.close(fd)
-        os.chmod(tmp, _FILE_MODE)  # mkstemp makes 0600 files; results should be as readable as any other
+        os.chmod(tmp_path, _FILE_MODE)  # as readable as any other result, whatever the umask did
         try:
             yield tmp_path
         except OSError as exc:
@@ -191,7 +206,7 @@ def atomic_path(target: str | Path) -> Iterator[Path]:
             except OSError as exc:
                 raise _write_error(t, exc) from None
     finally:
-        if not kept:
+        if tmp_path is not None and not kept:
             tmp_path.unlink(missing_ok=True)
 
 

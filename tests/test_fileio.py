@@ -41,3 +41,22 @@ def test_temporary_path_keeps_the_suffix(tmp_path: Path) -> None:
         assert tmp.parent == tmp_path
         tmp.write_bytes(b"x")
     assert (tmp_path / "fig.png").read_bytes() == b"x"
+
+
+@pytest.mark.parametrize("step", ["close", "chmod"])
+def test_a_stop_signal_right_after_the_temporary_file_is_made_leaves_nothing(
+    tmp_path: Path, step: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A stop signal's handler raises wherever the program is: here in the first steps after the temporary
+    # file exists, before the body runs (a hidden .partial file was once left by a SIGTERM there).
+    import ipt.fileio as fileio
+
+    def stopped(*args: object) -> None:
+        raise KeyboardInterrupt
+
+    real = getattr(os, step)
+    monkeypatch.setattr(fileio.os, step, lambda *args: (real(*args), stopped())[1])
+    with pytest.raises(KeyboardInterrupt), atomic_path(tmp_path / "poses.tum"):
+        pytest.fail("the body does not run")
+    monkeypatch.undo()
+    assert list(tmp_path.iterdir()) == []
