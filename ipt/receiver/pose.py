@@ -30,7 +30,7 @@ Pose = tuple[F64, F64]
 MIN_CORNER_SIGMA_PX = 0.3
 
 
-def pose_of(rvec: F64, tvec: F64) -> tuple[F64, F64]:
+def pose_of(rvec: F64, tvec: F64) -> Pose:
     """(position_m, r_arena_cam) of the camera whose OpenCV (rvec, tvec), arena → camera, a PnP fit gives."""
     r_cam_arena, _ = cv2.Rodrigues(rvec)
     r_arena_cam = np.asarray(r_cam_arena, np.float64).T
