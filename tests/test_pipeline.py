@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -314,6 +315,22 @@ def test_a_detector_failure_is_flagged_on_exactly_one_result(
     assert sum(r.pose is not None for r in results) >= 20  # and it went on
 
 
+def _pairs_lost_for(frame: int, but_with: int | None = None) -> Callable[[Pipeline, _Frame, _Frame, _Frame], None]:
+    """``Pipeline._solve`` for which every pair of ``frame`` is lost (its partner tried, no candidate), but the
+    one with frame ``but_with``."""
+    solve = Pipeline._solve
+
+    def solve_or_lose(self: Pipeline, a: _Frame, b: _Frame, target: _Frame) -> None:
+        other = b if target is a else a
+        if target.index == frame and other.index != but_with:
+            target.tried.add(other.index)
+            target.failure = FrameResult(target.index, target.time_us, None, 0, FrameReason.LOST)
+            return
+        solve(self, a, b, target)
+
+    return solve_or_lose
+
+
 def test_a_frame_whose_only_good_pair_is_with_a_later_frame_that_has_its_pose_still_gets_that_pair(
     short_flight: Path,
     frames: list,  # type: ignore[type-arg]
@@ -323,17 +340,7 @@ def test_a_frame_whose_only_good_pair_is_with_a_later_frame_that_has_its_pose_st
     # projector period before: the better phase). Frame 21 is still paired with 20, for 20's sake. (No bridge,
     # which would otherwise try frame 20 with the frames around it.)
     only, truth = 20, read_tum(short_flight / "groundtruth.tum")
-    solve = Pipeline._solve
-
-    def one_good_pair(self: Pipeline, a: _Frame, b: _Frame, target: _Frame) -> None:
-        other = b if target is a else a
-        if target.index == only and other.index != only + 1:
-            target.tried.add(other.index)
-            target.failure = FrameResult(target.index, target.time_us, None, 0, FrameReason.LOST)
-            return
-        solve(self, a, b, target)
-
-    monkeypatch.setattr(Pipeline, "_solve", one_good_pair)
+    monkeypatch.setattr(Pipeline, "_solve", _pairs_lost_for(only, but_with=only + 1))
     monkeypatch.setattr(Pipeline, "_bridge", lambda self, before, target, after: None)
     results = _run(_pipeline(short_flight, PipelineConfig()), frames)
     assert results[only + 1].pose is not None
@@ -352,22 +359,15 @@ def test_a_frame_no_pair_solved_waits_for_the_bridge_with_the_frame_three_on(
     # than the others (when frame 23 arrives, not 22), after the bridges with its partners and the last one,
     # with frame 19 and frame 23 (the same phase, two projector periods apart), whose pose it takes.
     failing, truth = 20, read_tum(short_flight / "groundtruth.tum")
-    solve, bridge = Pipeline._solve, Pipeline._bridge
+    bridge = Pipeline._bridge
     bridged: list[tuple[int, int, int]] = []
-
-    def failing_pairs(self: Pipeline, a: _Frame, b: _Frame, target: _Frame) -> None:
-        if target.index == failing:
-            target.tried.add((b if target is a else a).index)
-            target.failure = FrameResult(target.index, target.time_us, None, 0, FrameReason.LOST)
-            return
-        solve(self, a, b, target)
 
     def last_bridge_only(self: Pipeline, before: _Frame, target: _Frame, after: _Frame) -> None:
         bridged.append((before.index, target.index, after.index))
         if after.index - target.index == 3:
             bridge(self, before, target, after)
 
-    monkeypatch.setattr(Pipeline, "_solve", failing_pairs)
+    monkeypatch.setattr(Pipeline, "_solve", _pairs_lost_for(failing))
     monkeypatch.setattr(Pipeline, "_bridge", last_bridge_only)
     p = _pipeline(short_flight, PipelineConfig())
     came_out_with: dict[int, int] = {}

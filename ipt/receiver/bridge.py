@@ -214,6 +214,7 @@ class ContentBridge:
     if TYPE_CHECKING:  # the pipeline's own stages
 
         def _lap(self, stage: str, t0: float) -> float: ...
+        def _phase_error(self, dt_us: int) -> float: ...
         def _track_guessed(
             self, diff: PairDifference, guess: tuple[tuple[F64, F64], bool], lit: U8 | None
         ) -> TrackResult | None: ...
@@ -250,18 +251,19 @@ class ContentBridge:
         return int(self.lookahead == WIDE_AFTER - 1 and self.tracking and frame.best is None and bool(frame.tried))
 
     def _same_phase(self, a: _Frame, b: _Frame) -> bool:
-        """Whether ``a`` and ``b`` are a whole even number of projector periods apart (within a quarter)."""
-        periods = abs(b.time_us - a.time_us) * 1e-6 * self.projector_hz
-        return periods > 1 and abs(periods - 2 * round(periods / 2)) < 0.25
+        """Whether ``a`` and ``b`` are a whole even number of projector periods apart (within a quarter): as far
+        from an odd number as can be (the pairing's phase error, which is 0 for opposite phases)."""
+        dt_us = b.time_us - a.time_us
+        return abs(dt_us) * 1e-6 * self.projector_hz > 1 and self._phase_error(dt_us) > 0.75
 
     def _bridge_pose(self, frame: _Frame) -> Pose | None:
         """``frame``'s pose for the bridge's warps: found (or its best candidate yet); else between the nearest
         frames within :data:`WIDE_AFTER` before and after it that have one, in proportion to time (on a vibrating
         camera far closer than the recent motion's prediction, which is the last resort)."""
-        known = [(f, p) for f in self._history if abs(f.index - frame.index) <= WIDE_AFTER and (p := _found(f))]
-        own = next((p for f, p in known if f is frame), None)
+        own = _found(frame)
         if own is not None:
             return own
+        known = [(f, p) for f in self._history if abs(f.index - frame.index) <= WIDE_AFTER and (p := _found(f))]
         before = [(f, p) for f, p in known if f.index < frame.index]
         after = [(f, p) for f, p in known if f.index > frame.index]
         if not before or not after:
@@ -304,6 +306,6 @@ class ContentBridge:
 
 
 def _found(frame: _Frame) -> Pose | None:
-    """``frame``'s pose, or its best candidate's while it waits for later partners."""
+    """``frame``'s pose; for a frame whose best fit the gates held back, that fit's (still a close guess)."""
     rt = frame.rt if frame.rt is not None else frame.best.rt if frame.best is not None else None
     return None if rt is None else pose_of(*rt)
