@@ -256,3 +256,40 @@ def test_a_cache_that_cannot_be_written_is_said_and_the_table_still_completes(
     assert f"cannot keep it in {cache_path(blocker / 'sub', DELTA_L, 2.0)}" in said
     assert said.endswith("computed at every start")
     assert [p.name for p in tmp_path.iterdir()] == ["file"]
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+def test_a_complete_table_takes_the_kernel_without_colour_maths_and_gives_the_same_frames(
+    complete: tuple[PairTable, Path], threads: int
+) -> None:
+    rng = np.random.default_rng(8)
+    rgb = rng.integers(0, 256, (131, 67, 3), dtype=np.uint8)  # 131 rows: split over 3 threads
+    rgb[:5] = CORNERS[rng.integers(0, len(CORNERS), (5, 67))]  # pure colours, where the allowance moves pairs
+    mask = rng.integers(-1, 2, rgb.shape[:2]).astype(np.int8)
+    mask.flat[-1] = -1  # the last pixel (written byte by byte) a black tag pixel
+    lazy = IptModulator(mask, DELTA_L, clip_allowance_l8=2.0)
+    filled = IptModulator(mask, DELTA_L, threads=threads, clip_allowance_l8=2.0)
+    filled._pairs = complete[0]
+    try:
+        assert filled._kernel() is pairs._modulate_rows_filled_c
+        want = _reference_frames(complete[0], rgb, mask)
+        for fill in (0, 255):
+            plus = np.full(rgb.size + 1, fill, np.uint8)
+            minus = np.full(rgb.size + 1, fill, np.uint8)
+            got = filled.phases(rgb, (plus[:-1].reshape(rgb.shape), minus[:-1].reshape(rgb.shape)))
+            assert np.array_equal(got[0], want[0])
+            assert np.array_equal(got[1], want[1])
+            assert (plus[-1], minus[-1]) == (fill, fill)  # nothing written past the frame
+        for sign, frame in ((1, want[0]), (-1, want[1])):
+            assert np.array_equal(filled.phase_frame(rgb, sign), frame)
+            assert np.array_equal(lazy.phase_frame(rgb, sign), frame)
+        parts = (np.zeros_like(rgb), np.zeros_like(rgb))
+        for r0, r1 in ((0, 1), (1, 70), (70, 70), (70, 131)):
+            filled.phases_rows(rgb, parts, r0, r1)
+        assert np.array_equal(parts[0], want[0])
+        assert np.array_equal(parts[1], want[1])
+        region = (3, 7, 40, 90)
+        crop = np.ascontiguousarray(rgb[7:90, 3:40])
+        assert np.array_equal(filled.phase_region(crop, 1, region), want[0][7:90, 3:40])
+    finally:
+        filled.close()

@@ -53,7 +53,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.errors import IptError
-from ipt.sender.pairs import JIT_UNAVAILABLE, _modulate_rows_c, amplitude_grid
+from ipt.sender.pairs import JIT_UNAVAILABLE, _modulate_rows_c, _modulate_rows_filled_c, amplitude_grid
 from ipt.sender.pairtable import pair_table
 
 __all__ = ["JIT_UNAVAILABLE", "amplitude_grid"]  # re-exported: the simulator and the tests take them from here
@@ -325,6 +325,7 @@ class IptModulator:
         tiny = np.zeros((1, 1, 3), np.uint8)
         one = np.ones((1, 1), np.int8)
         _modulate_rows_c(tiny, one, *self._pairs.args(), tiny.copy(), tiny.copy(), True, True, 0, 1)
+        _modulate_rows_filled_c(tiny, one, *self._pairs.args(), tiny.copy(), tiny.copy(), True, True, 0, 1)
         self._pool = ThreadPoolExecutor(threads - 1, thread_name_prefix="ipt-modulate") if threads > 1 else None
 
     def close(self) -> None:
@@ -363,6 +364,7 @@ class IptModulator:
         dummy = plus if plus is not None else minus
         assert dummy is not None
         row0, row1 = (0, rgb.shape[0]) if rows is None else rows
+        kernel = self._kernel()  # before the table's arrays: a table completed meanwhile is a new array
         args: tuple[Any, ...] = (
             rgb,
             mask,
@@ -373,14 +375,18 @@ class IptModulator:
             minus is not None,
         )
         if self._pool is None or row1 - row0 < 64:
-            _modulate_rows_c(*args, row0, row1)
+            kernel(*args, row0, row1)
             return
         bounds = [row0 + (row1 - row0) * k // self.threads for k in range(self.threads + 1)]
         calls: list[tuple[Any, ...]] = [(*args, r0, r1) for r0, r1 in itertools.pairwise(bounds[1:])]
-        futures = [self._pool.submit(_modulate_rows_c, *call) for call in calls]
-        _modulate_rows_c(*args, bounds[0], bounds[1])
+        futures = [self._pool.submit(kernel, *call) for call in calls]
+        kernel(*args, bounds[0], bounds[1])
         for f in futures:
             f.result()
+
+    def _kernel(self) -> Any:
+        """The frame kernel: the one without colour maths once every colour's pair is in the table."""
+        return _modulate_rows_filled_c if self._pairs.complete else _modulate_rows_c
 
     def _output(self, given: U8 | None) -> U8:
         shape = (self.height_px, self.width_px, 3)
@@ -436,7 +442,8 @@ class IptModulator:
         rgb = np.ascontiguousarray(frame_rgb)
         mask = np.ascontiguousarray(self.mask[y0:y1, x0:x1])
         out = np.empty_like(rgb)
-        _modulate_rows_c(rgb, mask, *self._pairs.args(), out, out, sign > 0, sign <= 0, 0, rgb.shape[0])
+        kernel = self._kernel()
+        kernel(rgb, mask, *self._pairs.args(), out, out, sign > 0, sign <= 0, 0, rgb.shape[0])
         return out
 
     def modulate(self, frame_rgb: U8, first_output_index: int, count: int) -> list[U8]:

@@ -35,7 +35,10 @@ pixels outside the tags copied, tag pixels looked up (and filled if new). It rea
 unaligned 32-bit load, writes it as one 32-bit store (the fourth byte is overwritten by the next pixel;
 the last pixel of a range is written byte by byte, so ranges written by different threads never
 overlap) and prefetches the table entry of the pixel 64 ahead: on photographic content the entries of a
-frame span megabytes, and waiting for each in turn doubled the time of the pass.
+frame span megabytes, and waiting for each in turn doubled the time of the pass. Once the table is
+complete, :func:`_modulate_rows_filled` does the same without the branch that fills new colours: every tag
+pixel is one load from the table and a select of its sign, which takes about half the time (the call to
+the colour maths inside the loop kept the compiled loop from being tight).
 """
 
 from __future__ import annotations
@@ -560,6 +563,64 @@ def _modulate_rows(
                 minus[j], minus[j + 1], minus[j + 2] = down & m8, (down >> sh8) & m8, (down >> sh16) & m8
 
 
+def _modulate_rows_filled(
+    rgb: U8,
+    mask: npt.NDArray[np.int8],
+    table: U64,
+    lin: F64,
+    mids: F64,
+    agrid: F64,
+    w: F64,
+    target: float,
+    budget: float,
+    out_plus: U8,
+    out_minus: U8,
+    want_plus: bool,
+    want_minus: bool,
+    row0: int,
+    row1: int,
+) -> None:
+    """:func:`_modulate_rows` for a complete table (every entry filled): the same frames, no colour maths.
+    The arguments are :func:`_modulate_rows`' (those for the colour maths unused), so the two swap."""
+    width = mask.shape[1]
+    first, last = row0 * width, row1 * width - 1  # pixel indices
+    if last < first:
+        return
+    src = rgb.reshape(-1)
+    plus = out_plus.reshape(-1)
+    minus = out_minus.reshape(-1)
+    flat_mask = mask.reshape(-1)
+    low24 = np.uint32(0xFFFFFF)
+    for i in range(first, last):  # the last pixel, below, byte by byte
+        j = 3 * i
+        ahead = i + PREFETCH_PX
+        if ahead < last:
+            _prefetch(table, np.int64(_load_u32(src, 3 * ahead) & low24))
+        px = _load_u32(src, j) & low24
+        m = flat_mask[i]
+        e = table[np.int64(px)]
+        brighter = np.uint32(e & _LOW24)
+        darker = np.uint32((e >> _SHIFT_DOWN) & _LOW24)
+        up = px if m == 0 else (brighter if m > 0 else darker)
+        down = px if m == 0 else (darker if m > 0 else brighter)
+        if want_plus:
+            _store_u32(plus, j, up)
+        if want_minus:
+            _store_u32(minus, j, down)
+    j = 3 * last
+    m = flat_mask[last]
+    e = table[np.int64(src[j]) | (np.int64(src[j + 1]) << 8) | (np.int64(src[j + 2]) << 16)]
+    for c in range(3):
+        shift = np.uint64(8 * c)
+        code = src[j + c]
+        brighter_c = np.uint8((e >> shift) & np.uint64(255))
+        darker_c = np.uint8((e >> (_SHIFT_DOWN + shift)) & np.uint64(255))
+        if want_plus:
+            plus[j + c] = code if m == 0 else (brighter_c if m > 0 else darker_c)
+        if want_minus:
+            minus[j + c] = code if m == 0 else (darker_c if m > 0 else brighter_c)
+
+
 _load_u32, _store_u32, _prefetch = intrinsics()
 
 # The compiled versions. Each function calls the compiled version of the ones above it, looked up as a
@@ -582,6 +643,7 @@ _fill_range_c: Any = jit(_fill_range)
 _fill_codes_c: Any = jit(_fill_codes)
 _compute_codes_c: Any = jit(_compute_codes)
 _modulate_rows_c: Any = jit(_modulate_rows)
+_modulate_rows_filled_c: Any = jit(_modulate_rows_filled)
 
 JIT_UNAVAILABLE: str | None = jit_module.JIT_UNAVAILABLE
 """Why numba cannot compile here, or None if it can (:data:`ipt.sender.jit.JIT_UNAVAILABLE`, settled by
