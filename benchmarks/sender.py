@@ -14,7 +14,11 @@ Content (``--content``): ``photos`` (default) is a video this script makes once 
 ``benchmarks/.cache/``) from :class:`~ipt.sender.photos.PanningPhotoScene` with a seed nothing else uses:
 1280x720 at 30 fps, panning 3-10 px a frame over photographs, fractal terrain, dead leaves, clouds and
 colour bars with grey ramps, a cut every 2.5 s, so it is decoded, resized to the projector and re-timed
-like a user's video; ``map`` is the generated map app; anything else is a video file or image folder.
+like a user's video. It is H.264 (libx264, CRF 18, as a user's video usually comes: 3 ms a frame to
+decode here). ``photos-ffv1`` is the same frames lossless (FFV1), what this benchmark used before: its
+frames are 1 MB each and take 67 ms of processor time each to decode here, more than one core gives at
+30 fps, so no player could show it on time on this machine and the sender misses deadlines waiting for
+its content thread. ``map`` is the generated map app; anything else is a video file or image folder.
 
 ``work_p50_ms``/``work_p99_ms`` are the render thread's time per output frame (at the first output frame
 of an input frame: the overlay and both phases; the second reuses them); ``content_*`` is the content
@@ -40,7 +44,10 @@ import time
 from pathlib import Path
 from typing import Any
 
+import av
+
 from ipt.config.models import MIN_TAG_SIZE_PX, ArenaConfig, load_arena_config, shipped_config_path
+from ipt.fileio import atomic_path
 from ipt.geometry import R_BODY_CAM_DOWNWARD, quat_wxyz_from_matrix, rot_z
 from ipt.protocol import PosePacket
 from ipt.sender.content import GeneratedScene, VideoScene
@@ -68,17 +75,32 @@ def process_age_s() -> float:
     return uptime_s - start_ticks / os.sysconf("SC_CLK_TCK")
 
 
-def photo_video(seconds: float = 20.0, width: int = 1280, height: int = 720, fps: int = 30) -> Path:
-    """The photographic content video (made once, then kept): see the module doc."""
-    path = CACHE / f"photos-seed{PHOTO_SEED}-{width}x{height}-{fps}fps-{seconds:g}s.mkv"
+def photo_video(
+    seconds: float = 20.0, width: int = 1280, height: int = 720, fps: int = 30, codec: str = "h264"
+) -> Path:
+    """The photographic content video (made once, then kept), H.264 or FFV1: see the module doc."""
+    suffix = "mp4" if codec == "h264" else "mkv"
+    path = CACHE / f"photos-seed{PHOTO_SEED}-{width}x{height}-{fps}fps-{seconds:g}s.{suffix}"
     if path.exists():
         return path
     CACHE.mkdir(parents=True, exist_ok=True)
     scene = PanningPhotoScene(width, height, seed=PHOTO_SEED)
+    frames = round(seconds * fps)
     print(f"sender benchmark: making {path.name} (once)", file=sys.stderr)
-    with FfvWriter(path, width, height, fps) as writer:
-        for k in range(round(seconds * fps)):
-            writer.write(scene.frame(k, fps))
+    if codec != "h264":
+        with FfvWriter(path, width, height, fps) as writer:
+            for k in range(frames):
+                writer.write(scene.frame(k, fps))
+        return path
+    with atomic_path(path) as tmp, av.open(str(tmp), mode="w", format="mp4") as container:
+        stream = container.add_stream("libx264", rate=fps)
+        stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
+        stream.options = {"crf": "18", "preset": "veryfast"}
+        for k in range(frames):
+            for packet in stream.encode(av.VideoFrame.from_ndarray(scene.frame(k, fps), format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode(None):
+            container.mux(packet)
     return path
 
 
@@ -127,7 +149,12 @@ async def bench(
     profile: str | None,
     threads: int,
     content: str,
+    lookahead: int = 2,
 ) -> dict[str, Any]:
+    made = {"photos": "h264", "photos-ffv1": "ffv1"}
+    t_video = time.monotonic()
+    path = photo_video(codec=made[content]) if content in made else content  # made once: not the sender's start
+    video_s = time.monotonic() - t_video
     t0 = time.monotonic()
     arena = arena_for(width, height, profile)
     ar = ArOverlay(arena)
@@ -136,7 +163,7 @@ async def bench(
         scene = GeneratedScene(width, height)
     else:
         # As ipt-sender plays a video: no cache of the first pass (see ipt/sender/cli.py).
-        scene = VideoScene(photo_video() if content == "photos" else content, width, height, cache_bytes=0)
+        scene = VideoScene(path, width, height, cache_bytes=0)
     input_rate_hz = getattr(scene, "fps", None) or arena.modulation.input_rate_hz
     mod = arena.modulation
     modulator = make_modulator(
@@ -167,6 +194,7 @@ async def bench(
             modulator=modulator,
             input_rate_hz=input_rate_hz,
             log=log,
+            lookahead=lookahead,
         )
     finally:
         stop.set()
@@ -175,8 +203,9 @@ async def bench(
             close = getattr(thing, "close", None)
             if close is not None:
                 close()
-    # The first frame was shown startup_s after run_sender began, which was modulator_s after t0.
-    first_frame_age_s = process_age_s() - (time.monotonic() - t0) + modulator_s + stats.startup_s
+    # The first frame was shown startup_s after run_sender began, which was modulator_s after t0; the time
+    # spent making the benchmark's video (on its first run) is not the sender's.
+    first_frame_age_s = process_age_s() - (time.monotonic() - t0) - video_s + modulator_s + stats.startup_s
     result = stats.to_dict()
     return {
         "benchmark": "sender",
@@ -184,9 +213,12 @@ async def bench(
         "clip_allowance_l8": mod.clip_allowance_l8,
         "delta_l": mod.delta_l,
         "modulator_threads": threads,
-        "content": {"map": "generated map app", "photos": f"photographic video (seed {PHOTO_SEED})"}.get(
-            content, content
-        ),
+        "lookahead": lookahead,
+        "content": {
+            "map": "generated map app",
+            "photos": f"photographic video (seed {PHOTO_SEED}, H.264)",
+            "photos-ffv1": f"photographic video (seed {PHOTO_SEED}, FFV1)",
+        }.get(content, content),
         "vehicles": vehicles,
         "vehicles_drawn": stats.vehicles,
         "poses_fed": fed,
@@ -218,7 +250,8 @@ def main() -> int:
     p.add_argument(
         "--content",
         default="photos",
-        help="photos (default: the photographic video, made once), map (the generated map app), or a video file",
+        help="photos (default: the photographic video, H.264, made once), photos-ffv1 (the same frames lossless: "
+        "slower to decode than real time here), map (the generated map app), or a video file",
     )
     p.add_argument(
         "--warmup",
@@ -228,11 +261,14 @@ def main() -> int:
         help="run S seconds first, in the same process, and report only the run after it (the warm-up is "
         "reported with its own missed count)",
     )
+    p.add_argument(
+        "--lookahead", type=int, default=2, help="frames the render thread may work ahead of the clock (default 2)"
+    )
     args = p.parse_args()
 
     async def runs() -> dict[str, Any]:
         warm: dict[str, Any] | None = None
-        common = (args.vehicles, args.profile, args.threads, args.content)
+        common = (args.vehicles, args.profile, args.threads, args.content, args.lookahead)
         if args.warmup > 0:
             warm = await bench(args.width, args.height, args.warmup, None, *common)
         frames = None if args.seconds is not None else args.frames
