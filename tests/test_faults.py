@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import asyncio
 import io
+import itertools
 import os
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -18,9 +20,10 @@ import numpy.typing as npt
 import pytest
 
 from ipt.config.receiver import ReceiverConfig
+from ipt.receiver import daemon
 from ipt.receiver.capture import CapturedFrame, CaptureError
 from ipt.receiver.daemon import DaemonStats, ResultHook, run_daemon
-from ipt.receiver.pipeline import FrameResult
+from ipt.receiver.pipeline import FrameResult, Pipeline
 from ipt.videoio import open_frames
 
 FPS = 120.0
@@ -302,3 +305,86 @@ def test_killed_sender_leaves_its_port_free_for_the_next_start(tmp_path: Path) -
             first.wait()
     assert still_running, err.decode()
     assert second.returncode == 0, err.decode()
+
+
+class _BurstCamera:
+    """A live camera on a receiver ``slowdown`` times slower than itself, made exact: frames of a recorded
+    flight (looped, stamped 1/FPS apart) are read only when :meth:`burst` allows, ``slowdown`` of them for
+    each frame the pipeline processes, as a camera delivers them meanwhile."""
+
+    name = "burst-camera"
+    live = True
+    retry_open = False
+
+    def __init__(self, frames: list[npt.NDArray[np.uint8]], slowdown: int, total: int) -> None:
+        self.frames, self.slowdown, self.total = frames, slowdown, total
+        self.k = 0
+        self.allowed = 1  # the first frame; then `slowdown` more for each frame processed
+        self.waiting = False  # read() waits for a burst: every frame read so far was handed over
+        self.ended = False
+        self.change = threading.Condition()
+
+    def open(self) -> None:
+        pass
+
+    def burst(self) -> None:
+        """Allow the next ``slowdown`` frames, and return once the capture thread handed them all over."""
+        with self.change:
+            self.allowed = min(self.total, self.allowed + self.slowdown)
+            self.change.notify_all()
+            handed = self.change.wait_for(lambda: self.ended or (self.waiting and self.k >= self.allowed), 10.0)
+        assert handed, "the capture thread did not take the burst"
+
+    def read(self) -> CapturedFrame | None:
+        with self.change:
+            if self.k >= self.total:
+                self.ended = True
+                self.change.notify_all()
+                return None
+            self.waiting = True
+            self.change.notify_all()
+            assert self.change.wait_for(lambda: self.k < self.allowed, 10.0), "no burst came"
+            self.waiting = False
+            k, self.k = self.k, self.k + 1
+        return CapturedFrame(k, round(k * 1e6 / FPS), self.frames[k % len(self.frames)])
+
+    def close(self) -> None:
+        pass
+
+
+@pytest.mark.asyncio
+async def test_a_receiver_slower_than_its_camera_gets_runs_of_consecutive_frames_and_poses(
+    short_flight: Path, flight_frames: list[npt.NDArray[np.uint8]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A Pi 4 is estimated at 55-75 ms a frame against the camera's 8.3 ms: about 8 frames come while one is
+    # processed. Fed the newest frame alone, every 8th, no frame has a partner near enough: no pose at all.
+    slowdown, total = 8, 240
+    camera = _BurstCamera(flight_frames, slowdown, total)
+    loop = asyncio.get_running_loop()
+    processed: list[int] = []
+
+    class _SlowPipeline(Pipeline):
+        def process(self, index: int, frame: npt.NDArray[np.uint8], capture_time_us: int) -> list[FrameResult]:
+            processed.append(index)
+            out = super().process(index, frame, capture_time_us)
+            camera.burst()  # the frames that came while this one was processed ...
+            asyncio.run_coroutine_threadsafe(asyncio.sleep(0), loop).result(10.0)  # ... are in the queue now
+            return out
+
+    monkeypatch.setattr(daemon, "Pipeline", _SlowPipeline)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as listener:
+        listener.bind(("127.0.0.1", 0))
+        send = [f"127.0.0.1:{listener.getsockname()[1]}"]
+        stats = await asyncio.wait_for(
+            run_daemon(_config(short_flight, send), stats_out=io.StringIO(), handle_signals=False, source=camera), 60.0
+        )
+    # The first frame alone, then the newest three of each burst, one run after the other: [6, 7, 8] come
+    # after frame 0 is processed; 9-16 come while 6 is, 17-24 while 7 is, 25-32 while 8 is: [30, 31, 32].
+    runs = [processed[0:1]] + [processed[i : i + 3] for i in range(1, len(processed), 3)]
+    assert runs[:3] == [[0], [6, 7, 8], [30, 31, 32]]
+    assert all(run == list(range(run[0], run[0] + 3)) for run in runs[1:-1])
+    assert all(b[0] - a[-1] == 3 * slowdown - 2 for a, b in itertools.pairwise(runs[1:-1]))
+    assert stats.frames_processed == len(processed)
+    assert stats.frames_processed + stats.drops == total
+    # Every run starts afresh (200 ms since the one before): 15 poses of 34 frames here; every 8th frame: 0 of 31.
+    assert stats.poses >= 0.3 * stats.frames_processed, f"{stats.poses} poses from {stats.frames_processed} frames"

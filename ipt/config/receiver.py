@@ -414,8 +414,9 @@ class ReceiverConfig(StrictModel):
         1,
         ge=1,
         le=64,
-        description="Frames held between capture and processing; a live source drops the oldest (1: the "
-        "pipeline always gets the newest frame, the lowest latency).",
+        description="Frames held between capture and processing when reading a recording. A live camera ignores "
+        "it: it keeps the newest three and hands them over as a run of consecutive frames when processing "
+        "is behind (a pose needs frames close together), the newest alone when it keeps up.",
     )
     camera_controls: CameraControls = Field(
         default_factory=CameraControls, description="Exposure, gain and automatic controls of a real camera."

@@ -12,7 +12,14 @@ Three stages, each on its own thread, joined by bounded queues::
   runs :meth:`Pipeline.process`. From a recording it keeps :data:`MAX_IN_FLIGHT` frames there: while
   frame ``k`` is processed, frame ``k + 1`` is already waiting, so the worker never idles for a round
   trip through the loop, and capture (decode or render) overlaps with processing on another core. From
-  a live source it submits one frame at a time, the newest, for the lowest capture→send latency.
+  a live source it takes the newest frames as a *run* of consecutive ones (at most
+  :data:`LIVE_RUN_FRAMES`, what the queue holds when the worker comes free) and submits the next run once
+  the worker is done with it: a pose needs two frames of opposite phase close in time, so a pipeline slower
+  than the camera must still see frames close together. Taking the newest frame alone, a worker k times
+  slower than the camera saw every k-th frame: beyond about 5 (a Pi 4, by the estimate in
+  ``docs/receiver-cores.md``) no frame had a partner near enough, and not one pose came out; at 3-4 the
+  partners 3-4 frames apart failed on a vibrating camera. When the worker keeps up, a run is one frame,
+  the newest. Figures: ``docs/receiver-cores.md``.
 - **In order**: the pipeline is stateful (each frame is demodulated against the one before), so it
   must see frames in capture order. It does: one coroutine submits them in the order the FIFO queue
   yields them, and one worker thread takes them from the executor's FIFO queue one after the other.
@@ -74,7 +81,12 @@ if TYPE_CHECKING:
 
 MAX_IN_FLIGHT = 2
 """Frames submitted to the pipeline worker at once from a recording (one processing, one waiting); a live
-source submits one at a time, the newest."""
+source submits one run at a time (:data:`LIVE_RUN_FRAMES`)."""
+LIVE_RUN_FRAMES = 3
+"""The longest run of consecutive frames a live source hands the pipeline at once (the queue keeps that many
+newest frames): the frame with its partners one and two frames before it, the best ones (one projector
+period apart, and half of one). Pairs alone did worse on the fast and vibrating flights whenever the
+worker is more than about three times slower than the camera (``docs/receiver-cores.md``)."""
 SHUTDOWN_BUDGET_S = 0.5
 """How long shutdown may take in all, from the stop to the return (the process must be gone within 1 s)."""
 DRAIN_TIMEOUT_S = 0.4
@@ -276,7 +288,7 @@ class _DaemonRun:
             source = make_source(cfg, arena, camera, capture_stop)
         self.source = source
 
-        self.frames: FrameQueue[CapturedFrame] = FrameQueue(cfg.queue_size)
+        self.frames: FrameQueue[CapturedFrame] = FrameQueue(LIVE_RUN_FRAMES if source.live else cfg.queue_size)
         self.capture = CaptureThread(source, self.frames, loop, stop=capture_stop, max_frames=max_frames, report=out)
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ipt-pipeline")
         self.sender = UdpPoseSender(cfg.send_targets)
@@ -286,11 +298,14 @@ class _DaemonRun:
         self.meter = _Meter()
         self.errors_reported = 0
 
-        # A live source: one frame at a time, so that the worker always takes the newest one (a second frame
-        # waiting in the executor would be stale by a whole processing time when its turn comes). A recording
-        # keeps the worker busy instead: the next frame waits while this one is processed.
+        # A live source: one run at a time, so that the worker always takes the newest frames (a frame waiting
+        # in the executor would be stale by a whole processing time when its turn comes). A recording keeps
+        # the worker busy instead: the next frame waits while this one is processed.
         self.slots = asyncio.Semaphore(1 if source.live else MAX_IN_FLIGHT)
-        self.results: asyncio.Queue[tuple[CapturedFrame | None, asyncio.Future[Batch]] | None] = asyncio.Queue()
+        # Each submitted frame with its future, and whether its result frees a slot (a run's last frame).
+        self.results: asyncio.Queue[tuple[CapturedFrame | None, asyncio.Future[Batch], bool] | None] = (
+            asyncio.Queue()
+        )
         self.stage_totals: dict[str, float] | None = getattr(self.pipeline, "stage_seconds", None)
         self.waiting: dict[int, CapturedFrame] = {}
         """Frames processed whose result has not come out yet (the pipeline's look-ahead), by index."""
@@ -373,12 +388,14 @@ class _DaemonRun:
         loop, worker, results = self.loop, self.worker, self.results
         try:
             while True:
-                await self.slots.acquire()  # before taking a frame, so that a live source's newest one is taken
+                await self.slots.acquire()  # before taking a frame, so that a live source's newest ones are taken
                 frame = await self.frames.get()
                 if frame is None:  # the end of a recording: what still waits for later frames comes out
-                    results.put_nowait((None, loop.run_in_executor(worker, self.process, None)))
+                    results.put_nowait((None, loop.run_in_executor(worker, self.process, None), True))
                     return
-                results.put_nowait((frame, loop.run_in_executor(worker, self.process, frame)))
+                run = [frame, *self.frames.take_all()] if self.source.live else [frame]
+                for k, item in enumerate(run):
+                    results.put_nowait((item, loop.run_in_executor(worker, self.process, item), k == len(run) - 1))
         finally:
             results.put_nowait(None)
 
@@ -388,7 +405,7 @@ class _DaemonRun:
             item = await self.results.get()
             if item is None:
                 return
-            frame, fut = item
+            frame, fut, frees_slot = item
             if frame is not None:
                 self.waiting[frame.index] = frame
             batch: list[FrameResult] = []
@@ -398,7 +415,8 @@ class _DaemonRun:
             except Exception as exc:  # a bug or a library failure on one frame: report, count, go on
                 self.processing_failed(frame, stages, exc)
             finally:
-                self.slots.release()
+                if frees_slot:
+                    self.slots.release()
             sent_total = 0
             for result in batch:
                 owner = self.waiting.pop(result.index, None)

@@ -75,6 +75,15 @@ class FrameQueue(Generic[T]):
             self._not_empty.clear()
         return item
 
+    def take_all(self) -> list[T]:
+        """Every item queued now, oldest first, without waiting (a live source's run of frames)."""
+        items = list(self._items)
+        self._items.clear()
+        self._update_full()
+        if not self._finished:
+            self._not_empty.clear()
+        return items
+
     def finish(self, discard: bool = False) -> int:
         """No more items will be put; wakes every waiter. With ``discard``, drops what is queued (not
         counted in :attr:`dropped`) and returns how many."""
