@@ -363,9 +363,17 @@ async def test_a_receiver_slower_than_its_camera_gets_runs_of_consecutive_frames
     loop = asyncio.get_running_loop()
     processed: list[int] = []
 
+    worker_log: list[tuple[str, list[int]]] = []
+
     class _SlowPipeline(Pipeline):
+        def finish_before(self, time_us: int) -> list[FrameResult]:
+            out = super().finish_before(time_us)
+            worker_log.append(("finished", [r.index for r in out]))
+            return out
+
         def process(self, index: int, frame: npt.NDArray[np.uint8], capture_time_us: int) -> list[FrameResult]:
             processed.append(index)
+            worker_log.append(("process", [index]))
             out = super().process(index, frame, capture_time_us)
             camera.burst()  # the frames that came while this one was processed ...
             asyncio.run_coroutine_threadsafe(asyncio.sleep(0), loop).result(10.0)  # ... are in the queue now
@@ -384,6 +392,13 @@ async def test_a_receiver_slower_than_its_camera_gets_runs_of_consecutive_frames
     assert runs[:3] == [[0], [6, 7, 8], [30, 31, 32]]
     assert all(run == list(range(run[0], run[0] + 3)) for run in runs[1:-1])
     assert all(b[0] - a[-1] == 3 * slowdown - 2 for a, b in itertools.pairwise(runs[1:-1]))
+    # The results of a run that waited for later frames come out as soon as the next run is taken, not after
+    # its first frame is processed: no frame 22 or more frames on can be their partner.
+    assert worker_log[:2] == [("process", [0]), ("finished", [0])]
+    assert worker_log[4:7] == [("process", [8]), ("finished", [6, 7, 8]), ("process", [30])]
+    for k, (what, frames) in enumerate(worker_log[2:], 2):  # before each later run, those before it come out
+        if what == "process" and frames[0] in [run[0] for run in runs[2:]]:
+            assert worker_log[k - 1][0] == "finished", worker_log[k - 2 : k + 1]
     assert stats.frames_processed == len(processed)
     assert stats.frames_processed + stats.drops == total
     # Every run starts afresh (200 ms since the one before): 15 poses of 34 frames here; every 8th frame: 0 of 31.

@@ -405,3 +405,32 @@ def test_the_bridge_puts_a_frame_without_a_pose_between_its_neighbours(short_fli
     own = p._bridge_pose(p._history[1])  # frame 9 has its own pose
     assert own is not None
     np.testing.assert_allclose(own[0], poses[9][0], atol=1e-9)
+
+
+def test_finishing_before_a_later_frame_gives_what_processing_it_gives_only_sooner(
+    short_flight: Path,
+    frames: list,  # type: ignore[type-arg]
+) -> None:
+    # A live daemon that fell behind its camera after frame 12 dropped 13-17 and takes 18 next (50 ms later,
+    # past the 43 ms in which a frame may pair): the results waiting for later partners are the same whether
+    # they come out before frame 18 is processed or with it.
+    runs = list(range(13))
+
+    def said(results: list[FrameResult]) -> list[tuple[object, ...]]:
+        return [
+            (r.index, r.reason, r.method, r.partner, None if r.pose is None else tuple(r.pose.position_m))
+            for r in results
+        ]
+
+    early, late = _pipeline(short_flight, PipelineConfig()), _pipeline(short_flight, PipelineConfig())
+    got_early = [r for k in runs for r in early.process(k, frames[k], _t_us(k))]
+    assert said([r for k in runs for r in late.process(k, frames[k], _t_us(k))]) == said(got_early)
+    waiting = [k for k in runs if k not in {r.index for r in got_early}]
+    assert waiting, "some results wait for later frames (the lookahead)"
+    assert early.finish_before(_t_us(16)) == []  # frame 16 could still pair with 11 (42 ms): nothing is final
+    finished = early.finish_before(_t_us(18))
+    assert [r.index for r in finished] == waiting
+    with_18 = late.process(18, frames[18], _t_us(18))
+
+    assert said([r for r in with_18 if r.index != 18]) == said(finished)
+    assert any(r.pose is not None for r in finished)  # not only failures: a pose came out sooner

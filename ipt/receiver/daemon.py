@@ -203,9 +203,7 @@ def make_source(cfg: ReceiverConfig, arena: ArenaConfig, camera: CameraInfo, sto
     if spec.kind in ("video", "images") and spec.path is not None:
         size = (camera.width_px, camera.height_px)
         images = spec.kind == "images"
-        return VideoCapture(
-            spec.path, cfg.fps, cfg.realtime, size=size, sleep=stop.wait, images_only=images, grey=grey
-        )
+        return VideoCapture(spec.path, cfg.fps, cfg.realtime, size=size, sleep=stop.wait, images_only=images, grey=grey)
     w, h = camera.width_px, camera.height_px
     if spec.kind == "device" and spec.device is not None:
         return DeviceCapture(spec.device, w, h, cfg.fps, controls=cfg.camera_controls, grey=grey)
@@ -303,10 +301,10 @@ class _DaemonRun:
         # the worker busy instead: the next frame waits while this one is processed.
         self.slots = asyncio.Semaphore(1 if source.live else MAX_IN_FLIGHT)
         # Each submitted frame with its future, and whether its result frees a slot (a run's last frame).
-        self.results: asyncio.Queue[tuple[CapturedFrame | None, asyncio.Future[Batch], bool] | None] = (
-            asyncio.Queue()
-        )
+        self.results: asyncio.Queue[tuple[CapturedFrame | None, asyncio.Future[Batch], bool] | None] = asyncio.Queue()
         self.stage_totals: dict[str, float] | None = getattr(self.pipeline, "stage_seconds", None)
+        self.last_taken = -1
+        """Index of the last frame taken from a live source (a jump after it: frames were dropped)."""
         self.waiting: dict[int, CapturedFrame] = {}
         """Frames processed whose result has not come out yet (the pipeline's look-ahead), by index."""
         self.tasks: set[asyncio.Task[None]] = set()
@@ -368,6 +366,11 @@ class _DaemonRun:
         task.add_done_callback(self.tasks.discard)
         return task
 
+    def finish_before(self, capture_time_us: int) -> Batch:
+        """On the worker thread: the results no frame captured from ``capture_time_us`` on can change
+        (:meth:`Pipeline.finish_before`)."""
+        return self.pipeline.finish_before(capture_time_us), {}
+
     def process(self, frame: CapturedFrame | None) -> Batch:
         """On the worker thread: the results that became final with this frame (``None``: at the end, all
         that wait) and the processor time each stage took for it (from the pipeline's running totals, read
@@ -394,6 +397,11 @@ class _DaemonRun:
                     results.put_nowait((None, loop.run_in_executor(worker, self.process, None), True))
                     return
                 run = [frame, *self.frames.take_all()] if self.source.live else [frame]
+                if self.source.live and frame.index > self.last_taken + 1:
+                    # Frames were dropped: the results that waited for them come out now, not after this run.
+                    t_us = frame.capture_time_us
+                    results.put_nowait((None, loop.run_in_executor(worker, self.finish_before, t_us), False))
+                self.last_taken = run[-1].index
                 for k, item in enumerate(run):
                     results.put_nowait((item, loop.run_in_executor(worker, self.process, item), k == len(run) - 1))
         finally:
@@ -427,7 +435,8 @@ class _DaemonRun:
                 self.on_processed(frame, sent_total)
 
     def processing_failed(self, frame: CapturedFrame | None, stages: dict[str, float], exc: Exception) -> None:
-        """Count and report a frame whose processing raised (``None``: the flush at the end)."""
+        """Count and report a frame whose processing raised (``None``: finishing the frames that waited, at the
+        end or after dropped frames)."""
         if frame is not None:
             self.waiting.pop(frame.index, None)
             self.meter.frame(FrameReason.ERROR)
@@ -437,7 +446,7 @@ class _DaemonRun:
                 self.on_result(frame, None, 0)
         if self.errors_reported < MAX_ERROR_REPORTS:
             self.errors_reported += 1
-            where = f"frame {frame.index}" if frame is not None else "the end of the recording"
+            where = f"frame {frame.index}" if frame is not None else "finishing the frames that waited"
             write_line(self.out, f"{PROG}: {where}: processing failed: {type(exc).__name__}: {exc}")
 
     def deliver_result(self, frame: CapturedFrame, result: FrameResult, stages: dict[str, float]) -> int:

@@ -195,6 +195,17 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
         self._finish_pending()
         return self._emit()
 
+    def finish_before(self, time_us: int) -> list[FrameResult]:
+        """The results, in frame order, of the frames waiting for later partners that no frame captured at
+        ``time_us`` or later can be (it is more than :data:`MAX_PAIR_PERIODS` projector periods after them).
+        Processing that frame would give the same results, only after it: a live daemon that dropped frames
+        calls this before handing over the next frame it took, so their results do not wait for it."""
+        span_us = MAX_PAIR_PERIODS * 1e6 / self.projector_hz
+        for f in self._pending:  # in frame order: the frames before one still waiting are final or finished here
+            if not f.final and time_us - f.time_us > span_us:
+                self._finish(f)
+        return self._emit()
+
     def _finish_pending(self) -> None:
         for f in self._pending:
             if not f.final:
