@@ -76,6 +76,7 @@ def main() -> int:
     times_s = truth.times_s
     with open_frames(folder / "frames.mkv") as src:
         images = [f for _, f in zip(range(args.frames), src, strict=False)]
+    flight_s = len(images) / camera_fps(times_s)
     rows: list[dict[str, Any]] = []
     for slowdown in args.slowdown:
         for policy in POLICIES:
@@ -99,7 +100,7 @@ def main() -> int:
                     "frames_fed": len(feed),
                     "poses": poses,
                     "yield_of_fed": round(poses / len(feed), 3) if feed else None,
-                    "poses_per_s": round(poses / (len(images) / camera_fps(times_s)), 1),
+                    "poses_per_s": round(poses / flight_s, 1),
                     "error_mm": {
                         "median": round(float(np.median(errors_mm)), 1) if errors_mm else None,
                         "max": round(max(errors_mm), 1) if errors_mm else None,

@@ -106,6 +106,8 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
     def __init__(self, tag_map: TagMap, camera: CameraInfo, cfg: PipelineConfig, projector_hz: float = 60.0) -> None:
         self.tag_map, self.camera, self.cfg = tag_map, camera, cfg
         self.projector_hz = projector_hz
+        self.pair_span_us = MAX_PAIR_PERIODS * 1e6 / projector_hz
+        """Frames further apart than this are never paired (:data:`MAX_PAIR_PERIODS`)."""
         # First: its helper process imports (0.2-0.4 s) while the rest is set up: a restarted daemon poses sooner.
         self.detector = TagDetector(cfg.detector, known_ids=tag_map.by_id, wait=False)
         demod = cfg.demodulation
@@ -200,9 +202,8 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
         ``time_us`` or later can be (it is more than :data:`MAX_PAIR_PERIODS` projector periods after them).
         Processing that frame would give the same results, only after it: a live daemon that dropped frames
         calls this before handing over the next frame it took, so their results do not wait for it."""
-        span_us = MAX_PAIR_PERIODS * 1e6 / self.projector_hz
         for f in self._pending:  # in frame order: the frames before one still waiting are final or finished here
-            if not f.final and time_us - f.time_us > span_us:
+            if not f.final and time_us - f.time_us > self.pair_span_us:
                 self._finish(f)
         return self._emit()
 
@@ -265,8 +266,7 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
         others = [f for f in self._history if (f.index < frame.index if earlier else f.index > frame.index)]
         if self.cfg.demodulation.pairing == "previous":
             return others[-1:] if earlier else []
-        span_us = MAX_PAIR_PERIODS * 1e6 / self.projector_hz
-        others = [f for f in others if abs(frame.time_us - f.time_us) <= span_us]
+        others = [f for f in others if abs(frame.time_us - f.time_us) <= self.pair_span_us]
         good = [f for f in others if self._phase_error(frame.time_us - f.time_us) < MAX_PHASE_ERROR]
         return sorted(good, key=lambda f: self._partner_rank(frame, f))[:MAX_PARTNERS]
 
