@@ -262,6 +262,27 @@ def test_homography_alignment_finds_a_subpixel_shift(scene: Scene) -> None:
     assert _corners_moved_px(warp, translation(2.6, -1.3)) < 0.2  # eight parameters, at the corners
 
 
+def test_homography_alignment_leaves_out_where_the_earlier_frame_has_no_signal(scene: Scene) -> None:
+    # The floor moved by (2.6, -1.3) px. In the earlier frame something that is not the floor covers a
+    # third of the view where the later frame sees floor (the drone's shadow, which moves with the camera: a
+    # fast drone's shadow edge lands beyond the later frame's own mask); its signal mask says so, and the fit
+    # leaves those samples out.
+    now_l = lightness(scene.plus)
+    m = np.array([[1.0, 0.0, -2.6], [0.0, 1.0, 1.3]], np.float32)
+    size = (now_l.shape[1], now_l.shape[0])
+    prev_l = np.asarray(cv2.warpAffine(lightness(scene.minus), m, size, borderMode=cv2.BORDER_REFLECT), np.uint8)
+    prev_l[:, 400:] = np.asarray(cv2.resize(prev_l[::2, 200:440], (240, 360)), np.uint8)  # not this floor
+    prev_signal = np.full(now_l.shape, 255, np.uint8)
+    prev_signal[:, 395:] = 0
+    target = AlignTarget.of(alignment_features(now_l))
+    truth = translation(2.6, -1.3)
+    both = floor_warp_between(target, alignment_features(prev_l), None, prev_signal)
+    one = floor_warp_between(target, alignment_features(prev_l), None)
+    assert both is not None
+    assert _corners_moved_px(both, truth) < 0.3
+    assert one is None or _corners_moved_px(one, truth) > 1.0
+
+
 def test_homography_alignment_is_not_fooled_by_flat_content(scene: Scene) -> None:
     # The sign flip of the tags between phases pulls the paper's L1 match away (see the xfail below);
     # gradient magnitudes are the same in both phases.

@@ -378,7 +378,7 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
         assert b.signal is not None
         if b.target is None:
             b.target = AlignTarget.of(b.features, b.signal)
-        warp = floor_warp_between(b.target, a.features, self._predicted_warp(a, b))
+        warp = floor_warp_between(b.target, a.features, self._predicted_warp(a, b), a.signal)
         t0 = self._lap("align", t0)
         pair = None
         if warp is not None:
