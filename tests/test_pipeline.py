@@ -72,9 +72,10 @@ def test_ipt_profile_beats_the_paper_profile_on_the_same_frames(short_flight: Pa
         errors[name] = max(np.linalg.norm(r.pose.position_m - truth.positions_m[r.index]) for r in posed)
     # On half a second the paper's pipeline does well too (its lag-1 pairs still see a third of the signal
     # where exposures straddle a flip). ipt holds back a pose or two at the start, until its motion fit
-    # exists to check them against; from then on it finds as many poses, and none as far off.
+    # exists to check them against; from then on it finds nearly as many poses (52 against 54: one frame
+    # lost, one held back), and none as far off.
     assert yields["ipt"] >= 0.85
-    assert settled["ipt"] >= settled["paper"]
+    assert settled["ipt"] >= settled["paper"] - 2
     assert errors["ipt"] < 0.03
     assert errors["ipt"] < errors["paper"]
 
@@ -407,6 +408,28 @@ def test_the_bridge_puts_a_frame_without_a_pose_between_its_neighbours(short_fli
     np.testing.assert_allclose(own[0], poses[9][0], atol=1e-9)
 
 
+def test_the_bridge_is_not_tried_when_neither_neighbour_has_a_pose(
+    short_flight: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Its warps would all come from the recent motion (the fast flight's dark scenes: 1 pose in 128 tries).
+    import ipt.receiver.bridge as bridge_module
+
+    p = _pipeline(short_flight, PipelineConfig())
+    lum, down = np.zeros((360, 640), np.uint8), np.diag([1.0, -1.0, -1.0])
+    for k in range(9, 14):  # frames 9 and 13 have poses, 10-12 none (each could be put between 9 and 13)
+        p._history.append(_Frame(k, _t_us(k), lum, lum))
+    p._history[0].rt = rt_of(np.array([0.0, 0.0, 1.0]), down)
+    p._history[4].rt = rt_of(np.array([0.004, 0.0, 1.0]), down)
+    before, target, after = p._history[1], p._history[2], p._history[3]
+    tried: list[int] = []
+    monkeypatch.setattr(bridge_module, "bridge_difference", lambda *a, **k: tried.append(1))
+    p._bridge(before, target, after)
+    assert tried == []
+    after.rt = rt_of(np.array([0.003, 0.0, 1.0]), down)
+    p._bridge(before, target, after)
+    assert tried == [1]
+
+
 def test_finishing_before_a_later_frame_gives_what_processing_it_gives_only_sooner(
     short_flight: Path,
     frames: list,  # type: ignore[type-arg]
@@ -427,8 +450,12 @@ def test_finishing_before_a_later_frame_gives_what_processing_it_gives_only_soon
     assert said([r for k in runs for r in late.process(k, frames[k], _t_us(k))]) == said(got_early)
     waiting = [k for k in runs if k not in {r.index for r in got_early}]
     assert waiting, "some results wait for later frames (the lookahead)"
-    assert early.finish_before(_t_us(16)) == []  # frame 16 could still pair with 11 (42 ms): nothing is final
-    finished = early.finish_before(_t_us(18))
+    # Frame 16 could still pair with 11 and 12 (42 and 33 ms before it): they stay; a frame further back that
+    # still waits (one no pair solved waits a frame longer, for the bridge) is final.
+    at_16 = early.finish_before(_t_us(16))
+    assert [r.index for r in at_16] == [k for k in waiting if _t_us(16) - _t_us(k) > early.pair_span_us]
+    assert {11, 12} <= set(waiting) - {r.index for r in at_16}
+    finished = at_16 + early.finish_before(_t_us(18))
     assert [r.index for r in finished] == waiting
     with_18 = late.process(18, frames[18], _t_us(18))
 
