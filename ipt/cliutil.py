@@ -92,6 +92,10 @@ def run_main(
             # One line, whatever a file name or key in the message contains.
             print(f"{prog}: error: {one_line(str(exc))}", file=sys.stderr)
             return EXIT_USAGE
+        except Exception as exc:  # a library's own error around the Interrupted its callback raised
+            if (stop := signals.interruption(exc)) is None:
+                raise
+            raise stop from exc
     except Interrupted as exc:
         if on_interrupt is not None:
             return on_interrupt(exc)

@@ -154,6 +154,16 @@ def received() -> int | None:
     return _state.received
 
 
+def interruption(exc: BaseException) -> Interrupted | None:
+    """The stop signal that ``exc`` stands for: ``exc`` itself if it is an :class:`Interrupted`; any other
+    exception once a stop signal has arrived (a library that calls back into Python may turn what its callback
+    raised into an error of its own: pydantic serialising a path gave a ``PydanticSerializationError`` whose
+    message was ``Interrupted: 2``); ``None`` when no stop signal came."""
+    if isinstance(exc, Interrupted):
+        return exc
+    return None if _state.received is None else Interrupted(_state.received)
+
+
 @contextlib.contextmanager
 def blocked() -> Iterator[None]:
     """Hold the stop signals back in this thread while handlers are swapped; they are delivered after."""

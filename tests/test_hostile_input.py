@@ -867,6 +867,44 @@ def test_a_signal_while_a_loop_starts_is_kept_for_its_route() -> None:
         restore()
 
 
+def test_a_signal_a_library_wraps_in_its_own_error_is_still_an_interruption(monkeypatch: pytest.MonkeyPatch) -> None:
+    # pydantic turns what a serialiser it calls raises into a PydanticSerializationError ("Interrupted: 2"):
+    # a SIGINT that landed there while the receiver started came out as a traceback and status 1 (CI-like run).
+    import pydantic
+    import pydantic_core
+
+    from ipt.receiver import cli as receiver_cli
+
+    class Paths(pydantic.BaseModel):
+        path: Path
+
+        @pydantic.field_serializer("path")
+        def _signalled(self, path: Path) -> str:
+            signal.raise_signal(signal.SIGINT)  # Python handlers run before raise_signal returns
+            return str(path)
+
+    restore = signals.install()
+    try:
+        assert signals.interruption(ValueError("no signal yet")) is None
+        with pytest.raises(pydantic_core.PydanticSerializationError) as caught:
+            Paths(path=Path("arena.yaml")).model_dump()
+        assert not isinstance(caught.value, signals.Interrupted)  # the library's own error
+        stop = signals.interruption(caught.value)
+        assert stop is not None
+        assert stop.signum == signal.SIGINT
+
+        def starting(args: object) -> int:
+            return len(Paths(path=Path("arena.yaml")).model_dump())
+
+        monkeypatch.setattr(receiver_cli, "_run_daemon", starting)
+        restore()
+        restore = signals.install()  # no signal received yet
+        status = receiver_cli._cmd_run(None)  # type: ignore[arg-type]
+        assert status == 0  # its final line and status 0, as for a signal anywhere else while starting
+    finally:
+        restore()
+
+
 def test_the_spelt_out_final_lines_match_the_statistics() -> None:
     from ipt.config.models import MAX_RATE_HZ, MIN_CAMERA_RATE_HZ, PROFILES
     from ipt.receiver.cli import EMPTY_FINAL_LINE, MAX_FPS, MIN_FPS

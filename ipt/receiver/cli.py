@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 
 from ipt import __version__
 from ipt.cliutil import Parser, run_main
-from ipt.signals import Interrupted
+from ipt.signals import Interrupted, interruption
 
 if TYPE_CHECKING:
     from ipt.config.receiver import ReceiverConfig
@@ -90,6 +90,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
         return _run_daemon(args)
     except Interrupted as exc:
         return _stopped_while_starting(exc)
+    except Exception as exc:  # a library's own error around the Interrupted its callback raised
+        stop = interruption(exc)
+        if stop is None:
+            raise
+        return _stopped_while_starting(stop)
 
 
 def _run_daemon(args: argparse.Namespace) -> int:

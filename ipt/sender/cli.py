@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 from ipt import __version__
 from ipt.cliutil import Parser, run_main
 from ipt.errors import IptError
-from ipt.signals import Interrupted
+from ipt.signals import Interrupted, interruption
 
 if TYPE_CHECKING:
     from ipt.config.models import ArenaConfig
@@ -267,6 +267,11 @@ def _main(argv: Sequence[str] | None) -> int:
         return _serve(args)
     except Interrupted as exc:
         return _stopped_while_starting(exc, args)
+    except Exception as exc:  # a library's own error around the Interrupted its callback raised
+        stop = interruption(exc)
+        if stop is None:
+            raise
+        return _stopped_while_starting(stop, args)
 
 
 def _serve(args: argparse.Namespace) -> int:
