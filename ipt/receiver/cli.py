@@ -88,9 +88,7 @@ def _stopped_while_starting(exc: Interrupted) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     try:
         return _run_daemon(args)
-    except Interrupted as exc:
-        return _stopped_while_starting(exc)
-    except Exception as exc:  # a library's own error around the Interrupted its callback raised
+    except (Interrupted, Exception) as exc:  # or a library's error that wraps one (signals.interruption)
         stop = interruption(exc)
         if stop is None:
             raise

@@ -265,9 +265,7 @@ def _main(argv: Sequence[str] | None) -> int:
     _check_flags(parser, args)
     try:
         return _serve(args)
-    except Interrupted as exc:
-        return _stopped_while_starting(exc, args)
-    except Exception as exc:  # a library's own error around the Interrupted its callback raised
+    except (Interrupted, Exception) as exc:  # or a library's error that wraps one (signals.interruption)
         stop = interruption(exc)
         if stop is None:
             raise
