@@ -13,6 +13,7 @@ import pytest
 from ipt.config.camera_info import CameraInfo
 from ipt.config.models import ArenaConfig, DemodulationConfig, DetectorConfig, PoseConfig
 from ipt.geometry import R_BODY_CAM_DOWNWARD, rot_x, rot_y, rot_z, rotation_angle_rad
+from ipt.receiver import kernels
 from ipt.receiver.demodulator import (
     DemodulationError,
     aligned_difference,
@@ -644,3 +645,83 @@ def test_percentiles_of_8_bit_values_are_numpys() -> None:
         values = np.clip(rng.normal(rng.integers(0, 255), rng.integers(1, 60), n), 0, 255).astype(np.uint8)
         percents = (10.0, 50.0) if trial % 2 else (float(rng.integers(0, 101)), 99.0)
         assert percentiles_u8(values, percents) == tuple(float(v) for v in np.percentile(values, percents))
+
+
+def _use_numpy_kernels(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Run the alignment's and the pair difference's kernels as numpy does where numba cannot compile."""
+    kernels.ensure()
+    for kernel in (kernels.align_system, kernels.sample_pair, kernels.difference_pass):
+        assert kernel.fallback is not None
+        monkeypatch.setattr(kernel, "compiled", kernel.fallback)
+
+
+def _perspective_pair(scene: Scene) -> tuple[U8, U8, F64, U8, U8, U8]:
+    """Two frames of the scene, the earlier one carried by a small perspective warp (what a vibrating camera
+    makes in a projector period), with signal masks that leave out a shadow in each and a sensor coverage
+    that leaves out the corners (a distorted lens)."""
+    now_l = lightness(scene.plus)
+    h, w = now_l.shape
+    truth = np.array([[1.002, 0.004, 2.3], [-0.003, 0.999, -1.6], [2e-6, -3e-6, 1.0]])
+    prev_l = np.asarray(cv2.warpPerspective(lightness(scene.minus), np.linalg.inv(truth), (w, h)), np.uint8)
+    prev_signal = np.full((h, w), 255, np.uint8)
+    cv2.circle(prev_signal, (420, 200), 70, 0, -1)
+    now_signal = np.full((h, w), 255, np.uint8)
+    cv2.circle(now_signal, (440, 190), 70, 0, -1)
+    coverage = np.full((h, w), 255, np.uint8)
+    coverage[:12, :40] = coverage[-12:, -40:] = 0
+    return prev_l, now_l, truth, prev_signal, now_signal, coverage
+
+
+def test_the_pair_difference_is_numpys_to_the_last_bit(scene: Scene, monkeypatch: pytest.MonkeyPatch) -> None:
+    # The compiled passes (kernels.sample_pair, kernels.difference_pass) replace eight numpy operations over
+    # the image: the same difference, valid pixels, amplitude and changed share, to the last bit (the
+    # pipeline amplifies the last bit, so a faster path that differs is a different receiver).
+    prev_l, now_l, truth, prev_signal, now_signal, coverage = _perspective_pair(scene)
+    now_l = now_l.copy()
+    now_l[40:80, 60:200] = 30  # content that changed: left out with its neighbours
+    compiled = pair_difference(prev_l, now_l, truth, prev_signal, now_signal, coverage)
+    _use_numpy_kernels(monkeypatch)
+    reference = pair_difference(prev_l, now_l, truth, prev_signal, now_signal, coverage)
+    assert 0.0 < compiled.changed < 0.2
+    assert 0.5 < float(np.mean(compiled.valid > 0)) < 0.99  # the comparison covers both kinds of pixel
+    np.testing.assert_array_equal(compiled.valid, reference.valid)
+    np.testing.assert_array_equal(compiled.diff, reference.diff)
+    assert (compiled.amplitude, compiled.changed) == (reference.amplitude, reference.changed)
+    # and the kernels' Python source (what numba compiles) gives the same on a small image
+    rng = np.random.default_rng(8)
+    small = [rng.integers(0, 256, (23, 37), dtype=np.uint8) for _ in range(4)]
+    out = [np.empty((23, 37), np.float32), np.empty((23, 37), np.uint8), np.empty((23, 37), np.uint8)]
+    ref = [np.empty((23, 37), np.float32), np.empty((23, 37), np.uint8), np.empty((23, 37), np.uint8)]
+    kernels.difference_pass.py_func(*small, 1.1, -3.0, 40.0, *out)
+    kernels.difference_pass.fallback(*small, 1.1, -3.0, 40.0, *ref)
+    for a, b in zip(out, ref, strict=True):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(kernels.sample_pair.py_func(*small, 4), kernels.sample_pair.fallback(*small, 4), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_the_compiled_alignment_step_fits_what_numpys_fits(scene: Scene, monkeypatch: pytest.MonkeyPatch) -> None:
+    # kernels.align_system reads the samples bilinearly itself where numpy's path reads them with OpenCV's
+    # remap (whose weights are fixed-point, 1/32 px) and sums the normal equations in another order: the
+    # same homography within a hundredth of a pixel, and the right one.
+    prev_l, now_l, truth, prev_signal, now_signal, _ = _perspective_pair(scene)
+    target = AlignTarget.of(alignment_features(now_l), now_signal)
+    compiled = floor_warp_between(target, alignment_features(prev_l), None, prev_signal)
+    _use_numpy_kernels(monkeypatch)
+    reference = floor_warp_between(target, alignment_features(prev_l), None, prev_signal)
+    assert compiled is not None
+    assert reference is not None
+    assert _corners_moved_px(compiled, truth) < 0.3
+    assert _corners_moved_px(compiled, reference) < 0.01
+    # an exact shift of whole pixels reads the same values either way: the same normal equations
+    moving = alignment_features(prev_l)
+    back = translation(-3.0, 2.0)
+    lit = np.full(moving.shape, 255, np.uint8)
+    lit[:, :40] = 0
+    out = [np.zeros((8, 8)), np.zeros(8)]
+    ref = [np.zeros((8, 8)), np.zeros(8)]
+    args = (moving, lit, back, target.cols, target.rows, target.values, target.sd, target.hess, 3.0)
+    n = kernels.align_system.py_func(*args, *out)
+    assert n == kernels.align_system.fallback(*args, *ref) > 1000
+    np.testing.assert_allclose(out[0], ref[0], rtol=1e-9, atol=1e-9 * float(np.abs(ref[0]).max()))
+    np.testing.assert_allclose(out[1], ref[1], rtol=1e-5, atol=1e-6 * float(np.abs(ref[1]).max()))

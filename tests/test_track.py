@@ -207,7 +207,7 @@ def test_no_map_in_view_gives_no_pose(pair: Pair, edges: MapEdges) -> None:
 
 def test_compiled_kernels_agree_with_their_python_source() -> None:
     # The kernels run as plain Python where numba cannot compile: both must measure the same steps.
-    from ipt.receiver import trackkernels as tk
+    from ipt.receiver import kernels as tk
 
     tk.ensure()
     if not tk.COMPILED:
@@ -244,7 +244,7 @@ def test_compiled_kernels_agree_with_their_python_source() -> None:
 def test_slope_noise_is_the_median_of_the_sampled_slopes() -> None:
     # The compiled kernel and its Python source give numpy's median of |diff[y, x+2] − diff[y, x]| (every
     # fourth row, every second column) where valid, or of all of them when nothing is valid.
-    from ipt.receiver import trackkernels as tk
+    from ipt.receiver import kernels as tk
     from ipt.receiver.track import slope_noise
 
     rng = np.random.default_rng(5)

@@ -35,6 +35,7 @@ import numpy.typing as npt
 
 from ipt.config.models import REFERENCE_WIDTH_PX, DemodulationConfig
 from ipt.errors import IptError
+from ipt.receiver import kernels
 from ipt.receiver.imagealign import translation
 
 U8 = npt.NDArray[np.uint8]
@@ -308,45 +309,54 @@ def pair_difference(
     only noise, which the pose stages do not take for steps).
     """
     h, w = later.shape
-    moved = np.asarray(cv2.warpPerspective(earlier, warp, (w, h), flags=cv2.INTER_LINEAR), np.float32)
-    seen = np.full((h, w), 255, np.uint8) if coverage is None else coverage
-    moved_signal, moved_seen = warp_masks(earlier_signal, seen, warp)
-    both = np.minimum(later_signal, moved_signal)
-    seen = np.minimum(seen, moved_seen)
-    now = later.astype(np.float32)
-    sample = both[::4, ::4] > 0
-    if sample.sum() < 50:
+    moved = np.asarray(cv2.warpPerspective(earlier, warp, (w, h), flags=cv2.INTER_LINEAR), np.uint8)
+    cover = np.full((h, w), 255, np.uint8) if coverage is None else coverage
+    moved_signal, moved_seen = warp_masks(earlier_signal, cover, warp)
+    # The brightness match from every fourth row and column both frames light (compiled, as the pass below).
+    x, y = kernels.sample_pair(moved, later, moved_signal, later_signal, 4)
+    if len(x) < 50:
         empty = np.zeros((h, w), np.float32)
         return PairDifference(empty, np.zeros((h, w), np.uint8), 0.0, 1.0)
-    x, y = moved[::4, ::4][sample], now[::4, ::4][sample]
     xm, ym = float(x.mean()), float(y.mean())
     var = float(((x - xm) ** 2).mean())
     gain = float(((x - xm) * (y - ym)).mean()) / var if var > 1e-6 else 1.0
     gain = min(max(gain, 0.5), 2.0)
-    # now − (gain·moved + offset), in place: the same float32 operations without full-size temporaries.
-    np.multiply(moved, gain, out=moved)
-    np.add(moved, ym - gain * xm, out=moved)
-    diff = np.subtract(now, moved, out=now)
-    return valid_difference(diff, seen, sample, sigma_px)
+    offset = ym - gain * xm
+    sampled = np.abs(y - (np.float32(gain) * x + np.float32(offset)))
+    amplitude = max(_median_f32(sampled), 0.5)
+    limit = CHANGE_FACTOR * amplitude * 2.0
+    # Then every pixel in one pass: the difference, where both frames see the floor, what changed.
+    diff = np.empty((h, w), np.float32)
+    seen = np.empty((h, w), np.uint8)
+    changed_px = np.empty((h, w), np.uint8)
+    kernels.difference_pass(moved, later, moved_seen, cover, gain, offset, limit, diff, seen, changed_px)
+    changed = float(np.mean(sampled > limit))
+    return _finish_difference(diff, seen, changed_px, amplitude, changed, sigma_px)
+
+
+def _finish_difference(
+    diff: F32, valid: U8, changed_px: U8, amplitude: float, changed: float, sigma_px: float
+) -> PairDifference:
+    """``diff`` with the pixels that changed more than the tags can (``changed_px`` 1) and their neighbours
+    left out of ``valid`` (in place), 0 where not valid, smoothed."""
+    w = diff.shape[1]
+    grown = cv2.dilate(changed_px, np.ones((5, 5), np.uint8))
+    np.copyto(valid, 0, where=grown > 0)
+    np.copyto(diff, 0.0, where=valid == 0)
+    sigma = sigma_px * w / REFERENCE_WIDTH_PX
+    if sigma > 0:
+        diff = np.asarray(cv2.GaussianBlur(diff, (0, 0), sigma), np.float32)
+    return PairDifference(diff, valid, amplitude, changed)
 
 
 def valid_difference(diff: F32, seen: U8, sample: npt.NDArray[np.bool_], sigma_px: float) -> PairDifference:
     """The :class:`PairDifference` of a raw difference: the pixels outside ``seen`` (0/255; changed in
     place) and those that changed more than the tags can (with their neighbours) left out, the rest
     smoothed. ``sample`` marks the pixels of ``diff[::4, ::4]`` that both frames light."""
-    w = diff.shape[1]
     amplitude = max(_median_f32(np.abs(diff[::4, ::4][sample])), 0.5)
     changed_px = np.abs(diff) > CHANGE_FACTOR * amplitude * 2.0
-    valid = seen
-    if changed_px.any():
-        grown = cv2.dilate(changed_px.view(np.uint8), np.ones((5, 5), np.uint8))
-        np.copyto(valid, 0, where=grown > 0)
     changed = float(np.mean(changed_px[::4, ::4][sample]))
-    np.copyto(diff, 0.0, where=valid == 0)
-    sigma = sigma_px * w / REFERENCE_WIDTH_PX
-    if sigma > 0:
-        diff = np.asarray(cv2.GaussianBlur(diff, (0, 0), sigma), np.float32)
-    return PairDifference(diff, valid, amplitude, changed)
+    return _finish_difference(diff, seen, changed_px.view(np.uint8), amplitude, changed, sigma_px)
 
 
 def binarise_difference(pair: PairDifference, sign: int, ksize: int) -> U8:

@@ -22,6 +22,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from ipt.receiver import kernels
+
 U8 = npt.NDArray[np.uint8]
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -111,6 +113,8 @@ class AlignTarget:
     """rows · width + cols: the samples' places in the flattened image."""
     values: F32
     """The target's features at the samples."""
+    hess: F64
+    """The normal matrix of all the samples, sdᵀ·sd (float64)."""
 
     @classmethod
     def of(cls, features: F32, signal: U8 | None = None) -> AlignTarget:
@@ -139,15 +143,18 @@ class AlignTarget:
         # (take from the flattened images: the same values as gx[rows, cols], at a fifth of the cost)
         ix, iy = gx.ravel().take(flat_idx) / s, gy.ravel().take(flat_idx) / s  # gradients per normalised unit
         sd = np.stack([ix * x, ix * y, ix, iy * x, iy * y, iy, -(ix * x + iy * y) * x, -(ix * x + iy * y) * y], axis=1)
+        sd = np.ascontiguousarray(sd, np.float32)
+        sd64 = sd.astype(np.float64)
         return cls(
             features,
             weight,
-            np.ascontiguousarray(sd, np.float32),
+            sd,
             rows,
             cols,
             norm,
             flat_idx,
             features.ravel().take(flat_idx),
+            sd64.T @ sd64,
         )
 
 
@@ -168,32 +175,20 @@ def refine_homography(target: AlignTarget, moving: F32, start: F64, moving_lit: 
     norm, inv_norm = target.norm, np.linalg.inv(target.norm)
     # In normalised coordinates the warp is n·W·n⁻¹; the fit finds M with moving(M⁻¹ x) = target(x).
     m = norm @ start @ inv_norm
-    sd = target.sd
-    h, w = moving.shape
-    # The samples only: moving(W⁻¹ x) at the target's sample pixels x, read by remap (warping the whole
-    # image each step cost ten times more). Outside the moving image reads 0 and is left out.
-    points = np.stack([target.cols, target.rows, np.ones(len(target.rows))]).astype(np.float64)
+    # The samples only: moving(W⁻¹ x) at the target's sample pixels x, their residuals and the normal
+    # equations in one compiled pass (warping the whole image each step cost ten times more; remap at the
+    # samples and numpy's products, four times more).
+    lit = np.zeros((0, 0), np.uint8) if moving_lit is None else moving_lit
+    hess, rhs = np.zeros((8, 8)), np.zeros(8)
     for _ in range(LK_STEPS):
-        src = np.linalg.inv(inv_norm @ m @ norm) @ points
-        map_x = (src[0] / src[2]).astype(np.float32).reshape(-1, 1)
-        map_y = (src[1] / src[2]).astype(np.float32).reshape(-1, 1)
-        warped = np.asarray(
-            cv2.remap(moving, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT), np.float32
-        ).ravel()
-        inside = (map_x[:, 0] >= 0) & (map_x[:, 0] <= w - 1) & (map_y[:, 0] >= 0) & (map_y[:, 0] <= h - 1)
-        e = warped - target.values
-        valid = inside & (warped > 0)
-        if moving_lit is not None:
-            valid &= cv2.remap(moving_lit, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT).ravel() > 0
-        if valid.sum() < 200:
+        back = inv_norm @ np.linalg.inv(m) @ norm
+        counted = kernels.align_system(
+            moving, lit, back, target.cols, target.rows, target.values, target.sd, target.hess, ROBUST_K, hess, rhs
+        )
+        if counted < 200:
             return None
-        # A robust scale from the mean absolute residual (cheaper than the median, as good for a cut).
-        scale = 1.25 * float(np.abs(e[valid]).mean()) + 1e-6
-        keep = valid & (np.abs(e) < ROBUST_K * scale)
-        a = np.compress(keep, sd, axis=0)  # = sd[keep], at an eighth of boolean indexing's cost
-        hess = a.T @ a
         try:
-            dp = np.linalg.solve(hess.astype(np.float64), (a.T @ e[keep]).astype(np.float64))
+            dp = np.asarray(np.linalg.solve(hess, rhs), np.float64)
         except np.linalg.LinAlgError:
             return None
         if not np.all(np.isfinite(dp)):

@@ -37,7 +37,7 @@ import numpy.typing as npt
 
 from ipt.config.camera_info import CameraInfo
 from ipt.config.models import PipelineConfig
-from ipt.receiver import trackkernels
+from ipt.receiver import kernels
 from ipt.receiver.bridge import ContentBridge
 from ipt.receiver.demodulator import (
     PairDifference,
@@ -119,8 +119,8 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
         )
         self.pinhole = replace(camera, distortion=(0.0, 0.0, 0.0, 0.0, 0.0)) if self.undistort is not None else camera
         self.edges = MapEdges.from_tag_map(tag_map) if self.tracking else None
-        if self.tracking:
-            trackkernels.warm_in_background()  # ready before the first track: a live camera must not wait
+        if self.ipt:
+            kernels.warm_in_background()  # ready before the first pair: a live camera must not wait
         self.masks = MaskRenderer(tag_map.render_mask(), pixel_to_arena(tag_map)) if self.tracking else None
         scale = camera.width_px / 640
         t = cfg.pose.track

@@ -1,11 +1,19 @@
-"""The map tracker's inner loops, compiled (numba): measuring where each edge sample's step lies.
+"""The receiver's inner loops, compiled (numba): the map tracker's, the alignment's and the pair difference's.
 
-One Gauss-Newton step of :mod:`ipt.receiver.track` projects a few hundred edge samples, reads the difference
-image along each sample's normal and finds the step's sub-pixel offset. Written as numpy array operations,
-that is some sixty small array calls per step (~1 ms at 640×360, most of it call overhead); here it is two
-loops over the samples (~0.1 ms). The difference's noise level (:func:`ipt.receiver.track.slope_noise`) gathers
-its sampled slopes here too. Pure: arrays in, arrays out. Where numba cannot compile (no executable memory),
-the same functions run as plain Python: correct, only slower.
+- **The tracker** (:mod:`ipt.receiver.track`): one Gauss-Newton step projects a few hundred edge samples,
+  reads the difference image along each sample's normal and finds the step's sub-pixel offset. Written as
+  numpy array operations, that is some sixty small array calls per step (~1 ms at 640×360, most of it call
+  overhead); here it is two loops over the samples (~0.1 ms). The difference's noise level
+  (:func:`ipt.receiver.track.slope_noise`) gathers its sampled slopes here too.
+- **The alignment** (:func:`ipt.receiver.imagealign.refine_homography`): a Lucas-Kanade step's readings at
+  the samples, residuals and normal equations in one pass (:func:`align_system`).
+- **The pair difference** (:func:`ipt.receiver.demodulator.pair_difference`): the brightness match's samples
+  and the difference, its valid pixels and its changed ones in one pass over the image each
+  (:func:`sample_pair`, :func:`difference_pass`) instead of numpy's eight.
+
+Pure: arrays in, arrays out. Where numba cannot compile (no executable memory), the tracker's kernels run as
+plain Python (correct, only slower) and the others as the numpy operations they replace (a pass over every
+pixel in plain Python would take seconds).
 """
 
 from __future__ import annotations
@@ -35,8 +43,10 @@ class _Kernel:
     """A kernel, compiled on first use (or by :func:`ensure`, e.g. in :func:`warm_in_background`), so that
     importing this module does not import numba (a quarter of a second) on a daemon's start-up path."""
 
-    def __init__(self, fn: Callable[..., Any]) -> None:
+    def __init__(self, fn: Callable[..., Any], fallback: Callable[..., Any] | None = None) -> None:
         self.py_func = fn
+        self.fallback = fallback
+        """What runs where numba cannot compile, if not ``fn`` itself: the same result with numpy."""
         self.compiled: Any = None
 
     def __call__(self, *args: Any) -> Any:
@@ -70,8 +80,19 @@ def ensure() -> None:
         bilinear = _jit(_bilinear)
         slopes = _jit(_slopes)
         system_row = _jit(_system_row)
-        for kernel in (measure, peaks, band_signs, cell_agreement, slopes_sampled):
+        for kernel in (
+            measure,
+            peaks,
+            band_signs,
+            cell_agreement,
+            slopes_sampled,
+            align_system,
+            sample_pair,
+            difference_pass,
+        ):
             kernel.compiled = _jit(kernel.py_func)
+            if not COMPILED and kernel.fallback is not None:
+                kernel.compiled = kernel.fallback
         _ready.set()
 
 
@@ -354,6 +375,193 @@ def _slopes_sampled(diff: F32, valid: U8) -> F32:
 slopes_sampled = _Kernel(_slopes_sampled)
 
 
+def _align_system(
+    moving: F32,
+    lit: U8,
+    back: F64,
+    cols: I64,
+    rows: I64,
+    values: F32,
+    sd: F32,
+    hess_all: F64,
+    robust_k: float,
+    hess: F64,
+    rhs: F64,
+) -> int:
+    """One Lucas-Kanade step of :func:`ipt.receiver.imagealign.refine_homography`: ``moving`` read bilinearly
+    (0 outside) at the target's sample pixels (``cols``, ``rows``) carried by ``back`` (3x3, target pixel →
+    moving pixel); a sample counts where it lands inside, reads more than 0 and, when ``lit`` is not empty, on
+    a pixel of ``lit`` (nearest) that is not 0. Its residual is the reading minus the target's ``values``; those
+    within ``robust_k`` times 1.25 times the mean absolute residual of the counted samples add their
+    steepest-descent row (``sd``, 8 wide) to the normal equations ``hess`` and ``rhs`` (written, in float64).
+    ``hess_all`` is the normal matrix of all the samples (``sdᵀ·sd``, fixed for a target): ``hess`` is made
+    from it by taking out the rows left out, usually a few of them, rather than by adding up the rest.
+    Returns how many samples counted."""
+    h, w = moving.shape
+    use_lit = lit.shape[0] == h and lit.shape[1] == w
+    n = cols.shape[0]
+    e = np.empty(n, np.float32)
+    ok = np.zeros(n, np.bool_)
+    counted = 0
+    total = 0.0
+    for i in range(n):
+        c, r = cols[i], rows[i]
+        z = back[2, 0] * c + back[2, 1] * r + back[2, 2]
+        x = (back[0, 0] * c + back[0, 1] * r + back[0, 2]) / z
+        y = (back[1, 0] * c + back[1, 1] * r + back[1, 2]) / z
+        if not (0.0 <= x <= w - 1.0 and 0.0 <= y <= h - 1.0):
+            continue
+        if use_lit and lit[min(int(y + 0.5), h - 1), min(int(x + 0.5), w - 1)] == 0:
+            continue
+        x0 = min(int(x), w - 2)
+        y0 = min(int(y), h - 2)
+        fx = x - x0
+        fy = y - y0
+        top = moving[y0, x0] * (1.0 - fx) + moving[y0, x0 + 1] * fx
+        bottom = moving[y0 + 1, x0] * (1.0 - fx) + moving[y0 + 1, x0 + 1] * fx
+        value = top * (1.0 - fy) + bottom * fy
+        if value <= 0.0:
+            continue
+        e[i] = value - values[i]
+        ok[i] = True
+        total += abs(e[i])
+        counted += 1
+    hess[:] = hess_all
+    rhs[:] = 0.0
+    if counted == 0:
+        return 0
+    cut = robust_k * (1.25 * total / counted + 1e-6)
+    for i in range(n):
+        if ok[i] and abs(e[i]) < cut:
+            for a in range(8):
+                rhs[a] += float(sd[i, a]) * e[i]
+        else:
+            for a in range(8):
+                sa = float(sd[i, a])
+                for b in range(a, 8):
+                    hess[a, b] -= sa * sd[i, b]
+    for a in range(8):
+        for b in range(a):
+            hess[a, b] = hess[b, a]
+    return counted
+
+
+def _align_system_numpy(
+    moving: F32,
+    lit: U8,
+    back: F64,
+    cols: I64,
+    rows: I64,
+    values: F32,
+    sd: F32,
+    hess_all: F64,
+    robust_k: float,
+    hess: F64,
+    rhs: F64,
+) -> int:
+    """:func:`_align_system` with OpenCV's remap and numpy (where numba cannot compile)."""
+    import cv2
+
+    h, w = moving.shape
+    src = back @ np.stack([cols, rows, np.ones(len(cols))]).astype(np.float64)
+    map_x = (src[0] / src[2]).astype(np.float32).reshape(-1, 1)
+    map_y = (src[1] / src[2]).astype(np.float32).reshape(-1, 1)
+    warped = np.asarray(
+        cv2.remap(moving, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT), np.float32
+    ).ravel()
+    inside = (map_x[:, 0] >= 0) & (map_x[:, 0] <= w - 1) & (map_y[:, 0] >= 0) & (map_y[:, 0] <= h - 1)
+    counted = inside & (warped > 0)
+    if lit.shape == moving.shape:
+        counted &= cv2.remap(lit, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT).ravel() > 0
+    e = warped - values
+    n = int(counted.sum())
+    hess[:] = 0.0
+    rhs[:] = 0.0
+    if n == 0:
+        return 0
+    keep = counted & (np.abs(e) < robust_k * (1.25 * float(np.abs(e[counted]).mean()) + 1e-6))
+    a = np.compress(keep, sd, axis=0).astype(np.float64)
+    hess[:] = a.T @ a
+    rhs[:] = a.T @ e[keep].astype(np.float64)
+    return n
+
+
+align_system = _Kernel(_align_system, _align_system_numpy)
+
+
+def _sample_pair(moved: U8, later: U8, moved_signal: U8, later_signal: U8, step: int) -> tuple[F32, F32]:
+    """The two frames of a pair (``moved``: the earlier one carried onto the later one) on every ``step``-th
+    row and column where both have signal: (earlier values, later values), as float32."""
+    h, w = later.shape
+    rows, cols = (h + step - 1) // step, (w + step - 1) // step
+    xs = np.empty(rows * cols, np.float32)
+    ys = np.empty(rows * cols, np.float32)
+    count = 0
+    for y in range(0, h, step):
+        for x in range(0, w, step):
+            if later_signal[y, x] > 0 and moved_signal[y, x] > 0:
+                xs[count] = moved[y, x]
+                ys[count] = later[y, x]
+                count += 1
+    return xs[:count], ys[:count]
+
+
+def _sample_pair_numpy(moved: U8, later: U8, moved_signal: U8, later_signal: U8, step: int) -> tuple[F32, F32]:
+    """:func:`_sample_pair` with numpy (where numba cannot compile)."""
+    both = (later_signal[::step, ::step] > 0) & (moved_signal[::step, ::step] > 0)
+    return moved[::step, ::step][both].astype(np.float32), later[::step, ::step][both].astype(np.float32)
+
+
+sample_pair = _Kernel(_sample_pair, _sample_pair_numpy)
+
+
+def _difference_pass(
+    moved: U8,
+    later: U8,
+    moved_seen: U8,
+    coverage: U8,
+    gain: float,
+    offset: float,
+    limit: float,
+    diff: F32,
+    seen: U8,
+    changed: U8,
+) -> None:
+    """The pair's raw difference, ``later − (gain · moved + offset)`` (``moved``: the earlier frame carried
+    onto the later one), into ``diff``; into ``seen`` the lesser of ``coverage`` and ``moved_seen`` (where the
+    later and the carried earlier frame see the floor); 1 into ``changed`` where the difference exceeds
+    ``limit`` (else 0). One pass instead of numpy's eight over the whole image."""
+    h, w = later.shape
+    g, o = np.float32(gain), np.float32(offset)
+    for y in range(h):
+        for x in range(w):
+            d = np.float32(later[y, x]) - (g * np.float32(moved[y, x]) + o)
+            diff[y, x] = d
+            seen[y, x] = min(coverage[y, x], moved_seen[y, x])
+            changed[y, x] = 1 if abs(d) > limit else 0
+
+
+def _difference_pass_numpy(
+    moved: U8,
+    later: U8,
+    moved_seen: U8,
+    coverage: U8,
+    gain: float,
+    offset: float,
+    limit: float,
+    diff: F32,
+    seen: U8,
+    changed: U8,
+) -> None:
+    """:func:`_difference_pass` with numpy (where numba cannot compile)."""
+    np.subtract(later.astype(np.float32), np.float32(gain) * moved.astype(np.float32) + np.float32(offset), out=diff)
+    np.minimum(coverage, moved_seen, out=seen)
+    np.greater(np.abs(diff), limit, out=changed.view(np.bool_))
+
+
+difference_pass = _Kernel(_difference_pass, _difference_pass_numpy)
+
+
 def warm() -> None:
     """Compile the kernels now (or load them from numba's disk cache: a fraction of a second), so that the
     first frame a camera delivers does not wait seconds for the compiler."""
@@ -369,6 +577,23 @@ def warm() -> None:
     cell_agreement(image, k, rt, t, one, np.zeros(1, np.int64), np.ones(1), np.ones(1, np.bool_), np.ones(2), no_mask)
     slopes_sampled(image, no_mask)
     slopes_sampled(image, np.zeros((8, 8), np.uint8))
+    ints = np.zeros(1, np.int64)
+    u8 = np.zeros((8, 8), np.uint8)
+    sample_pair(u8, u8, u8, u8, 4)
+    difference_pass(u8, u8, u8, u8, 1.0, 0.0, 1.0, image, u8.copy(), u8.copy())
+    align_system(
+        image,
+        no_mask,
+        rt,
+        ints,
+        ints,
+        np.zeros(1, np.float32),
+        np.zeros((1, 8), np.float32),
+        np.zeros((8, 8)),
+        3.0,
+        np.zeros((8, 8)),
+        np.zeros(8),
+    )
 
 
 _warming = False
