@@ -4,9 +4,13 @@ The two frames of a pair are a projector period apart (16.7 ms); the drone moved
 by up to a degree, so the floor moved in the image by a translation plus a small perspective change.
 The floor homography is found on the frames' gradient magnitudes at half resolution (the same for a tag
 in either phase, so the hidden tags' sign flip does not pull the match): phase correlation for the
-translation, whatever its size, then Lucas-Kanade with all eight homography parameters in the
-inverse-compositional form (the current frame's gradients and the normal matrix are computed once per
-frame, each step only warps the earlier frame and takes eight dot products). Pixels without signal in
+translation, whatever its size, then Lucas-Kanade with all eight homography parameters, composed onto
+the current frame's side and read at its strongest gradients (chosen once per frame). Each step's
+Jacobian is the efficient second-order (ESM) one, the mean of both frames' gradients, where the
+inverse-compositional form took the current frame's alone: its steps are those of a second-order method,
+and on the suite's vibrating flights six of them land nearer the true floor homography (shadow-vibration,
+its first 200 frames each against the one two before, the middle of the image against the warp of the true
+poses: median 1.7 → 1.1 px) and give better poses (below, at ``LK_STEPS``). Pixels without signal in
 either frame (the drone's shadow, the floor outside the projection) are left out of the fit, and a robust
 weight drops what else moved differently.
 
@@ -33,11 +37,15 @@ _DOUBLE = np.diag([2.0, 2.0, 1.0])
 #: Margin (half-resolution pixels) left out at the image border.
 MARGIN = 8
 #: Lucas-Kanade steps, and the step size (half-resolution pixels at the image corners) below which it stops.
-#: On a vibrating flight the fit often still moves the corners by tenths of a pixel a step after six steps:
-#: ten took shadow-vibration's MAE from 1.76 / 1.45 to 1.58 / 1.33 mm (x / y) and fast from 88.6 to 89.9 %
-#: at about the same overall cost (diagnostic replays, beside a pairing change that was then dropped), but
-#: the suite's take-off from 75.6 to 73.6 % (its lowest 0.4 m: 17.1 → 10.0 %), so six it stays until the fit
-#: converges faster.
+#: With the inverse-compositional Jacobian the fit often still moved the corners by tenths of a pixel a step
+#: after six steps on a vibrating flight; ten took shadow-vibration's MAE from 1.76 / 1.45 to 1.58 / 1.33 mm
+#: (x / y) and fast from 88.6 to 89.9 %, but the suite's take-off from 75.6 to 73.6 % (its lowest 0.4 m:
+#: 17.1 → 10.0 %). The ESM Jacobian with six (diagnostic replays against the inverse-compositional six,
+#: same code otherwise): shadow-vibration 99.4 → 99.5 %, MAE 1.88 / 1.38 → 1.64 / 1.25 mm; fast 88.2 → 89.8 %;
+#: moving-content 99.2 → 99.4 %; take-off 75.1 → 75.5 % (lowest 0.4 m 15.3 → 16.7 %). With ten, better still
+#: on shadow-vibration (1.49 / 1.13 mm) and fast (91.1 %) but take-off's lowest 0.4 m fell to 11.4 % (a view
+#: mostly in the drone's shadow, where a longer fit wanders; stopping when a step raises the residual gave
+#: 14.6 %): six it stays.
 LK_STEPS, LK_DONE_PX = 6, 0.02
 #: Residuals beyond this many robust standard deviations get no weight.
 ROBUST_K = 3.0
@@ -97,14 +105,12 @@ def warp_image(img: npt.NDArray[A], warp: F64, border: int = cv2.BORDER_REPLICAT
 
 @dataclass
 class AlignTarget:
-    """A frame prepared as the fixed image of the inverse-compositional fit (computed once per frame)."""
+    """A frame prepared as the fixed image of the fit (computed once per frame)."""
 
     features: F32
     """Half-resolution gradient magnitude."""
     weight: F32
     """Where the fit may look (0/1), half resolution."""
-    sd: F32
-    """(N, 8) steepest-descent rows of the weighted pixels."""
     rows: npt.NDArray[np.intp]
     cols: npt.NDArray[np.intp]
     norm: F64
@@ -113,8 +119,9 @@ class AlignTarget:
     """rows · width + cols: the samples' places in the flattened image."""
     values: F32
     """The target's features at the samples."""
-    hess: F64
-    """The normal matrix of all the samples, sdᵀ·sd (float64)."""
+    ix: F32
+    iy: F32
+    """The target's gradients at the samples, per normalised unit of x and y."""
 
     @classmethod
     def of(cls, features: F32, signal: U8 | None = None) -> AlignTarget:
@@ -137,24 +144,19 @@ class AlignTarget:
         rows, cols = np.divmod(candidates, w)
         s = 2.0 / w
         norm = np.array([[s, 0.0, -1.0], [0.0, s, -h / w], [0.0, 0.0, 1.0]])  # pixels → centred, scaled
-        x = (cols * s - 1.0).astype(np.float32)
-        y = (rows * s - h / w).astype(np.float32)
         flat_idx = rows * w + cols
         # (take from the flattened images: the same values as gx[rows, cols], at a fifth of the cost)
         ix, iy = gx.ravel().take(flat_idx) / s, gy.ravel().take(flat_idx) / s  # gradients per normalised unit
-        sd = np.stack([ix * x, ix * y, ix, iy * x, iy * y, iy, -(ix * x + iy * y) * x, -(ix * x + iy * y) * y], axis=1)
-        sd = np.ascontiguousarray(sd, np.float32)
-        sd64 = sd.astype(np.float64)
         return cls(
             features,
             weight,
-            sd,
             rows,
             cols,
             norm,
             flat_idx,
             features.ravel().take(flat_idx),
-            sd64.T @ sd64,
+            np.ascontiguousarray(ix, np.float32),
+            np.ascontiguousarray(iy, np.float32),
         )
 
 
@@ -175,25 +177,29 @@ def refine_homography(target: AlignTarget, moving: F32, start: F64, moving_lit: 
     norm, inv_norm = target.norm, np.linalg.inv(target.norm)
     # In normalised coordinates the warp is n·W·n⁻¹; the fit finds M with moving(M⁻¹ x) = target(x).
     m = norm @ start @ inv_norm
-    # The samples only: moving(W⁻¹ x) at the target's sample pixels x, their residuals and the normal
-    # equations in one compiled pass (warping the whole image each step cost ten times more; remap at the
-    # samples and numpy's products, four times more).
+    # The samples only: moving(W⁻¹ x) and its gradients at the target's sample pixels x, their residuals and
+    # the normal equations in one compiled pass (warping the whole image each step cost ten times more).
     lit = np.zeros((0, 0), np.uint8) if moving_lit is None else moving_lit
-    hess, rhs = np.zeros((8, 8)), np.zeros(8)
+    moving_gx = np.asarray(cv2.Sobel(moving, cv2.CV_32F, 1, 0, ksize=3, scale=0.125), np.float32)
+    moving_gy = np.asarray(cv2.Sobel(moving, cv2.CV_32F, 0, 1, ksize=3, scale=0.125), np.float32)
+    scale, offset_y = float(norm[0, 0]), float(-norm[1, 2])
+    sd, residual = np.empty((len(target.rows), 8)), np.empty(len(target.rows))
     for _ in range(LK_STEPS):
         back = inv_norm @ np.linalg.inv(m) @ norm
-        counted = kernels.align_system(
-            moving, lit, back, target.cols, target.rows, target.values, target.sd, target.hess, ROBUST_K, hess, rhs
-        )
+        counted, kept = kernels.align_system(
+            moving, moving_gx, moving_gy, lit, back, target.cols, target.rows, target.values,
+            target.ix, target.iy, scale, offset_y, ROBUST_K, sd, residual,
+        )  # fmt: skip
         if counted < 200:
             return None
+        hess, rhs = sd[:kept].T @ sd[:kept], sd[:kept].T @ residual[:kept]
         try:
             dp = np.asarray(np.linalg.solve(hess, rhs), np.float64)
         except np.linalg.LinAlgError:
             return None
         if not np.all(np.isfinite(dp)):
             return None
-        # Inverse composition: moving(M⁻¹ x) = target(U x) gives the new M = U·M.
+        # Composed on the target's side: moving(M⁻¹ x) = target(U x) gives the new M = U·M.
         m = _update(dp) @ m
         m /= m[2, 2]
         corners = np.array([[-1.0, -0.56, 1.0], [1.0, 0.56, 1.0]])

@@ -6,7 +6,8 @@
   overhead); here it is two loops over the samples (~0.1 ms). The difference's noise level
   (:func:`ipt.receiver.track.slope_noise`) gathers its sampled slopes here too.
 - **The alignment** (:func:`ipt.receiver.imagealign.refine_homography`): a Lucas-Kanade step's readings at
-  the samples, residuals and normal equations in one pass (:func:`align_system`).
+  the samples, residuals and normal equations in one pass (:func:`align_system`; remap at the samples and
+  numpy's products took four times as long).
 - **The pair difference** (:func:`ipt.receiver.demodulator.pair_difference`): the brightness match's samples
   and the difference, its valid pixels and its changed ones in one pass over the image each
   (:func:`sample_pair`, :func:`difference_pass`) instead of numpy's eight.
@@ -377,30 +378,39 @@ slopes_sampled = _Kernel(_slopes_sampled)
 
 def _align_system(
     moving: F32,
+    moving_gx: F32,
+    moving_gy: F32,
     lit: U8,
     back: F64,
     cols: I64,
     rows: I64,
     values: F32,
-    sd: F32,
-    hess_all: F64,
+    target_ix: F32,
+    target_iy: F32,
+    scale: float,
+    offset_y: float,
     robust_k: float,
-    hess: F64,
-    rhs: F64,
-) -> int:
-    """One Lucas-Kanade step of :func:`ipt.receiver.imagealign.refine_homography`: ``moving`` read bilinearly
-    (0 outside) at the target's sample pixels (``cols``, ``rows``) carried by ``back`` (3x3, target pixel →
-    moving pixel); a sample counts where it lands inside, reads more than 0 and, when ``lit`` is not empty, on
-    a pixel of ``lit`` (nearest) that is not 0. Its residual is the reading minus the target's ``values``; those
-    within ``robust_k`` times 1.25 times the mean absolute residual of the counted samples add their
-    steepest-descent row (``sd``, 8 wide) to the normal equations ``hess`` and ``rhs`` (written, in float64).
-    ``hess_all`` is the normal matrix of all the samples (``sdᵀ·sd``, fixed for a target): ``hess`` is made
-    from it by taking out the rows left out, usually a few of them, rather than by adding up the rest.
-    Returns how many samples counted."""
+    sd: F64,
+    residual: F64,
+) -> tuple[int, int]:
+    """One Lucas-Kanade step of :func:`ipt.receiver.imagealign.refine_homography`: ``moving`` and its
+    gradients (``moving_gx``, ``moving_gy``) read bilinearly at the target's sample pixels (``cols``,
+    ``rows``) carried by ``back`` (3x3, target pixel → moving pixel). A sample counts where it lands inside,
+    reads more than 0 and, when ``lit`` is not empty, on a pixel of ``lit`` (nearest) that is not 0. Its
+    residual is the reading minus the target's ``values``; those within ``robust_k`` times 1.25 times the
+    mean absolute residual of the counted samples are kept: their rows of the linear system into the first
+    rows of ``sd`` (N x 8) and their residuals into ``residual`` (N), in float64 (the normal equations are
+    then one matrix product). The row is the efficient second-order (ESM) one: the mean of the target's
+    gradient (``target_ix``, ``target_iy``, per normalised unit) and the moving frame's, carried into the
+    target's pixels by ``back``'s local Jacobian, times the homography's derivatives at the sample's
+    normalised coordinates (``col · scale − 1``, ``row · scale − offset_y``). Returns how many
+    samples counted and how many were kept."""
     h, w = moving.shape
     use_lit = lit.shape[0] == h and lit.shape[1] == w
     n = cols.shape[0]
-    e = np.empty(n, np.float32)
+    e = np.empty(n, np.float64)
+    gxs = np.empty(n, np.float64)
+    gys = np.empty(n, np.float64)
     ok = np.zeros(n, np.bool_)
     counted = 0
     total = 0.0
@@ -417,73 +427,98 @@ def _align_system(
         y0 = min(int(y), h - 2)
         fx = x - x0
         fy = y - y0
-        top = moving[y0, x0] * (1.0 - fx) + moving[y0, x0 + 1] * fx
-        bottom = moving[y0 + 1, x0] * (1.0 - fx) + moving[y0 + 1, x0 + 1] * fx
-        value = top * (1.0 - fy) + bottom * fy
+        w00, w01, w10, w11 = (1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy
+        value = (
+            w00 * moving[y0, x0] + w01 * moving[y0, x0 + 1] + w10 * moving[y0 + 1, x0] + w11 * moving[y0 + 1, x0 + 1]
+        )
         if value <= 0.0:
             continue
+        mgx = (
+            w00 * moving_gx[y0, x0]
+            + w01 * moving_gx[y0, x0 + 1]
+            + w10 * moving_gx[y0 + 1, x0]
+            + w11 * moving_gx[y0 + 1, x0 + 1]
+        )
+        mgy = (
+            w00 * moving_gy[y0, x0]
+            + w01 * moving_gy[y0, x0 + 1]
+            + w10 * moving_gy[y0 + 1, x0]
+            + w11 * moving_gy[y0 + 1, x0 + 1]
+        )
+        # d(source)/d(target pixel), then the carried gradient per target pixel, per normalised unit
+        dxc, dxr = (back[0, 0] - x * back[2, 0]) / z, (back[0, 1] - x * back[2, 1]) / z
+        dyc, dyr = (back[1, 0] - y * back[2, 0]) / z, (back[1, 1] - y * back[2, 1]) / z
+        gxs[i] = 0.5 * (target_ix[i] + (mgx * dxc + mgy * dyc) / scale)
+        gys[i] = 0.5 * (target_iy[i] + (mgx * dxr + mgy * dyr) / scale)
         e[i] = value - values[i]
         ok[i] = True
         total += abs(e[i])
         counted += 1
-    hess[:] = hess_all
-    rhs[:] = 0.0
     if counted == 0:
-        return 0
+        return 0, 0
     cut = robust_k * (1.25 * total / counted + 1e-6)
+    kept = 0
     for i in range(n):
-        if ok[i] and abs(e[i]) < cut:
-            for a in range(8):
-                rhs[a] += float(sd[i, a]) * e[i]
-        else:
-            for a in range(8):
-                sa = float(sd[i, a])
-                for b in range(a, 8):
-                    hess[a, b] -= sa * sd[i, b]
-    for a in range(8):
-        for b in range(a):
-            hess[a, b] = hess[b, a]
-    return counted
+        if not ok[i] or abs(e[i]) >= cut:
+            continue
+        xn, yn = cols[i] * scale - 1.0, rows[i] * scale - offset_y
+        ix, iy = gxs[i], gys[i]
+        q = -(ix * xn + iy * yn)
+        row = sd[kept]
+        row[0], row[1], row[2], row[3] = ix * xn, ix * yn, ix, iy * xn
+        row[4], row[5], row[6], row[7] = iy * yn, iy, q * xn, q * yn
+        residual[kept] = e[i]
+        kept += 1
+    return counted, kept
 
 
 def _align_system_numpy(
     moving: F32,
+    moving_gx: F32,
+    moving_gy: F32,
     lit: U8,
     back: F64,
     cols: I64,
     rows: I64,
     values: F32,
-    sd: F32,
-    hess_all: F64,
+    target_ix: F32,
+    target_iy: F32,
+    scale: float,
+    offset_y: float,
     robust_k: float,
-    hess: F64,
-    rhs: F64,
-) -> int:
+    sd: F64,
+    residual: F64,
+) -> tuple[int, int]:
     """:func:`_align_system` with OpenCV's remap and numpy (where numba cannot compile)."""
     import cv2
 
     h, w = moving.shape
     src = back @ np.stack([cols, rows, np.ones(len(cols))]).astype(np.float64)
-    map_x = (src[0] / src[2]).astype(np.float32).reshape(-1, 1)
-    map_y = (src[1] / src[2]).astype(np.float32).reshape(-1, 1)
-    warped = np.asarray(
-        cv2.remap(moving, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT), np.float32
-    ).ravel()
-    inside = (map_x[:, 0] >= 0) & (map_x[:, 0] <= w - 1) & (map_y[:, 0] >= 0) & (map_y[:, 0] <= h - 1)
-    counted = inside & (warped > 0)
+    x, y, z = src[0] / src[2], src[1] / src[2], src[2]
+    map_x, map_y = x.astype(np.float32).reshape(-1, 1), y.astype(np.float32).reshape(-1, 1)
+    read = [
+        np.asarray(cv2.remap(img, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT), np.float64).ravel()
+        for img in (moving, moving_gx, moving_gy)
+    ]
+    counted = (x >= 0) & (x <= w - 1) & (y >= 0) & (y <= h - 1) & (read[0] > 0)
     if lit.shape == moving.shape:
         counted &= cv2.remap(lit, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT).ravel() > 0
-    e = warped - values
+    e = read[0] - values
     n = int(counted.sum())
-    hess[:] = 0.0
-    rhs[:] = 0.0
     if n == 0:
-        return 0
+        return 0, 0
     keep = counted & (np.abs(e) < robust_k * (1.25 * float(np.abs(e[counted]).mean()) + 1e-6))
-    a = np.compress(keep, sd, axis=0).astype(np.float64)
-    hess[:] = a.T @ a
-    rhs[:] = a.T @ e[keep].astype(np.float64)
-    return n
+    dxc, dxr = (back[0, 0] - x * back[2, 0]) / z, (back[0, 1] - x * back[2, 1]) / z
+    dyc, dyr = (back[1, 0] - y * back[2, 0]) / z, (back[1, 1] - y * back[2, 1]) / z
+    ix = 0.5 * (target_ix + (read[1] * dxc + read[2] * dyc) / scale)
+    iy = 0.5 * (target_iy + (read[1] * dxr + read[2] * dyr) / scale)
+    xn, yn = cols * scale - 1.0, rows * scale - offset_y
+    q = -(ix * xn + iy * yn)
+    rows_kept = np.stack([ix * xn, ix * yn, ix, iy * xn, iy * yn, iy, q * xn, q * yn], axis=1)[keep]
+    kept = len(rows_kept)
+    sd[:kept] = rows_kept
+    residual[:kept] = e[keep]
+    return n, kept
 
 
 align_system = _Kernel(_align_system, _align_system_numpy)
@@ -581,18 +616,9 @@ def warm() -> None:
     u8 = np.zeros((8, 8), np.uint8)
     sample_pair(u8, u8, u8, u8, 4)
     difference_pass(u8, u8, u8, u8, 1.0, 0.0, 1.0, image, u8.copy(), u8.copy())
+    f32 = np.zeros(1, np.float32)
     align_system(
-        image,
-        no_mask,
-        rt,
-        ints,
-        ints,
-        np.zeros(1, np.float32),
-        np.zeros((1, 8), np.float32),
-        np.zeros((8, 8)),
-        3.0,
-        np.zeros((8, 8)),
-        np.zeros(8),
+        image, image, image, no_mask, rt, ints, ints, f32, f32, f32, 0.1, 0.5, 3.0, np.zeros((8, 8)), np.zeros(8)
     )
 
 
