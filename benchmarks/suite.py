@@ -79,12 +79,14 @@ RENDER_SOURCES = ("ipt/sim/__init__.py", "ipt/sim/arena.py", "ipt/sim/config.py"
                   "ipt/videoio.py", "ipt/calib/floor.py")  # fmt: skip
 
 
-def scenario_files(only: list[str] | None) -> list[Path]:
-    files = {p.stem: p for p in sorted(FLIGHTS.glob("*.yaml"))}
+def scenario_files(only: list[str] | None, folder: Path = FLIGHTS) -> list[Path]:
+    files = {p.stem: p for p in sorted(folder.glob("*.yaml"))}
+    if not files:
+        raise SystemExit(f"suite: no flight files (*.yaml) in {folder}")
     if only:
         unknown = [n for n in only if n not in files]
         if unknown:
-            raise SystemExit(f"suite: no flight {', '.join(unknown)} in {FLIGHTS} (have {', '.join(files)})")
+            raise SystemExit(f"suite: no flight {', '.join(unknown)} in {folder} (have {', '.join(files)})")
         return [files[n] for n in only]
     ordered = [n for n in ORDER if n in files] + [n for n in files if n not in ORDER]
     return [files[n] for n in ordered]
@@ -286,7 +288,14 @@ def markdown(results: dict[str, Any]) -> str:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seconds", type=float, default=8.0, help="length of each flight (default 8)")
-    p.add_argument("--only", help="comma-separated flight names (default: every file in benchmarks/flights)")
+    p.add_argument(
+        "--flights",
+        type=Path,
+        default=FLIGHTS,
+        help="folder of flight files (default benchmarks/flights; benchmarks/heldout: flights the receiver was "
+        "never tuned on)",
+    )
+    p.add_argument("--only", help="comma-separated flight names (default: every file in the --flights folder)")
     p.add_argument("--profiles", default=",".join(PROFILES), help="comma-separated receiver profiles")
     p.add_argument(
         "--arena", type=Path, help="arena YAML the flights' changes apply to (default: the shipped one, with its pad)"
@@ -305,7 +314,7 @@ def main() -> int:
     args.cache.mkdir(parents=True, exist_ok=True)
     digest = _source_digest()
     results: dict[str, Any] = {"seconds": args.seconds, "flights": {}}
-    for path in scenario_files(args.only.split(",") if args.only else None):
+    for path in scenario_files(args.only.split(",") if args.only else None, args.flights):
         sim = load_yaml_model(path, SimConfig)
         arena = apply_arena_changes(base, sim.arena)
         folder = render(path.stem, sim, arena, args.seconds, args.cache, digest)

@@ -51,6 +51,17 @@ def test_every_scenario_file_is_a_valid_flight(name: str) -> None:
     flight_of(sim).state(0.5)  # the flight can be flown
 
 
+@pytest.mark.parametrize("path", sorted((ROOT / "benchmarks" / "heldout").glob("*.yaml")), ids=lambda p: p.stem)
+def test_every_held_out_flight_is_a_valid_flight_unlike_the_suites(path: Path) -> None:
+    # benchmarks/heldout: flights the receiver is checked on and never tuned on; none is a suite flight.
+    sim = load_yaml_model(path, SimConfig)
+    assert sim.description.startswith("held out")
+    flight_of(sim).state(0.5)
+    blank = {"description": ""}
+    suite = [load_yaml_model(p, SimConfig).model_copy(update=blank) for p in FLIGHTS.glob("*.yaml")]
+    assert sim.model_copy(update=blank) not in suite
+
+
 def test_the_default_flight_is_the_realistic_one() -> None:
     default, written = SimConfig(), load_yaml_model(FLIGHTS / "moving-content.yaml", SimConfig)
     assert default.shadow is not None
