@@ -34,8 +34,8 @@ I64 = npt.NDArray[np.int64]
 U8 = npt.NDArray[np.uint8]
 
 COMPILED = True
-"""Whether the kernels below are compiled (False: numba is unavailable and they run as Python); known once
-:func:`ensure` has run."""
+"""Whether the kernels below are compiled (False: numba is unavailable and they run as Python, or as numpy
+where they have a fallback); known once :func:`ensure` has run."""
 
 _lock = threading.Lock()
 _ready = threading.Event()
@@ -619,7 +619,7 @@ def warm() -> None:
     difference_pass(u8, u8, u8, u8, 1.0, 0.0, 1.0, image, u8.copy(), u8.copy())
     f32 = np.zeros(1, np.float32)
     align_system(
-        image, image, image, no_mask, rt, ints, ints, f32, f32, f32, 0.1, 0.5, 3.0, np.zeros((8, 8)), np.zeros(8)
+        image, image, image, no_mask, rt, ints, ints, f32, f32, f32, 0.1, 0.5, 3.0, np.zeros((1, 8)), np.zeros(1)
     )
 
 
@@ -628,8 +628,8 @@ _warming = False
 
 def warm_in_background() -> None:
     """Start :func:`warm` on a thread of its own (once per process): a daemon's start-up (sockets, the
-    camera, the AprilTag helper, the first frames, which AprilTag acquires) goes on meanwhile, and the first
-    track waits for it only if it is not done."""
+    camera, the AprilTag helper) goes on meanwhile, and the first pair or track waits for it only if it is
+    not done."""
     global _warming
     with _lock:
         if _warming or _ready.is_set():
