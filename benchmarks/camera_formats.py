@@ -25,8 +25,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ipt.receiver.demodulator import luminance
-from ipt.receiver.pixelformats import raw_luma, yuyv_from_rgb
+from ipt.receiver.capture.pixelformats import raw_luma, yuyv_from_rgb
+from ipt.receiver.core.demodulator import luminance
 from ipt.videoio import open_frames
 
 U8 = npt.NDArray[np.uint8]

@@ -42,7 +42,7 @@ def collect_images(folder: Path, out: Path) -> int:
     """Run the pipeline over the flight in ``folder``; save every detector input to ``out`` (npz)."""
     from ipt.config.camera_info import load_camera_info
     from ipt.config.models import ArenaConfig, PipelineConfig
-    from ipt.receiver.pipeline import Pipeline
+    from ipt.receiver.core.pipeline import Pipeline
     from ipt.tagmap import grid_tag_map
     from ipt.videoio import open_frames
 
@@ -72,7 +72,7 @@ def child(images_path: Path, isolation: str, calls: int, recycle_mb: float) -> d
     """The measurement, in a fresh process."""
     from soak import sample  # benchmarks/ is on sys.path when a script here runs
 
-    from ipt.receiver.detector import TagDetector
+    from ipt.receiver.detect.detector import TagDetector
 
     with np.load(images_path) as data:
         images = [data[k] for k in data.files]

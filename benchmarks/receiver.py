@@ -26,7 +26,7 @@ import numpy as np
 from ipt.config.camera_info import load_camera_info
 from ipt.config.models import PROFILES, ArenaConfig, PipelineConfig
 from ipt.eval import evaluate
-from ipt.receiver.pipeline import Pipeline
+from ipt.receiver.core.pipeline import Pipeline
 from ipt.tagmap import grid_tag_map
 from ipt.tum import Trajectory, read_tum
 from ipt.videoio import open_frames

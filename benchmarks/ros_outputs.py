@@ -7,7 +7,7 @@ DIR holds frames.mkv and camera.yaml as ``ipt sim`` writes them (``ipt sim --con
 The real ``ipt-receiver run --source video:DIR/frames.mkv --ros2 --record OUT.mcap --mavlink udpout:...``
 subprocess runs once while this script listens on 127.0.0.1: a plain DDS reader (the ROS 2 types, best
 effort) on ``rt/ipt/pose``, pymavlink on the MAVLink port, a socket for the UDP pose packets. DDS is
-confined to loopback (:mod:`ipt.receiver.ddsconfig`, a domain of its own). Then ``ipt-receiver replay``
+confined to loopback (:mod:`ipt.receiver.outputs.ros.ddsconfig`, a domain of its own). Then ``ipt-receiver replay``
 runs on the same recording, and the script reports:
 
 - ``record``: the poses in the MCAP against the replay's TUM file (count, time stamps, largest position
@@ -36,7 +36,7 @@ os.environ.setdefault("MAVLINK20", "1")
 
 import numpy as np
 
-from ipt.receiver.ddsconfig import loopback_environ
+from ipt.receiver.outputs.ros.ddsconfig import loopback_environ
 from ipt.rosmsg import read_mcap_trajectory, time_ns
 from ipt.tum import read_tum
 
@@ -69,7 +69,7 @@ def main() -> int:
     from cyclonedds.topic import Topic
     from pymavlink import mavutil
 
-    from ipt.receiver.ros2 import PoseWithCovarianceStamped
+    from ipt.receiver.outputs.ros.dds import PoseWithCovarianceStamped
 
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
@@ -139,7 +139,7 @@ def main() -> int:
     result = {
         "command": " ".join(run_cmd),
         "replay_command": " ".join(replay_cmd),
-        "cyclonedds_uri": f"loopback only (ipt.receiver.ddsconfig.LOOPBACK_XML), domain {domain}",
+        "cyclonedds_uri": f"loopback only (ipt.receiver.outputs.ros.ddsconfig.LOOPBACK_XML), domain {domain}",
         "run_seconds": round(run_s, 2),
         "udp_packets": packets,
         "record": {

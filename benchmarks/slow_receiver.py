@@ -31,8 +31,8 @@ import numpy as np
 
 from ipt.config.camera_info import load_camera_info
 from ipt.config.models import PipelineConfig, load_arena_config
+from ipt.receiver.core.pipeline import Pipeline
 from ipt.receiver.daemon import LIVE_RUN_FRAMES
-from ipt.receiver.pipeline import Pipeline
 from ipt.tagmap import grid_tag_map
 from ipt.tum import read_tum
 from ipt.videoio import open_frames

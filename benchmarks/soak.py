@@ -12,7 +12,7 @@ Every ``--interval`` seconds it samples each process's resident memory (``VmRSS`
 ``/proc/PID/status``, and its two parts: ``RssAnon``, the process's own memory, where a leak would
 show, and ``RssFile``, mapped library pages), open file descriptors (entries of ``/proc/PID/fd``) and
 threads, each summed over the process and its descendants: the receiver runs AprilTag in a helper
-process (``ipt.receiver.tagworker``) that it replaces once the helper's memory grew by
+process (``ipt.receiver.detect.tagworker``) that it replaces once the helper's memory grew by
 ``detector.recycle_mb``, so its memory is counted with the daemon's. The first ``--warmup`` seconds
 are left out (imports, caches, histograms and pools filling up).
 After that, growth is reported four ways: last minus first sample, median of the last five samples

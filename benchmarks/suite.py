@@ -55,7 +55,7 @@ from ipt.config.models import (
     shipped_config_path,
 )
 from ipt.eval import evaluate
-from ipt.receiver.pipeline import Pipeline
+from ipt.receiver.core.pipeline import Pipeline
 from ipt.sim.arena import scene_for, true_arena
 from ipt.sim.config import SimConfig, apply_arena_changes, describe_flight
 from ipt.sim.run import simulate_to_folder

@@ -75,7 +75,7 @@ def _cmd_map_check(args: argparse.Namespace) -> int:
         return 0
     img = read_image(args.image, "grey", TagMapError)
     from ipt.config.models import DetectorConfig
-    from ipt.receiver.detector import APRILTAG_TO_OPENCV_PX, TagDetector
+    from ipt.receiver.detect.detector import APRILTAG_TO_OPENCV_PX, TagDetector
 
     # The layout uses AprilTag's own pixel convention, so undo the wrapper's shift to OpenCV's.
     detector = TagDetector(DetectorConfig(max_hamming=0))

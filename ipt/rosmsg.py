@@ -1,6 +1,6 @@
 """ROS 2 messages without ROS: the definitions IPT publishes and records, time stamps, and reading poses back.
 
-What lives here is shared by the receiver (which writes the messages, :mod:`ipt.receiver.rosframes`) and
+What lives here is shared by the receiver (which writes the messages, :mod:`ipt.receiver.outputs.ros.frames`) and
 ``ipt eval`` (which reads ``/ipt/pose`` out of a recording):
 
 - the message definitions, in the concatenated ``.msg`` form MCAP's ``ros2msg`` schema encoding and

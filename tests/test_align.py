@@ -12,10 +12,10 @@ import pytest
 
 from ipt.align import AlignError, align, fit_se3, time_offset_by_speed
 from ipt.geometry import matrix_from_quat_wxyz, matrix_from_ypr, quat_wxyz_from_matrix, rotation_angle_rad
-from ipt.receiver.mavlink import Mounting
-from ipt.receiver.pose import PoseEstimate
-from ipt.receiver.record import McapRecorder
-from ipt.receiver.rosframes import RosMessageMaker, RosNames, StampClock
+from ipt.receiver.core.pose import PoseEstimate
+from ipt.receiver.outputs.mavlink.output import Mounting
+from ipt.receiver.outputs.ros.frames import RosMessageMaker, RosNames, StampClock
+from ipt.receiver.outputs.ros.record import McapRecorder
 from ipt.tum import Trajectory, read_tum, write_tum
 
 R_MOCAP = matrix_from_ypr(0.6, 0.02, -0.03)  # mocap world -> arena

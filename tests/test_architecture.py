@@ -30,10 +30,10 @@ def _loaded_ipt_modules(module: str) -> list[str]:
     [
         "ipt.receiver.cli",
         "ipt.receiver.daemon",
-        "ipt.receiver.pipeline",
+        "ipt.receiver.core.pipeline",
         "ipt.receiver.replay",
-        "ipt.receiver.ros2",
-        "ipt.receiver.record",
+        "ipt.receiver.outputs.ros.dds",
+        "ipt.receiver.outputs.ros.record",
     ],
 )
 def test_receiver_does_not_import_the_sender(module: str) -> None:
@@ -262,7 +262,7 @@ def test_no_import_cycle_among_module_level_imports() -> None:
 
 def test_no_import_cycle_in_the_receiver_counting_function_level_imports() -> None:
     """In the receiver, no cycle even when the imports inside functions are counted (the detector and its
-    helper process's module share the C wrapper, :mod:`ipt.receiver.apriltag_c`, instead of each other)."""
+    helper process's module share the C wrapper, :mod:`ipt.receiver.detect.apriltag_c`, instead of each other)."""
     edges = [ImportEdge(e.source, e.target, e.line, True) for e in all_imports() if _under(e.source, "ipt.receiver")]
     assert import_cycles(edges) == []
 
@@ -302,7 +302,7 @@ def _reason_literals(path: Path) -> set[str]:
 
 
 def test_every_reason_the_receiver_gives_is_a_frame_reason() -> None:
-    from ipt.receiver.reasons import FrameReason
+    from ipt.receiver.core.reasons import FrameReason
 
     receiver = PACKAGE / "receiver"
     found = set().union(*(_reason_literals(receiver / n) for n in ("pipeline.py", "gates.py", "framecheck.py")))

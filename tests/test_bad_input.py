@@ -15,7 +15,7 @@ import pytest
 
 from ipt.config.camera_info import load_camera_info
 from ipt.config.models import PipelineConfig, load_arena_config
-from ipt.receiver.pipeline import FrameResult, Pipeline
+from ipt.receiver.core.pipeline import FrameResult, Pipeline
 from ipt.tagmap import grid_tag_map
 from ipt.tum import read_tum
 from ipt.videoio import open_frames
@@ -143,7 +143,7 @@ def test_the_daemon_counts_bad_frames_of_a_folder_and_exits_cleanly(short_flight
 def test_the_dark_test_by_counting_is_numpys_percentile() -> None:
     # exposure_problem decides "99th percentile below the dark level" by counting where that settles it:
     # the same answer as np.percentile on samples of every size, around the level and far from it.
-    from ipt.receiver.framecheck import _percentile_99_below
+    from ipt.receiver.core.framecheck import _percentile_99_below
 
     rng = np.random.default_rng(0)
     for _ in range(5000):

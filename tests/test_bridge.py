@@ -1,4 +1,4 @@
-"""The bridge across a content change (ipt.receiver.bridge): a frame exposed while the video changed has its
+"""The bridge across a content change (ipt.receiver.core.bridge): a frame exposed while the video changed has its
 tags back from the frames before and after it, where either pair alone shows only the content."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from ipt.receiver.bridge import bridge_difference
-from ipt.receiver.demodulator import pair_difference
+from ipt.receiver.core.bridge import bridge_difference
+from ipt.receiver.core.demodulator import pair_difference
 
 H, W = 180, 320
 F32 = npt.NDArray[np.float32]
@@ -96,7 +96,7 @@ def test_a_frame_no_mix_of_its_neighbours_explains_is_refused() -> None:
 def test_which_neighbours_keep_the_tags_of_a_frame_across_a_content_change() -> None:
     # 32.5 % of the frame's exposure before the flip (old video, - phase), the rest after (new video, +).
     # Its neighbours one frame away lie inside those projector frames; two frames away they straddle the
-    # flips before and after it with the same shares (see ipt.receiver.bridge).
+    # flips before and after it with the same shares (see ipt.receiver.core.bridge).
     alpha, old, new = 0.325, _texture(1), _texture(2)
     tags = 3.0 * np.pad(_tags(), 20)
     still = (0.0, 0.0)

@@ -30,9 +30,9 @@ from ipt.receiver.capture import (
     VideoCapture,
     v4l2,
 )
+from ipt.receiver.capture.pixelformats import raw_luma, yuyv_from_rgb
+from ipt.receiver.core.pipeline import FrameResult, Pipeline
 from ipt.receiver.daemon import make_source
-from ipt.receiver.pipeline import FrameResult, Pipeline
-from ipt.receiver.pixelformats import raw_luma, yuyv_from_rgb
 from ipt.tagmap import grid_tag_map
 from ipt.tum import read_tum
 from ipt.videoio import open_frames
@@ -363,7 +363,7 @@ def test_camera_format_names_are_checked_and_aliases_taken() -> None:
 
 
 def test_raw_luma_rejects_buffers_of_the_wrong_size() -> None:
-    from ipt.receiver.pixelformats import PixelFormatError
+    from ipt.receiver.capture.pixelformats import PixelFormatError
 
     with pytest.raises(PixelFormatError, match="GREY"):
         raw_luma(np.zeros(10, np.uint8), "GREY", W, H)

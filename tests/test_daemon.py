@@ -28,8 +28,8 @@ from ipt.receiver.capture import (
     Pacer,
     VideoCapture,
 )
-from ipt.receiver.outputs import PacketMaker, UdpPoseSender
-from ipt.receiver.pose import PoseEstimate
+from ipt.receiver.core.pose import PoseEstimate
+from ipt.receiver.outputs.udp import PacketMaker, UdpPoseSender
 from ipt.receiver.replay import replay
 from ipt.sender.content import GeneratedScene
 from ipt.sim.config import SimConfig

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from ipt.config.models import DetectorConfig
-from ipt.receiver.detector import TagDetector
+from ipt.receiver.detect.detector import TagDetector
 
 
 def test_close_frees_detector_before_family_and_disarms_library_del() -> None:

@@ -22,8 +22,8 @@ import pytest
 from ipt.config.receiver import ReceiverConfig
 from ipt.receiver import daemon
 from ipt.receiver.capture import CapturedFrame, CaptureError
+from ipt.receiver.core.pipeline import FrameResult, Pipeline
 from ipt.receiver.daemon import DaemonStats, ResultHook, run_daemon
-from ipt.receiver.pipeline import FrameResult, Pipeline
 from ipt.videoio import open_frames
 
 FPS = 120.0
@@ -163,7 +163,7 @@ async def test_refused_sends_keep_the_daemon_localising(
 
 
 def _tagworker_children() -> list[int]:
-    """Process ids of this process's children that are detector helpers (ipt.receiver.tagworker)."""
+    """Process ids of this process's children that are detector helpers (ipt.receiver.detect.tagworker)."""
     me, found = os.getpid(), []
     for entry in os.listdir("/proc"):
         if not entry.isdigit():
@@ -174,7 +174,7 @@ def _tagworker_children() -> list[int]:
         except OSError:
             continue
         fields = stat.rsplit(")", 1)[1].split()
-        if int(fields[1]) == me and fields[0] != "Z" and b"ipt.receiver.tagworker" in cmdline:
+        if int(fields[1]) == me and fields[0] != "Z" and b"ipt.receiver.detect.tagworker" in cmdline:
             found.append(int(entry))
     return found
 

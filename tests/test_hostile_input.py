@@ -923,7 +923,7 @@ async def test_a_peer_cycling_its_system_id_gets_a_few_lines_not_one_each() -> N
     from pymavlink import mavutil
 
     from ipt.config.receiver import MavlinkConfig
-    from ipt.receiver.mavlink import MavlinkOutput
+    from ipt.receiver.outputs.mavlink.output import MavlinkOutput
 
     class Lines:
         def __init__(self) -> None:

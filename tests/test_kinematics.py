@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 
 from ipt.geometry import rot_z
-from ipt.receiver.kinematics import MIN_POSES, WINDOW_US, VelocityFit
+from ipt.receiver.core.kinematics import MIN_POSES, WINDOW_US, VelocityFit
 
 V = np.array([0.8, -0.3, 0.1])
 W = np.array([0.05, -0.02, 0.6])  # rad/s about the arena axes

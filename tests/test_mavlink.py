@@ -37,8 +37,10 @@ from ipt.config.receiver import MavlinkConfig, ReceiverConfig, parse_link, with_
 from ipt.geometry import matrix_from_quat_wxyz, matrix_from_ypr, rot_z
 from ipt.protocol import decode_pose
 from ipt.receiver.capture import CapturedFrame
-from ipt.receiver.detector import TagDetection
-from ipt.receiver.mavlink import (
+from ipt.receiver.core.pipeline import FrameResult
+from ipt.receiver.core.pose import PoseEstimate, solve_pose
+from ipt.receiver.detect.detector import TagDetection
+from ipt.receiver.outputs.mavlink.output import (
     R_FRD_CAM_DOWNWARD,
     R_NED_ENU,
     FixMonitor,
@@ -56,9 +58,7 @@ from ipt.receiver.mavlink import (
     quality_percent,
     upper_triangle_21,
 )
-from ipt.receiver.mavsession import MavlinkSession
-from ipt.receiver.pipeline import FrameResult
-from ipt.receiver.pose import PoseEstimate, solve_pose
+from ipt.receiver.outputs.mavlink.session import MavlinkSession
 from ipt.sim.run import CAMERA_NAME, VIDEO_NAME
 from ipt.tagmap import grid_tag_map
 

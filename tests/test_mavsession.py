@@ -1,4 +1,5 @@
-"""The MAVLink session without a link or a clock: made-up times in, messages out (ipt/receiver/mavsession.py)."""
+"""The MAVLink session without a link or a clock: made-up times in, messages out
+(ipt/receiver/outputs/mavlink/session.py)."""
 
 from __future__ import annotations
 
@@ -8,11 +9,11 @@ from pymavlink.dialects.v20 import common as mavlink2
 from ipt.config.receiver import MavlinkConfig
 from ipt.geometry import rot_z
 from ipt.receiver.capture import CapturedFrame
-from ipt.receiver.frameresult import FrameResult
-from ipt.receiver.mavframes import R_FRD_CAM_DOWNWARD
-from ipt.receiver.mavlinks import load_dialect
-from ipt.receiver.mavsession import HEARTBEAT_PERIOD_S, WATCH_PERIOD_S, MavlinkSession, Outgoing
-from ipt.receiver.pose import PoseEstimate
+from ipt.receiver.core.frameresult import FrameResult
+from ipt.receiver.core.pose import PoseEstimate
+from ipt.receiver.outputs.mavlink.frames import R_FRD_CAM_DOWNWARD
+from ipt.receiver.outputs.mavlink.links import load_dialect
+from ipt.receiver.outputs.mavlink.session import HEARTBEAT_PERIOD_S, WATCH_PERIOD_S, MavlinkSession, Outgoing
 
 
 def _pose() -> PoseEstimate:

@@ -492,7 +492,7 @@ def test_frame_timing_whole_and_other_ratios() -> None:
 def _detect_tags(plus: U8, minus: U8, tag_count: int) -> int:
     """Tags pupil-apriltags finds in the lightness difference of two phases (projector space, halved)."""
     from ipt.config.models import DetectorConfig
-    from ipt.receiver.detector import TagDetector
+    from ipt.receiver.detect.detector import TagDetector
 
     diff = _lstar8(plus) - _lstar8(minus)
     small = cv2.resize(diff, (diff.shape[1] // 2, diff.shape[0] // 2), interpolation=cv2.INTER_AREA)

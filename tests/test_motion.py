@@ -8,7 +8,7 @@ import numpy.typing as npt
 import pytest
 
 from ipt.geometry import R_BODY_CAM_DOWNWARD, rot_x, rot_z, rotation_angle_rad
-from ipt.receiver.motion import MotionTrack, floor_homography, floor_warp
+from ipt.receiver.core.motion import MotionTrack, floor_homography, floor_warp
 
 F64 = npt.NDArray[np.float64]
 K = np.array([[460.0, 0.0, 319.5], [0.0, 460.0, 179.5], [0.0, 0.0, 1.0]])

@@ -18,9 +18,8 @@ from ipt.config.models import (
     load_arena_config,
     shipped_config_path,
 )
-from ipt.receiver.detector import APRILTAG_TO_OPENCV_PX, TagDetector
-from ipt.receiver.pipeline import Pipeline
-from ipt.receiver.scales import (
+from ipt.receiver.core.pipeline import Pipeline
+from ipt.receiver.core.scales import (
     DetectScale,
     ScaleChooser,
     gate_growth,
@@ -28,7 +27,8 @@ from ipt.receiver.scales import (
     scale_for_cell,
     tag_cells_m,
 )
-from ipt.receiver.track import MapEdges
+from ipt.receiver.core.track import MapEdges
+from ipt.receiver.detect.detector import APRILTAG_TO_OPENCV_PX, TagDetector
 from ipt.sim.arena import SimulatedArena, scene_for
 from ipt.sim.config import SimConfig
 from ipt.sim.render import camera_info_of

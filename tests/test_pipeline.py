@@ -12,10 +12,10 @@ import pytest
 
 from ipt.config.camera_info import load_camera_info
 from ipt.config.models import ConfigError, DemodulationConfig, PipelineConfig, load_arena_config
-from ipt.receiver.detector import DetectorError
-from ipt.receiver.pipeline import FrameResult, Pipeline, _Frame
-from ipt.receiver.pose import PoseEstimate, rt_of
-from ipt.receiver.reasons import FrameReason
+from ipt.receiver.core.pipeline import FrameResult, Pipeline, _Frame
+from ipt.receiver.core.pose import PoseEstimate, rt_of
+from ipt.receiver.core.reasons import FrameReason
+from ipt.receiver.detect.detector import DetectorError
 from ipt.tagmap import grid_tag_map
 from ipt.tum import read_tum
 from ipt.videoio import open_frames
@@ -412,7 +412,7 @@ def test_the_bridge_is_not_tried_when_neither_neighbour_has_a_pose(
     short_flight: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     # Its warps would all come from the recent motion (the fast flight's dark scenes: 1 pose in 128 tries).
-    import ipt.receiver.bridge as bridge_module
+    import ipt.receiver.core.bridge as bridge_module
 
     p = _pipeline(short_flight, PipelineConfig())
     lum, down = np.zeros((360, 640), np.uint8), np.diag([1.0, -1.0, -1.0])

@@ -13,8 +13,8 @@ import pytest
 from ipt.config.camera_info import CameraInfo
 from ipt.config.models import ArenaConfig, DemodulationConfig, DetectorConfig, PoseConfig
 from ipt.geometry import R_BODY_CAM_DOWNWARD, rot_x, rot_y, rot_z, rotation_angle_rad
-from ipt.receiver import imagealign, kernels
-from ipt.receiver.demodulator import (
+from ipt.receiver.core import imagealign, kernels
+from ipt.receiver.core.demodulator import (
     DemodulationError,
     aligned_difference,
     binarise_difference,
@@ -24,8 +24,7 @@ from ipt.receiver.demodulator import (
     pair_difference,
     percentiles_u8,
 )
-from ipt.receiver.detector import DetectorError, TagDetection, TagDetector
-from ipt.receiver.imagealign import (
+from ipt.receiver.core.imagealign import (
     _DOUBLE,
     _HALF,
     AlignTarget,
@@ -35,7 +34,8 @@ from ipt.receiver.imagealign import (
     refine_homography,
     translation,
 )
-from ipt.receiver.pose import correspondences, solve_pose
+from ipt.receiver.core.pose import correspondences, solve_pose
+from ipt.receiver.detect.detector import DetectorError, TagDetection, TagDetector
 from ipt.sender.modulator import PaperModulator
 from ipt.tagmap import TagMap, arena_to_pixel_matrix, grid_tag_map
 
@@ -585,7 +585,7 @@ def _corner_error_px(detections: tuple[TagDetection, ...], scene: Scene) -> floa
 
 
 def test_homography_alignment_aligns_a_yawed_and_tilted_pair(scene: Scene, detector: TagDetector) -> None:
-    from ipt.receiver.motion import floor_warp
+    from ipt.receiver.core.motion import floor_warp
 
     # The previous frame saw the floor from 8 mm away, yawed 1.5° and tilted 1°: no single shift aligns it.
     r_before = rot_z(np.deg2rad(1.5)) @ rot_x(np.deg2rad(1.0)) @ R_ARENA_CAM
@@ -638,7 +638,7 @@ def test_luma_lightness_matches_cielab_on_grey_and_stays_close_on_colour() -> No
 def test_the_kept_grey_to_lightness_table_is_opencvs_conversion() -> None:
     # The table is kept in the source so that a daemon's start-up skips OpenCV's first CIELAB conversion;
     # it must stay exactly what that conversion gives for every grey level.
-    from ipt.receiver.demodulator import _LUMA_TO_L, _luma_to_lightness_table
+    from ipt.receiver.core.demodulator import _LUMA_TO_L, _luma_to_lightness_table
 
     assert _LUMA_TO_L.dtype == np.uint8
     assert _LUMA_TO_L.shape == (256,)

@@ -16,10 +16,10 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 from ipt.geometry import rot_z
-from ipt.receiver.mavlink import R_FRD_CAM_DOWNWARD, Mounting
-from ipt.receiver.pose import PoseEstimate
-from ipt.receiver.record import DIFFERENCE_GAIN, DifferenceSampler, McapRecorder
-from ipt.receiver.rosframes import RosMessageMaker, RosNames, StampClock
+from ipt.receiver.core.pose import PoseEstimate
+from ipt.receiver.outputs.mavlink.output import R_FRD_CAM_DOWNWARD, Mounting
+from ipt.receiver.outputs.ros.frames import RosMessageMaker, RosNames, StampClock
+from ipt.receiver.outputs.ros.record import DIFFERENCE_GAIN, DifferenceSampler, McapRecorder
 from ipt.rosmsg import COMPRESSED_IMAGE, DIAGNOSTICS, METADATA_NAME, ODOMETRY, POSE, TF, read_mcap_trajectory, time_ns
 from ipt.sim.run import CAMERA_NAME, VIDEO_NAME
 

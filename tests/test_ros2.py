@@ -1,7 +1,7 @@
 """ROS 2 over DDS: a plain DDS reader with the ROS 2 types receives what the daemon publishes.
 
 Every test here that starts DDS goes through :func:`dds_domain`: ``CYCLONEDDS_URI`` is the loopback-only,
-multicast-off configuration of :mod:`ipt.receiver.ddsconfig` (no packet leaves 127.0.0.1) and the domain
+multicast-off configuration of :mod:`ipt.receiver.outputs.ros.ddsconfig` (no packet leaves 127.0.0.1) and the domain
 is one of this test run's own. Waits are bounded; the daemon runs as a real subprocess.
 """
 
@@ -29,10 +29,9 @@ from cyclonedds.topic import Topic
 from ipt.config.receiver import Ros2Config
 from ipt.geometry import rot_z
 from ipt.protocol import decode_pose
-from ipt.receiver.ddsconfig import LOOPBACK_XML, loopback_environ
-from ipt.receiver.mavlink import R_FRD_CAM_DOWNWARD, Mounting
-from ipt.receiver.pose import PoseEstimate
-from ipt.receiver.ros2 import (
+from ipt.receiver.core.pose import PoseEstimate
+from ipt.receiver.outputs.mavlink.output import R_FRD_CAM_DOWNWARD, Mounting
+from ipt.receiver.outputs.ros.dds import (
     Odometry,
     PoseWithCovarianceStamped,
     Ros2Error,
@@ -41,7 +40,8 @@ from ipt.receiver.ros2 import (
     domain_from,
     qos_profile,
 )
-from ipt.receiver.rosframes import RosMessageMaker, RosNames, StampClock
+from ipt.receiver.outputs.ros.ddsconfig import LOOPBACK_XML, loopback_environ
+from ipt.receiver.outputs.ros.frames import RosMessageMaker, RosNames, StampClock
 from ipt.rosmsg import ODOMETRY, POSE, TF, read_mcap_trajectory, time_ns
 from ipt.sim.run import CAMERA_NAME, VIDEO_NAME
 

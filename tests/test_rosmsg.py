@@ -16,11 +16,11 @@ from mcap_ros2._dynamic import serialize_dynamic
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from ipt.geometry import matrix_from_ypr, rot_z
-from ipt.receiver import ros2
-from ipt.receiver.kinematics import Twist
-from ipt.receiver.mavlink import R_FRD_CAM_DOWNWARD, Mounting
-from ipt.receiver.pose import PoseEstimate
-from ipt.receiver.rosframes import (
+from ipt.receiver.core.kinematics import Twist
+from ipt.receiver.core.pose import PoseEstimate
+from ipt.receiver.outputs.mavlink.output import R_FRD_CAM_DOWNWARD, Mounting
+from ipt.receiver.outputs.ros import dds as ros2
+from ipt.receiver.outputs.ros.frames import (
     R_FLU_FRD,
     RosMessageMaker,
     RosNames,

@@ -11,8 +11,8 @@ from ipt.config.camera_info import load_camera_info
 from ipt.config.models import ArenaConfig, DetectorConfig, PipelineConfig, PoseConfig, load_arena_config
 from ipt.eval import evaluate
 from ipt.geometry import R_BODY_CAM_DOWNWARD, rotation_angle_rad
-from ipt.receiver.detector import TagDetector
-from ipt.receiver.pose import solve_pose
+from ipt.receiver.core.pose import solve_pose
+from ipt.receiver.detect.detector import TagDetector
 from ipt.receiver.replay import replay
 from ipt.sender.content import GeneratedScene
 from ipt.sim.arena import SimulatedArena

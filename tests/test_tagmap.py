@@ -13,7 +13,7 @@ import pupil_apriltags
 import pytest
 
 from ipt.config.models import ArenaConfig
-from ipt.receiver.apriltag_c import free_pupil_detector
+from ipt.receiver.detect.apriltag_c import free_pupil_detector
 from ipt.tagmap import (
     TAG36H11_CELLS,
     TagMap,

@@ -16,8 +16,8 @@ import numpy.typing as npt
 import pytest
 
 from ipt.config.models import DetectorConfig, load_arena_config, shipped_config_path
-from ipt.receiver.detector import DetectorError, TagDetection, TagDetector, c_settings
-from ipt.receiver.tagworker import ProcessBackend, rss_anon_kb
+from ipt.receiver.detect.detector import DetectorError, TagDetection, TagDetector, c_settings
+from ipt.receiver.detect.tagworker import ProcessBackend, rss_anon_kb
 from ipt.tagmap import grid_tag_map
 
 U8 = npt.NDArray[np.uint8]
@@ -173,7 +173,7 @@ def test_helper_ends_when_its_parent_is_killed() -> None:
         """
         import sys, time
         from ipt.config.models import DetectorConfig
-        from ipt.receiver.detector import TagDetector
+        from ipt.receiver.detect.detector import TagDetector
         det = TagDetector(DetectorConfig())
         print(det.backend.helper_pids[0], flush=True)
         time.sleep(60)

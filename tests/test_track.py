@@ -1,4 +1,4 @@
-"""The pose from the whole visible map (ipt/receiver/track.py) on frames warped from a known camera pose."""
+"""The pose from the whole visible map (ipt/receiver/core/track.py) on frames warped from a known camera pose."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import pytest
 from ipt.config.camera_info import CameraInfo
 from ipt.config.models import ArenaConfig
 from ipt.geometry import R_BODY_CAM_DOWNWARD, rot_x, rot_y, rot_z, rotation_angle_rad
-from ipt.receiver.demodulator import PairDifference, lightness, pair_difference
-from ipt.receiver.track import (
+from ipt.receiver.core.demodulator import PairDifference, lightness, pair_difference
+from ipt.receiver.core.track import (
     MapEdges,
     MaskRenderer,
     TrackSettings,
@@ -207,7 +207,7 @@ def test_no_map_in_view_gives_no_pose(pair: Pair, edges: MapEdges) -> None:
 
 def test_compiled_kernels_agree_with_their_python_source() -> None:
     # The kernels run as plain Python where numba cannot compile: both must measure the same steps.
-    from ipt.receiver import kernels as tk
+    from ipt.receiver.core import kernels as tk
 
     tk.ensure()
     if not tk.COMPILED:
@@ -244,8 +244,8 @@ def test_compiled_kernels_agree_with_their_python_source() -> None:
 def test_slope_noise_is_the_median_of_the_sampled_slopes() -> None:
     # The compiled kernel and its Python source give numpy's median of |diff[y, x+2] − diff[y, x]| (every
     # fourth row, every second column) where valid, or of all of them when nothing is valid.
-    from ipt.receiver import kernels as tk
-    from ipt.receiver.track import slope_noise
+    from ipt.receiver.core import kernels as tk
+    from ipt.receiver.core.track import slope_noise
 
     rng = np.random.default_rng(5)
     for h, w in ((90, 160), (91, 161), (360, 640)):

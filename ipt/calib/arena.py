@@ -103,8 +103,8 @@ def factor_from_height(
 
     Returns (factor, the views used, the names of views with fewer than two tags). The factor is the mean
     over the views used."""
-    from ipt.receiver.detector import TagDetector
-    from ipt.receiver.pose import solve_pose
+    from ipt.receiver.core.pose import solve_pose
+    from ipt.receiver.detect.detector import TagDetector
 
     if not math.isfinite(height_m) or height_m <= 0:
         raise ArenaCalibrationError(f"the measured height must be positive, got {height_m}")

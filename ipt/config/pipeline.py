@@ -43,7 +43,7 @@ class DemodulationConfig(StrictModel):
         "changes between two projector frames (half the pairs of a 30 fps video at 60 Hz) or an exposure "
         "straddles a flip. 0: each pose as soon as its frame is processed, from earlier frames only. With 2, a "
         "frame no pair solved waits one frame more, for the bridge across a content change with the frame three "
-        "on (ipt.receiver.bridge).",
+        "on (ipt.receiver.core.bridge).",
     )
     undistort: bool = Field(
         True,
@@ -139,7 +139,7 @@ class DetectorConfig(StrictModel):
 
 
 class TrackConfig(StrictModel):
-    """Pose from every visible edge of the hidden map (method 'track', see ipt/receiver/track.py)."""
+    """Pose from every visible edge of the hidden map (method 'track', see ipt/receiver/core/track.py)."""
 
     search_px: float = Field(
         4.0,

@@ -99,7 +99,7 @@ def _run_daemon(args: argparse.Namespace) -> int:
     from ipt.config.models import shipped_config_path
     from ipt.config.receiver import load_receiver_config, with_overrides
     from ipt.receiver.daemon import run
-    from ipt.receiver.outputs import OutputError
+    from ipt.receiver.outputs.udp import OutputError
 
     config = Path(args.config) if args.config else shipped_config_path("receiver.yaml")
     cfg = load_receiver_config(config)

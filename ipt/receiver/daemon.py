@@ -27,8 +27,8 @@ Three stages, each on its own thread, joined by bounded queues::
 - Latency is ``time.monotonic()`` right after the packet was sent minus the frame's grab (or read)
   instant, so it includes the time a frame waited in the queues.
 - The other outputs take each result on the event loop after the UDP packet: MAVLink
-  (:mod:`ipt.receiver.mavlink`) there, ROS 2 over DDS and the MCAP recording through
-  :class:`~ipt.receiver.rosoutputs.RosOutputs`, which only queues the result for its own thread. Each
+  (:mod:`ipt.receiver.outputs.mavlink.output`) there, ROS 2 over DDS and the MCAP recording through
+  :class:`~ipt.receiver.outputs.ros.output.RosOutputs`, which only queues the result for its own thread. Each
   is set up before the first frame (a mistake there is an :class:`~ipt.errors.IptError`), and a failure
   later is counted in its own summary line while the others go on.
 
@@ -69,15 +69,15 @@ from ipt.receiver.capture import (
     PiCamera2Capture,
     VideoCapture,
 )
-from ipt.receiver.outputs import PacketMaker, UdpPoseSender
-from ipt.receiver.pipeline import FrameResult, Pipeline
-from ipt.receiver.reasons import FrameReason
-from ipt.receiver.rosoutputs import RosOutputs
+from ipt.receiver.core.pipeline import FrameResult, Pipeline
+from ipt.receiver.core.reasons import FrameReason
+from ipt.receiver.outputs.ros.output import RosOutputs
+from ipt.receiver.outputs.udp import PacketMaker, UdpPoseSender
 from ipt.runtime import Histogram, run_loop, write_line
 from ipt.tagmap import grid_tag_map
 
 if TYPE_CHECKING:
-    from ipt.receiver.mavlink import MavlinkOutput
+    from ipt.receiver.outputs.mavlink.output import MavlinkOutput
 
 MAX_IN_FLIGHT = 2
 """Frames submitted to the pipeline worker at once from a recording (one processing, one waiting); a live
@@ -125,7 +125,7 @@ class DaemonStats:
     latency_p99_ms: float | None
     reasons: dict[str, int]
     detector_recycles: int = 0
-    """Detector helper processes replaced because their memory grew (see :mod:`ipt.receiver.tagworker`)."""
+    """Detector helper processes replaced because their memory grew (see :mod:`ipt.receiver.detect.tagworker`)."""
     detector_restarts: int = 0
     """Detector helper processes replaced because they crashed, hung or did not start."""
     frames_skipped: int = 0
@@ -540,7 +540,7 @@ def _mavlink_output(cfg: ReceiverConfig, out: TextIO) -> MavlinkOutput | None:
     """The MAVLink output ``cfg.mavlink`` asks for (pymavlink is imported only then)."""
     if cfg.mavlink.link is None:
         return None
-    from ipt.receiver.mavlink import MavlinkOutput
+    from ipt.receiver.outputs.mavlink.output import MavlinkOutput
 
     return MavlinkOutput(cfg.mavlink, report=out, prog=PROG)
 

@@ -20,7 +20,7 @@ from ipt.config.models import MAX_RATE_HZ, MIN_CAMERA_RATE_HZ, ArenaConfig, Pipe
 from ipt.errors import IptError
 from ipt.fileio import atomic_path
 from ipt.ratelimit import LogThrottle
-from ipt.receiver.pipeline import FrameResult, Pipeline
+from ipt.receiver.core.pipeline import FrameResult, Pipeline
 from ipt.tagmap import TagMap
 from ipt.tum import TUM_HEADER, format_tum_line
 from ipt.videoio import open_frames

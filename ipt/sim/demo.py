@@ -53,8 +53,8 @@ from ipt.config.receiver import ReceiverConfig
 from ipt.fileio import write_text_atomic
 from ipt.geometry import quat_wxyz_from_matrix
 from ipt.receiver.capture import CapturedFrame
+from ipt.receiver.core.pipeline import FrameResult
 from ipt.receiver.daemon import DaemonStats, run_daemon
-from ipt.receiver.pipeline import FrameResult
 from ipt.runtime import line_writer, run_loop
 from ipt.sender.modulator import frames_per_input
 from ipt.sender.overlay import ArOverlay

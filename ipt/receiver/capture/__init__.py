@@ -18,7 +18,7 @@ Two queue policies:
 A source made with ``grey`` hands over H×W luma frames instead of RGB ones (the daemon asks for them
 when the pipeline works on luminance only, :attr:`~ipt.config.models.PipelineConfig.luminance_only`),
 taken without a detour through RGB where the source has them: a V4L2 camera's GREY, YUYV or MJPG
-buffers (:mod:`ipt.receiver.pixelformats`), a Pi camera's YUV420 Y plane, a video's Y plane, a JPEG
+buffers (:mod:`ipt.receiver.capture.pixelformats`), a Pi camera's YUV420 Y plane, a video's Y plane, a JPEG
 decoded to grey.
 
 A camera that fails (``read()`` raises, e.g. unplugged) is reported on stderr, closed and opened again

@@ -7,13 +7,13 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.config.receiver import CameraControls
+from ipt.receiver.capture.pixelformats import RAW_LUMA_FORMATS, PixelFormatError, raw_luma
 from ipt.receiver.capture.source import (
     U8,
     CapturedFrame,
     CaptureError,
     LiveCamera,
 )
-from ipt.receiver.pixelformats import RAW_LUMA_FORMATS, PixelFormatError, raw_luma
 
 V4L2_EXPOSURE_MANUAL = 1
 """V4L2's ``exposure_auto`` menu value for manual exposure (OpenCV passes it through)."""
@@ -33,7 +33,7 @@ class DeviceCapture(LiveCamera):
     turned off (unless ``controls`` leave them on) and the manual exposure and gain set. What the driver
     did not take is listed in :attr:`notes` (the capture thread prints them): drivers differ in what they
     allow. With ``grey``, a camera delivering GREY, YUYV or MJPG (whichever the driver settled on) hands
-    over its raw buffers, whose luma :mod:`ipt.receiver.pixelformats` takes; any other format goes through
+    over its raw buffers, whose luma :mod:`ipt.receiver.capture.pixelformats` takes; any other format goes through
     OpenCV's conversion to BGR and then to grey. A frame that does not decode is skipped and counted.
     """
 

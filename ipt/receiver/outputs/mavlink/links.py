@@ -17,7 +17,7 @@ from types import ModuleType
 from typing import TYPE_CHECKING
 
 from ipt.config.receiver import LinkSpec
-from ipt.receiver.mavframes import MavlinkError
+from ipt.receiver.outputs.mavlink.frames import MavlinkError
 
 if TYPE_CHECKING:
     pass

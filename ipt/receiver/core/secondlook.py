@@ -1,6 +1,6 @@
 """A second look at a frame whose fits the recent motion doubts, or whose track was lost on every pair: the
 track once more, started from where that motion puts the camera (:meth:`SecondLook._second_look`). A
-mix-in of :class:`ipt.receiver.pipeline.Pipeline`, whose state and stages it uses.
+mix-in of :class:`ipt.receiver.core.pipeline.Pipeline`, whose state and stages it uses.
 
 Why. A frame's track starts from its partner's pose carried by the pair's homography. On a vibrating drone
 over moving video that homography is now and then a few pixels off, the fit settles in a wrong basin (the
@@ -24,15 +24,15 @@ from typing import TYPE_CHECKING
 import numpy as np
 import numpy.typing as npt
 
-from ipt.receiver.pose import rt_of
-from ipt.receiver.reasons import FrameReason
+from ipt.receiver.core.pose import rt_of
+from ipt.receiver.core.reasons import FrameReason
 
 if TYPE_CHECKING:
-    from ipt.receiver.demodulator import PairDifference
-    from ipt.receiver.frameresult import _Candidate, _Frame, _Pair
-    from ipt.receiver.motion import MotionTrack
-    from ipt.receiver.pose import PoseEstimate
-    from ipt.receiver.track import TrackResult
+    from ipt.receiver.core.demodulator import PairDifference
+    from ipt.receiver.core.frameresult import _Candidate, _Frame, _Pair
+    from ipt.receiver.core.motion import MotionTrack
+    from ipt.receiver.core.pose import PoseEstimate
+    from ipt.receiver.core.track import TrackResult
 
 F64 = npt.NDArray[np.float64]
 U8 = npt.NDArray[np.uint8]
@@ -42,7 +42,7 @@ LOST_PAIRS = 2
 
 
 class SecondLook:
-    """The second look, as a method of :class:`~ipt.receiver.pipeline.Pipeline` (which has what is declared
+    """The second look, as a method of :class:`~ipt.receiver.core.pipeline.Pipeline` (which has what is declared
     here)."""
 
     tracking: bool

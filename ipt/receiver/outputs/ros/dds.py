@@ -37,7 +37,7 @@ from cyclonedds.topic import Topic
 
 from ipt.config.receiver import Ros2Config
 from ipt.errors import IptError
-from ipt.receiver.rosframes import Outgoing
+from ipt.receiver.outputs.ros.frames import Outgoing
 from ipt.rosmsg import ODOMETRY, POSE, TF, Message, dds_topic_name
 
 
@@ -257,7 +257,7 @@ class Ros2Output:
     """DDS writers for the pose, odometry and (if asked) transforms of one vehicle.
 
     Created at start-up (a participant that cannot start raises :class:`Ros2Error`); :meth:`publish` takes
-    a frame's :class:`~ipt.receiver.rosframes.Outgoing` messages on the event loop and writes the ones it
+    a frame's :class:`~ipt.receiver.outputs.ros.frames.Outgoing` messages on the event loop and writes the ones it
     has a writer for (writes do not block: best effort, or reliable with keep-last history)."""
 
     def __init__(

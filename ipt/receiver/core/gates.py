@@ -1,7 +1,7 @@
 """The pipeline's gates on its poses: a pose far from where the recent motion puts the camera is held back
 (``inconsistent``); before that motion is known, only a certain pose goes out (``unconfirmed``); a jump
 faster than a drone flies is held back (``motion_jump``) until it repeats. A mix-in of
-:class:`ipt.receiver.pipeline.Pipeline`, whose state it reads and keeps."""
+:class:`ipt.receiver.core.pipeline.Pipeline`, whose state it reads and keeps."""
 
 from __future__ import annotations
 
@@ -10,11 +10,11 @@ from collections import deque
 import numpy as np
 
 from ipt.config.models import PipelineConfig
-from ipt.receiver.frameresult import FrameResult, _Frame
-from ipt.receiver.motion import MotionTrack
-from ipt.receiver.pose import PoseEstimate
-from ipt.receiver.reasons import FrameReason
-from ipt.receiver.scales import gate_growth
+from ipt.receiver.core.frameresult import FrameResult, _Frame
+from ipt.receiver.core.motion import MotionTrack
+from ipt.receiver.core.pose import PoseEstimate
+from ipt.receiver.core.reasons import FrameReason
+from ipt.receiver.core.scales import gate_growth
 
 #: The motion gate compares with accepted poses this close in time.
 GATE_WINDOW_US = 250_000
@@ -27,7 +27,7 @@ ROLLING_GATE_SIGMAS = 3.0
 
 
 class PoseGates:
-    """The gates, as methods of :class:`~ipt.receiver.pipeline.Pipeline` (which sets the state below)."""
+    """The gates, as methods of :class:`~ipt.receiver.core.pipeline.Pipeline` (which sets the state below)."""
 
     cfg: PipelineConfig
     _track: MotionTrack

@@ -1,8 +1,9 @@
 """MAVLink's frames and the pose maths, pure: a camera pose in the arena in, the vehicle body's pose in the
 autopilot's frames out, with its covariance, a quality, a reset counter and the body's velocity.
 
-No clock, no socket, no pymavlink: :mod:`ipt.receiver.mavlink` sends what this module computes, and
-:mod:`ipt.receiver.rosframes` uses the same mounting. The frames are described in :mod:`ipt.receiver.mavlink`.
+No clock, no socket, no pymavlink: :mod:`ipt.receiver.outputs.mavlink.output` sends what this module
+computes, and :mod:`ipt.receiver.outputs.ros.frames` uses the same mounting. The frames are described in
+:mod:`ipt.receiver.outputs.mavlink.output`.
 """
 
 from __future__ import annotations
@@ -17,8 +18,8 @@ import numpy.typing as npt
 
 from ipt.errors import IptError
 from ipt.geometry import R_BODY_CAM_DOWNWARD, quat_wxyz_from_matrix, ypr_from_matrix
-from ipt.receiver.kinematics import Twist
-from ipt.receiver.pose import PoseEstimate
+from ipt.receiver.core.kinematics import Twist
+from ipt.receiver.core.pose import PoseEstimate
 
 if TYPE_CHECKING:
     pass

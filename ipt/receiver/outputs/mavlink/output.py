@@ -2,17 +2,17 @@
 
 Two layers:
 
-- **The maths, pure** (:mod:`ipt.receiver.mavframes`, re-exported here: :func:`body_pose_ned`,
+- **The maths, pure** (:mod:`ipt.receiver.outputs.mavlink.frames`, re-exported here: :func:`body_pose_ned`,
   :func:`odometry_sample`, :func:`body_velocity_frd`, :class:`OdometryTracker`, :class:`RateLimiter`,
   :class:`FixMonitor`): a camera pose in the arena in, the vehicle body's pose in the autopilot's frames
   out, with its covariance, a quality, a reset counter and the body's velocity fitted over the recent poses
-  (:mod:`ipt.receiver.kinematics`). No clock, no socket.
-- **The session, sans-IO** (:mod:`ipt.receiver.mavsession`): what to send and when, from times passed in
+  (:mod:`ipt.receiver.core.kinematics`). No clock, no socket.
+- **The session, sans-IO** (:mod:`ipt.receiver.outputs.mavlink.session`): what to send and when, from times passed in
   (``poll(now)``, ``next_deadline()``, ``on_result``, ``receive``); messages out as bytes.
 - **The connection, thin** (:class:`MavlinkOutput`, here): it runs the session on the event loop and
   counts what was sent; pymavlink encodes and decodes; the bytes go
   through an asyncio UDP endpoint (``udpout:HOST:PORT``) or a raw serial port (``serial:DEVICE:BAUD``),
-  opened with termios by :mod:`ipt.receiver.mavlinks`, so every read and write is non-blocking on the
+  opened with termios by :mod:`ipt.receiver.outputs.mavlink.links`, so every read and write is non-blocking on the
   daemon's event loop. A link that cannot be opened (port missing or busy, name not resolving) is
   reported in one line and retried with backoff;
   the daemon keeps localising meanwhile.
@@ -42,7 +42,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, TextIO
 
 from ipt.config.receiver import LinkSpec, parse_link
-from ipt.receiver.mavframes import (
+from ipt.receiver.outputs.mavlink.frames import (
     R_FRD_CAM_DOWNWARD,
     R_NED_ENU,
     FixMonitor,
@@ -61,8 +61,8 @@ from ipt.receiver.mavframes import (
     quality_percent,
     upper_triangle_21,
 )
-from ipt.receiver.mavlinks import SerialPort, UdpLink, load_dialect
-from ipt.receiver.mavsession import (
+from ipt.receiver.outputs.mavlink.links import SerialPort, UdpLink, load_dialect
+from ipt.receiver.outputs.mavlink.session import (
     HEARTBEAT_PERIOD_S,
     STATUSTEXT_PREFIX,
     WATCH_PERIOD_S,
@@ -74,7 +74,7 @@ from ipt.receiver.mavsession import (
 if TYPE_CHECKING:
     from ipt.config.receiver import MavlinkConfig
     from ipt.receiver.capture import CapturedFrame
-    from ipt.receiver.pipeline import FrameResult
+    from ipt.receiver.core.pipeline import FrameResult
 
 BACKOFF_FIRST_S = 0.5
 BACKOFF_MAX_S = 5.0
@@ -204,7 +204,7 @@ class MavlinkOutput:
 
     async def _timer(self) -> None:
         """Poll the session at its deadlines (and whenever the injected clock may have moved: at most
-        :data:`~ipt.receiver.mavsession.WATCH_PERIOD_S` of real time apart)."""
+        :data:`~ipt.receiver.outputs.mavlink.session.WATCH_PERIOD_S` of real time apart)."""
         while True:
             wait = min(max(0.0, self.session.next_deadline() - self._clock_s()), WATCH_PERIOD_S)
             await asyncio.sleep(wait)

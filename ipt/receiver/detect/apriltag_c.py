@@ -1,9 +1,9 @@
 """AprilTag's C detector (pupil-apriltags), called directly: made, asked, freed.
 
-What both sides of the detector's process boundary need: :mod:`ipt.receiver.detector` runs it inline,
-the helper process of :mod:`ipt.receiver.tagworker` runs it there; neither imports the other for it.
+What both sides of the detector's process boundary need: :mod:`ipt.receiver.detect.detector` runs it inline,
+the helper process of :mod:`ipt.receiver.detect.tagworker` runs it there; neither imports the other for it.
 Detections come out as the C library gives them (:data:`RawDetection`, AprilTag's pixel origin,
-unfiltered); :class:`~ipt.receiver.detector.TagDetector` filters them and moves the corners to OpenCV's.
+unfiltered); :class:`~ipt.receiver.detect.detector.TagDetector` filters them and moves the corners to OpenCV's.
 
 This module imports neither pydantic nor the configuration models, so that the helper process starts
 quickly.
@@ -49,7 +49,7 @@ def free_pupil_detector(det: Any) -> None:
 
 
 def make_pupil_detector(settings: dict[str, float]) -> Any:
-    """A tag36h11 pupil-apriltags detector with ``settings`` (see :func:`ipt.receiver.detector.c_settings`).
+    """A tag36h11 pupil-apriltags detector with ``settings`` (see :func:`ipt.receiver.detect.detector.c_settings`).
     Free it with :func:`free_pupil_detector`."""
     det = pupil_apriltags.Detector(
         families="tag36h11",

@@ -1,7 +1,7 @@
 """Whether a camera frame can be used at all, before any work is spent on it: its type and size, and its
 exposure (a black frame, an all-shadow one or a saturated one carries no signal).
 
-Pure: an array in, the reason it cannot be used (the :class:`~ipt.receiver.pipeline.FrameResult` reason
+Pure: an array in, the reason it cannot be used (the :class:`~ipt.receiver.core.pipeline.FrameResult` reason
 counted for it) or ``None`` out. The exposure checks look at every eighth pixel of every eighth row, a
 few microseconds at 640×360, and are absolute: a frame that is merely dim (a dark scene in the projected
 video, ambient light in the drone's shadow) passes, and then gives no pose for the usual reasons.
@@ -13,11 +13,11 @@ from typing import Any
 
 import numpy as np
 
-from ipt.receiver.reasons import FrameReason
+from ipt.receiver.core.reasons import FrameReason
 
 #: A frame whose brightest pixels (99th percentile of the sample) stay below this 8-bit level is dark:
 #: black, the lens covered, or all in shadow with no ambient light. The ipt profile's signal mask takes
-#: nothing below this level for lit floor either (:func:`ipt.receiver.demodulator.signal_mask`).
+#: nothing below this level for lit floor either (:func:`ipt.receiver.core.demodulator.signal_mask`).
 DARK_LEVEL = 12
 #: A pixel value at or above this is clipped (or nearly so): a ±ΔL modulation cannot show there.
 SATURATED_LEVEL = 250

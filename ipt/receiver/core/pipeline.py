@@ -12,9 +12,9 @@ frame against the previous one (lag 1), the paper's integer shift, the median th
 **ipt** (the default). Each frame is undistorted once and its signal mask taken (no signal in the drone's
 shadow or beyond the projection). A *pair* is two frames of opposite projector phase (a time step close to
 an odd number of projector periods); the floor homography between them comes from their content
-(:mod:`ipt.receiver.imagealign`), their difference is brightness-matched and masked where content changed
-(:func:`~ipt.receiver.demodulator.pair_difference`). The pose of a frame comes from the whole visible map
-(:mod:`ipt.receiver.track`), started from the partner frame's pose carried by the homography, or from the
+(:mod:`ipt.receiver.core.imagealign`), their difference is brightness-matched and masked where content changed
+(:func:`~ipt.receiver.core.demodulator.pair_difference`). The pose of a frame comes from the whole visible map
+(:mod:`ipt.receiver.core.track`), started from the partner frame's pose carried by the homography, or from the
 recent motion; AprilTag acquires when there is neither, and checks the track now and then. A pair serves
 both its frames: a frame whose earlier partners fail (its pair straddles a change of the video, or its
 exposure a flip) waits up to ``lookahead_frames`` for a later partner. Results come out in frame order, so
@@ -37,9 +37,9 @@ import numpy.typing as npt
 
 from ipt.config.camera_info import CameraInfo
 from ipt.config.models import PipelineConfig
-from ipt.receiver import kernels
-from ipt.receiver.bridge import ContentBridge
-from ipt.receiver.demodulator import (
+from ipt.receiver.core import kernels
+from ipt.receiver.core.bridge import ContentBridge
+from ipt.receiver.core.demodulator import (
     PairDifference,
     Undistorter,
     binarise_difference,
@@ -49,17 +49,16 @@ from ipt.receiver.demodulator import (
     pair_difference,
     signal_mask,
 )
-from ipt.receiver.detector import DetectorError, TagDetection, TagDetector
-from ipt.receiver.framecheck import RESTARTS, frame_problem
-from ipt.receiver.frameresult import FrameResult, _Candidate, _Frame, _Pair
-from ipt.receiver.gates import PoseGates
-from ipt.receiver.imagealign import AlignTarget, alignment_features, floor_warp_between, warp_image
-from ipt.receiver.motion import MotionTrack, floor_warp
-from ipt.receiver.pose import Pose, PoseEstimate, pose_of, rt_of, solve_pose
-from ipt.receiver.reasons import FrameReason
-from ipt.receiver.scales import DetectScale, ScaleChooser
-from ipt.receiver.secondlook import SecondLook
-from ipt.receiver.track import (
+from ipt.receiver.core.framecheck import RESTARTS, frame_problem
+from ipt.receiver.core.frameresult import FrameResult, _Candidate, _Frame, _Pair
+from ipt.receiver.core.gates import PoseGates
+from ipt.receiver.core.imagealign import AlignTarget, alignment_features, floor_warp_between, warp_image
+from ipt.receiver.core.motion import MotionTrack, floor_warp
+from ipt.receiver.core.pose import Pose, PoseEstimate, pose_of, rt_of, solve_pose
+from ipt.receiver.core.reasons import FrameReason
+from ipt.receiver.core.scales import DetectScale, ScaleChooser
+from ipt.receiver.core.secondlook import SecondLook
+from ipt.receiver.core.track import (
     MapEdges,
     MaskRenderer,
     TrackResult,
@@ -70,6 +69,7 @@ from ipt.receiver.track import (
     slope_noise,
     track_pose,
 )
+from ipt.receiver.detect.detector import DetectorError, TagDetection, TagDetector
 from ipt.tagmap import TagMap, pixel_to_arena
 
 U8 = npt.NDArray[np.uint8]
@@ -165,7 +165,7 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
         """Take camera frame ``index`` (H×W×3 RGB, or H×W grey: a mono camera's, or the luma plane of a YUV
         or JPEG frame); return the results that became final, in frame order (this frame's, earlier ones'
         that waited for it, or none yet). Never raises for a bad frame: its result says why
-        (:mod:`ipt.receiver.framecheck`: "bad_frame", "wrong_size", "dark", "saturated"; "time_gap" for the
+        (:mod:`ipt.receiver.core.framecheck`: "bad_frame", "wrong_size", "dark", "saturated"; "time_gap" for the
         first frame after a gap in capture times, which pairing starts afresh from)."""
         t0 = time.perf_counter()
         problem = frame_problem(frame, self.camera.height_px, self.camera.width_px)

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 
 from ipt.errors import IptError
 from ipt.protocol import PosePacket, encode_pose
-from ipt.receiver.pose import PoseEstimate
+from ipt.receiver.core.pose import PoseEstimate
 
 SEQ_MODULUS = 1 << 32
 MAX_BUFFERED_BYTES = 64 * 1024

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ipt.receiver.track import _median
+from ipt.receiver.core.track import _median
 
 F64 = npt.NDArray[np.float64]
 

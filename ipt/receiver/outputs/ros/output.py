@@ -2,9 +2,9 @@
 
 The event loop hands each frame's result to :meth:`RosOutputs.on_result`, which only queues it (never
 blocks: when the thread is behind, the oldest way out is to drop the new frame, and that is counted). The
-thread makes the messages (:class:`~ipt.receiver.rosframes.RosMessageMaker`: pose, odometry, transforms,
-diagnostics, the velocity fit), writes them to DDS (:class:`~ipt.receiver.ros2.Ros2Output`) and queues them
-for the recorder (:class:`~ipt.receiver.record.McapRecorder`, which encodes and writes on its own thread).
+thread makes the messages (:class:`~ipt.receiver.outputs.ros.frames.RosMessageMaker`: pose, odometry, transforms,
+diagnostics, the velocity fit), writes them to DDS (:class:`~ipt.receiver.outputs.ros.dds.Ros2Output`) and queues them
+for the recorder (:class:`~ipt.receiver.outputs.ros.record.McapRecorder`, which encodes and writes on its own thread).
 Building and serialising ROS messages in Python costs about a millisecond a frame; off the event loop it
 does not hold up the next frame's way to the pipeline and to the UDP targets.
 """
@@ -19,14 +19,14 @@ from typing import TYPE_CHECKING, Any
 
 from ipt.config.models import ConfigError
 from ipt.config.receiver import ReceiverConfig
-from ipt.receiver.rosframes import RosMessageMaker, RosNames, StampClock
+from ipt.receiver.outputs.ros.frames import RosMessageMaker, RosNames, StampClock
 from ipt.rosmsg import ODOMETRY, POSE, TF
 
 if TYPE_CHECKING:
     from ipt.receiver.capture import CapturedFrame
-    from ipt.receiver.pipeline import FrameResult
-    from ipt.receiver.record import McapRecorder
-    from ipt.receiver.ros2 import Ros2Output
+    from ipt.receiver.core.pipeline import FrameResult
+    from ipt.receiver.outputs.ros.dds import Ros2Output
+    from ipt.receiver.outputs.ros.record import McapRecorder
 
 QUEUE_SIZE = 64
 """Frames waiting for the ROS thread (half a second at 120 FPS); more are dropped and counted."""
@@ -57,7 +57,7 @@ class RosOutputs:
         :class:`~ipt.errors.IptError` if one cannot be set up (nothing is left open then)."""
         if not cfg.ros2.enabled and cfg.record.path is None:
             return None
-        from ipt.receiver.mavframes import mounting_from
+        from ipt.receiver.outputs.mavlink.frames import mounting_from
 
         r = cfg.ros2
         names = RosNames(r.frame_id, r.base_frame_id, r.camera_frame_id, r.namespace)
@@ -66,7 +66,7 @@ class RosOutputs:
         recorder: McapRecorder | None = None
         if cfg.record.path is not None:
             from ipt import __version__
-            from ipt.receiver.record import McapRecorder
+            from ipt.receiver.outputs.ros.record import McapRecorder
 
             recorder = McapRecorder(
                 cfg.record.path,
@@ -80,7 +80,7 @@ class RosOutputs:
         ros2: Ros2Output | None = None
         if r.enabled:
             try:
-                from ipt.receiver.ros2 import Ros2Output
+                from ipt.receiver.outputs.ros.dds import Ros2Output
             except ImportError as exc:
                 if recorder is not None:
                     recorder.abort()

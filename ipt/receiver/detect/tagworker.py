@@ -7,7 +7,7 @@ hour, and freeing the detector gives none of it back; only the end of the proces
 runs the detector in a helper process (:class:`ProcessBackend`) and, once the helper's own memory
 (``RssAnon``) grew by ``recycle_mb`` since it warmed up, starts a fresh one in the background and
 switches to it when it is ready: no frame waits for a helper to start. A helper that crashes or hangs is
-replaced in the same way, and the frame in hand fails with :class:`~ipt.receiver.apriltag_c.DetectorError`.
+replaced in the same way, and the frame in hand fails with :class:`~ipt.receiver.detect.apriltag_c.DetectorError`.
 
 The image crosses in shared memory (a ``memfd`` both processes map); the request and the detections
 cross the helper's stdin and stdout as little-endian binary::
@@ -43,7 +43,7 @@ from typing import Final
 import numpy as np
 import numpy.typing as npt
 
-from ipt.receiver.apriltag_c import (
+from ipt.receiver.detect.apriltag_c import (
     DetectorError,
     RawDetection,
     make_pupil_detector,
@@ -154,10 +154,10 @@ def serve(shm_fd: int, settings: dict[str, float], requests: int, replies: int) 
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the helper (``python -m ipt.receiver.tagworker``); started by :class:`ProcessBackend`."""
+    """Entry point of the helper (``python -m ipt.receiver.detect.tagworker``); started by :class:`ProcessBackend`."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    parser = argparse.ArgumentParser(prog="ipt.receiver.tagworker", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="ipt.receiver.detect.tagworker", description=__doc__.split("\n")[0])
     parser.add_argument("--shm-fd", type=int, required=True, help="the shared image memory (a memfd)")
     parser.add_argument("--settings", required=True, help="the C detector's settings, as JSON")
     args = parser.parse_args(argv)
@@ -273,7 +273,7 @@ class ProcessBackend:
     def _start(self) -> _Helper:
         fd = self._helpers.shm_fd
         assert fd is not None
-        cmd = [sys.executable, "-m", "ipt.receiver.tagworker", "--shm-fd", str(fd)]
+        cmd = [sys.executable, "-m", "ipt.receiver.detect.tagworker", "--shm-fd", str(fd)]
         cmd += ["--settings", json.dumps(self._settings)]
         try:
             proc = subprocess.Popen(

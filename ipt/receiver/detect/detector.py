@@ -5,12 +5,12 @@ reports them with the origin at the top-left pixel's corner, so half a pixel is 
 Corner order is AprilTag's (see :mod:`ipt.tagmap`), which the tag map uses for its own corners.
 
 The C detector runs either here (``isolation: inline``) or in a helper process that
-:mod:`ipt.receiver.tagworker` manages (``isolation: process``, the default): pupil-apriltags 1.0.4's C
+:mod:`ipt.receiver.detect.tagworker` manages (``isolation: process``, the default): pupil-apriltags 1.0.4's C
 code leaks memory on every call, and only ending the process gives it back. :class:`DetectorError` and
-:data:`RawDetection` come from :mod:`ipt.receiver.apriltag_c` and are re-exported here. Both give the same
+:data:`RawDetection` come from :mod:`ipt.receiver.detect.apriltag_c` and are re-exported here. Both give the same
 detections; the filtering below (bit errors, ids, image border) is the same for both.
 
-The C library itself is called in :mod:`ipt.receiver.apriltag_c`, which both this module and the helper
+The C library itself is called in :mod:`ipt.receiver.detect.apriltag_c`, which both this module and the helper
 process import (the helper does not import this module).
 """
 
@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 import numpy.typing as npt
 
-from ipt.receiver.apriltag_c import (
+from ipt.receiver.detect.apriltag_c import (
     DetectorError,
     RawDetection,
     free_pupil_detector,
@@ -66,7 +66,7 @@ def c_settings(cfg: DetectorConfig) -> dict[str, float]:
 
 
 class Backend(Protocol):
-    """Where the C detector runs: :class:`InlineBackend` or :class:`ipt.receiver.tagworker.ProcessBackend`."""
+    """Where the C detector runs: :class:`InlineBackend` or :class:`ipt.receiver.detect.tagworker.ProcessBackend`."""
 
     def detect_raw(self, gray: npt.NDArray[np.uint8], decimate: float | None = None) -> list[RawDetection]: ...
 
@@ -100,7 +100,7 @@ class InlineBackend:
 
 def _isolated(cfg: DetectorConfig, wait: bool) -> Backend:
     """The C detector in a helper process where the system allows it (Linux), else in this one."""
-    from ipt.receiver.tagworker import ProcessBackend, process_isolation_available
+    from ipt.receiver.detect.tagworker import ProcessBackend, process_isolation_available
 
     if not process_isolation_available():
         return InlineBackend(c_settings(cfg))

@@ -1,15 +1,15 @@
 """The receiver's inner loops, compiled (numba): the map tracker's, the alignment's and the pair difference's.
 
-- **The tracker** (:mod:`ipt.receiver.track`): one Gauss-Newton step projects a few hundred edge samples,
+- **The tracker** (:mod:`ipt.receiver.core.track`): one Gauss-Newton step projects a few hundred edge samples,
   reads the difference image along each sample's normal and finds the step's sub-pixel offset. Written as
   numpy array operations, that is some sixty small array calls per step (~1 ms at 640×360, most of it call
   overhead); here it is two loops over the samples (~0.1 ms). The difference's noise level
-  (:func:`ipt.receiver.track.slope_noise`) gathers its sampled slopes here too.
-- **The alignment** (:func:`ipt.receiver.imagealign.refine_homography`): a Lucas-Kanade step's readings at
+  (:func:`ipt.receiver.core.track.slope_noise`) gathers its sampled slopes here too.
+- **The alignment** (:func:`ipt.receiver.core.imagealign.refine_homography`): a Lucas-Kanade step's readings at
   the samples (the earlier frame and its gradients, for the second-order step), residuals and rows of the
   linear system in one pass (:func:`align_system`; it costs what the first-order step did with remap and
   numpy, 1.2–2.2 ms a pair).
-- **The pair difference** (:func:`ipt.receiver.demodulator.pair_difference`): the brightness match's samples
+- **The pair difference** (:func:`ipt.receiver.core.demodulator.pair_difference`): the brightness match's samples
   and the difference, its valid pixels and its changed ones in one pass over the image each
   (:func:`sample_pair`, :func:`difference_pass`) instead of numpy's eight.
 
@@ -394,7 +394,7 @@ def _align_system(
     sd: F64,
     residual: F64,
 ) -> tuple[int, int]:
-    """One Lucas-Kanade step of :func:`ipt.receiver.imagealign.refine_homography`: ``moving`` and its
+    """One Lucas-Kanade step of :func:`ipt.receiver.core.imagealign.refine_homography`: ``moving`` and its
     gradients (``moving_gx``, ``moving_gy``) read bilinearly at the target's sample pixels (``cols``,
     ``rows``) carried by ``back`` (3x3, target pixel → moving pixel). A sample counts where it lands inside,
     reads more than 0 and, when ``lit`` is not empty, on a pixel of ``lit`` (nearest) that is not 0. Its

@@ -1,8 +1,8 @@
 """What one frame becomes on the ROS 2 side: pose, odometry, transforms and diagnostics, as messages.
 
 Pure: a frame's result (and its pose, capture time, stage times) in, ROS messages out (nested dicts in
-the layout of :mod:`ipt.rosmsg`). The DDS output (:mod:`ipt.receiver.ros2`) publishes the first three; the
-recorder (:mod:`ipt.receiver.record`) writes all four. Frames, as REP 103/105 ask:
+the layout of :mod:`ipt.rosmsg`). The DDS output (:mod:`ipt.receiver.outputs.ros.dds`) publishes the first three; the
+recorder (:mod:`ipt.receiver.outputs.ros.record`) writes all four. Frames, as REP 103/105 ask:
 
 - ``/ipt/pose`` (``geometry_msgs/msg/PoseWithCovarianceStamped``): the camera's pose in the arena frame
   (``frame_id``, ENU), exactly the pose the pipeline solved: the optical centre and ``R_arena_cam``
@@ -12,7 +12,7 @@ recorder (:mod:`ipt.receiver.record`) writes all four. Frames, as REP 103/105 as
 - ``/ipt/odom`` (``nav_msgs/msg/Odometry``): the vehicle body (``base_link``, FLU: x forward, y left,
   z up) in the arena frame, through the camera mounting (``r_frd_cam``, ``camera_position_frd_m``); its
   covariance carries the attitude's uncertainty through the lever arm. The twist is in ``base_link`` axes
-  (as ``nav_msgs/Odometry`` defines it), from :class:`~ipt.receiver.kinematics.VelocityFit`; without an
+  (as ``nav_msgs/Odometry`` defines it), from :class:`~ipt.receiver.core.kinematics.VelocityFit`; without an
   estimate yet it is zero with ``covariance[0] = -1`` (the ROS sign for "no estimate").
 - ``/tf`` (``tf2_msgs/msg/TFMessage``): arena → camera and arena → base_link, the same poses.
 - ``/ipt/diagnostics`` (``diagnostic_msgs/msg/DiagnosticArray``), recorded only: every frame's outcome
@@ -34,9 +34,9 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.geometry import quat_wxyz_from_matrix
-from ipt.receiver.kinematics import Twist, VelocityFit, skew
-from ipt.receiver.mavframes import Mounting
-from ipt.receiver.pose import PoseEstimate
+from ipt.receiver.core.kinematics import Twist, VelocityFit, skew
+from ipt.receiver.core.pose import PoseEstimate
+from ipt.receiver.outputs.mavlink.frames import Mounting
 from ipt.rosmsg import DIAGNOSTICS, ODOMETRY, POSE, TF, Message, time_msg
 
 F64 = npt.NDArray[np.float64]

@@ -1,7 +1,7 @@
 """The flight log: every frame's ROS 2 messages into an MCAP file that Foxglove and ``ros2 bag`` open.
 
 Topics (schemas ``ros2msg``, messages ``cdr``, written with mcap-ros2-support; no ROS needed):
-``/ipt/pose``, ``/ipt/odom``, ``/tf`` and ``/ipt/diagnostics`` as :mod:`ipt.receiver.rosframes` makes
+``/ipt/pose``, ``/ipt/odom``, ``/tf`` and ``/ipt/diagnostics`` as :mod:`ipt.receiver.outputs.ros.frames` makes
 them, and, if asked, ``/ipt/difference`` (``foxglove_msgs/msg/CompressedImage``, JPEG): the raw
 difference between a frame and the one a projector period before it (no alignment, gain
 :data:`DIFFERENCE_GAIN` around mid-grey), a few times a second. Messages are logged at their header
@@ -34,7 +34,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.fileio import WriteError
-from ipt.receiver.rosframes import Outgoing
+from ipt.receiver.outputs.ros.frames import Outgoing
 from ipt.rosmsg import COMPRESSED_IMAGE, DIAGNOSTICS, METADATA_NAME, ODOMETRY, POSE, TF, message_definition, time_msg
 
 U8 = npt.NDArray[np.uint8]

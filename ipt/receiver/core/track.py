@@ -23,9 +23,9 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ipt.receiver import kernels
-from ipt.receiver.kernels import band_signs, cell_agreement, measure, peaks
-from ipt.receiver.pose import PoseEstimate
+from ipt.receiver.core import kernels
+from ipt.receiver.core.kernels import band_signs, cell_agreement, measure, peaks
+from ipt.receiver.core.pose import PoseEstimate
 from ipt.tagmap import TAG36H11_CELLS, TagMap, tag36h11_bitmap
 
 F32 = npt.NDArray[np.float32]
@@ -235,7 +235,7 @@ def _median(values: npt.NDArray[np.floating[Any]]) -> float:
 
 def slope_noise(diff: F32, valid: npt.NDArray[np.uint8] | None) -> float:
     """The median absolute slope of ``diff`` along rows (where valid): what a step must stand out from.
-    (Every fourth row, every second column, gathered in one compiled pass: :func:`~ipt.receiver.kernels.
+    (Every fourth row, every second column, gathered in one compiled pass: :func:`~ipt.receiver.core.kernels.
     slopes_sampled`.)"""
     return max(_median(kernels.slopes_sampled(diff, _NO_MASK if valid is None else valid)), 1e-3)
 

@@ -1,6 +1,6 @@
 """Detection sized to the tags in the image: filter and decimation from the expected cell size.
 
-The binarisation's mean filter and opening/closing (:func:`~ipt.receiver.demodulator.binarise_difference`)
+The binarisation's mean filter and opening/closing (:func:`~ipt.receiver.core.demodulator.binarise_difference`)
 and AprilTag's quad decimation suit cells of about 13 px: the paper's 160 px tags seen from 0.8 m by a
 640 px camera. From 2.5 m the same cells are 4 px and a 5 px filter erases them; a landing pad's 64 px tags
 seen from 1 m are 4 px a cell too, and the same tags from 0.25 m are 17 px. So the sizes follow the cell

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ipt.receiver import kernels
+from ipt.receiver.core import kernels
 
 U8 = npt.NDArray[np.uint8]
 F32 = npt.NDArray[np.float32]

@@ -1,6 +1,6 @@
 """What the pipeline gives for each camera frame (:class:`FrameResult`), and the records it keeps of the
-frames, pairs and candidate poses it works on (private to :mod:`ipt.receiver.pipeline` and
-:mod:`ipt.receiver.gates`)."""
+frames, pairs and candidate poses it works on (private to :mod:`ipt.receiver.core.pipeline` and
+:mod:`ipt.receiver.core.gates`)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from ipt.receiver.demodulator import PairDifference
-from ipt.receiver.imagealign import AlignTarget
-from ipt.receiver.pose import PoseEstimate
+from ipt.receiver.core.demodulator import PairDifference
+from ipt.receiver.core.imagealign import AlignTarget
+from ipt.receiver.core.pose import PoseEstimate
 
 U8 = npt.NDArray[np.uint8]
 F32 = npt.NDArray[np.float32]

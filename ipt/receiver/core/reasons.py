@@ -1,4 +1,4 @@
-"""Why a camera frame gave no pose: the values of :attr:`ipt.receiver.pipeline.FrameResult.reason`.
+"""Why a camera frame gave no pose: the values of :attr:`ipt.receiver.core.pipeline.FrameResult.reason`.
 
 A :class:`~enum.StrEnum`, so a member is equal to its text (``FrameReason.NO_TAGS == "no_tags"``) and
 prints as it: the statistics lines, the suite's JSON and the diagnostics carry the same words as before.

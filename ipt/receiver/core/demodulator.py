@@ -17,12 +17,12 @@ The difference shows the tags with dark borders when the current frame is the ``
 inverted otherwise; :func:`demodulate` returns the binary image for the first case and the caller tries
 its inverse too (AprilTag 3 looks for dark borders only).
 
-The ``ipt`` profile works differently (see :mod:`ipt.receiver.pipeline`), with the pieces below the
+The ``ipt`` profile works differently (see :mod:`ipt.receiver.core.pipeline`), with the pieces below the
 paper's: each frame undistorted once (:class:`Undistorter`), its lightness (BT.601 luma, or a mono
 camera's grey, through a table to L), a mask of where it can carry signal at all (:func:`signal_mask`:
 not in the drone's shadow, not beyond the projection), and the pair's difference signed, brightness-
 matched and masked where content changed (:func:`pair_difference`); the homography that aligns the pair
-comes from :mod:`ipt.receiver.imagealign`.
+comes from :mod:`ipt.receiver.core.imagealign`.
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ import numpy.typing as npt
 
 from ipt.config.models import REFERENCE_WIDTH_PX, DemodulationConfig
 from ipt.errors import IptError
-from ipt.receiver import kernels
-from ipt.receiver.imagealign import translation
+from ipt.receiver.core import kernels
+from ipt.receiver.core.imagealign import translation
 
 U8 = npt.NDArray[np.uint8]
 
@@ -277,7 +277,7 @@ class PairDifference:
     changed: float
     """Fraction of the pixels lit in both frames that changed more than the tags can (content, shadow)."""
     noise: float | None = None
-    """The difference's typical slope where valid (see :func:`ipt.receiver.track.slope_noise`), once known."""
+    """The difference's typical slope where valid (see :func:`ipt.receiver.core.track.slope_noise`), once known."""
 
 
 def warp_masks(signal: U8, coverage: U8, warp: F64) -> tuple[U8, U8]:

@@ -1,6 +1,6 @@
 """The frames no pair can solve because their exposure spans a content change: a pose from the frame
 before and the frame after together (:func:`bridge_difference`). A mix-in of
-:class:`ipt.receiver.pipeline.Pipeline`, whose state and stages it uses.
+:class:`ipt.receiver.core.pipeline.Pipeline`, whose state and stages it uses.
 
 Why. The sender shows each video frame for two projector frames, so the video changes at every other
 projector flip. A 120 FPS camera whose exposure spans such a flip sees part of the old picture and part of
@@ -54,14 +54,14 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ipt.receiver.demodulator import DIFF_SIGMA_PX, PairDifference, Undistorter, valid_difference, warp_masks
-from ipt.receiver.frameresult import _Candidate, _Frame
-from ipt.receiver.imagealign import translation
-from ipt.receiver.pose import Pose, pose_of, rt_of
+from ipt.receiver.core.demodulator import DIFF_SIGMA_PX, PairDifference, Undistorter, valid_difference, warp_masks
+from ipt.receiver.core.frameresult import _Candidate, _Frame
+from ipt.receiver.core.imagealign import translation
+from ipt.receiver.core.pose import Pose, pose_of, rt_of
 
 if TYPE_CHECKING:
-    from ipt.receiver.motion import MotionTrack
-    from ipt.receiver.track import TrackResult
+    from ipt.receiver.core.motion import MotionTrack
+    from ipt.receiver.core.track import TrackResult
 
 F64 = npt.NDArray[np.float64]
 F32 = npt.NDArray[np.float32]
@@ -258,7 +258,7 @@ def bridge_difference(
 
 
 class ContentBridge:
-    """The bridge, as methods of :class:`~ipt.receiver.pipeline.Pipeline` (which sets the state below)."""
+    """The bridge, as methods of :class:`~ipt.receiver.core.pipeline.Pipeline` (which sets the state below)."""
 
     tracking: bool
     undistort: Undistorter | None

@@ -1,7 +1,7 @@
 """The MAVLink session, sans-IO: what to send to the flight controller and when, with no socket and no clock.
 
 Times come in as arguments; messages go out as :class:`Outgoing` (bytes and the counters of
-:class:`MavlinkStats` a successful send adds to). :class:`ipt.receiver.mavlink.MavlinkOutput` is the thin
+:class:`MavlinkStats` a successful send adds to). :class:`ipt.receiver.outputs.mavlink.output.MavlinkOutput` is the thin
 shell around it: it opens the link, sends what the session returns, counts what was sent and sleeps until
 :meth:`MavlinkSession.next_deadline`. Its tests drive it with made-up times.
 
@@ -22,8 +22,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ipt.ratelimit import LogThrottle
-from ipt.receiver.kinematics import VelocityFit
-from ipt.receiver.mavframes import (
+from ipt.receiver.core.kinematics import VelocityFit
+from ipt.receiver.outputs.mavlink.frames import (
     FixMonitor,
     OdometrySample,
     OdometryTracker,
@@ -35,7 +35,7 @@ from ipt.receiver.mavframes import (
 if TYPE_CHECKING:
     from ipt.config.receiver import MavlinkConfig
     from ipt.receiver.capture import CapturedFrame
-    from ipt.receiver.frameresult import FrameResult
+    from ipt.receiver.core.frameresult import FrameResult
 
 HEARTBEAT_PERIOD_S = 1.0
 WATCH_PERIOD_S = 0.1
