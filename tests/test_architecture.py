@@ -304,7 +304,7 @@ def _reason_literals(path: Path) -> set[str]:
 def test_every_reason_the_receiver_gives_is_a_frame_reason() -> None:
     from ipt.receiver.core.reasons import FrameReason
 
-    receiver = PACKAGE / "receiver"
+    receiver = PACKAGE / "receiver" / "core"
     found = set().union(*(_reason_literals(receiver / n) for n in ("pipeline.py", "gates.py", "framecheck.py")))
     named = {f"FrameReason.{r.name}" for r in FrameReason}
     wanted = {"POSE", "FIRST_FRAME", "NO_TAGS", "TIME_GAP", "DARK", "MOTION_JUMP"}

@@ -327,7 +327,7 @@ def test_the_scan_finds_what_it_looks_for(tmp_path: Path) -> None:
 
 
 # The modules a datagram passes through, from the socket to the overlay.
-NETWORK_PATH = ["protocol.py", "ratelimit.py", "sender/server.py", "sender/overlay.py", "receiver/outputs.py"]
+NETWORK_PATH = ["protocol.py", "ratelimit.py", "sender/server.py", "sender/overlay.py", "receiver/outputs/udp.py"]
 FILE_AND_PROCESS_NAMES = {
     "open", "Path", "PurePath", "os.remove", "os.unlink", "os.rename", "os.replace", "os.open", "os.makedirs",
     "os.mkdir", "os.rmdir", "os.chmod", "os.chown", "os.symlink", "os.link", "os.truncate", "shutil.rmtree",
