@@ -24,13 +24,13 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ipt.config.models import ArenaConfig, finite_float
+from ipt.config.models import ArenaConfig, LandingPadConfig, finite_float
 from ipt.errors import IptError
 from ipt.fileio import WriteError, output_group, read_text_file, write_text_atomic
 from ipt.imageio import write_image
@@ -303,20 +303,74 @@ def grid_tag_map(arena: ArenaConfig) -> TagMap:
     if small:
         gone = set()
         for pad in tm.pads:
-            (col0, col1, row0, row1), _ = arena.pad_grid(pad)
+            (col0, col1, row0, row1), _ = pad_grid(arena, pad)
             gone |= {tm.first_id + row * tm.cols + col for row in range(row0, row1) for col in range(col0, col1)}
         tags = [t for t in tags if t.tag_id not in gone] + [t for group in small for t in group]
     return TagMap(pr.width_px, pr.height_px, tuple(tags))
 
 
+class PadGrid(NamedTuple):
+    """Where the small tags of a landing pad go (:func:`pad_grid`)."""
+
+    cells: tuple[int, int, int, int]
+    """The grid's cells whose big tags they replace: (col0, col1, row0, row1), half-open ranges, rows counted
+    bottom to top; every cell the pad's square reaches into."""
+    block: tuple[int, int, float, float]
+    """(cols, rows, left_px, top_px) of the small tags that fill those cells, the block centred in them;
+    left/top are the projector pixel edges of its top-left quiet zone."""
+
+
+def pad_grid(arena: ArenaConfig, pad: LandingPadConfig) -> PadGrid:
+    """Where the small tags of ``pad`` go in the map of ``arena``: the cells and the block of small tags
+    (:class:`PadGrid`), laid out on the uniform scale of ``screen`` (the projector's pixels; a measured
+    ``floor:`` moves the tags' metres, not their pixels)."""
+    pr, sc, tm = arena.projector, arena.screen, arena.tag_map
+    px_per_m_x, px_per_m_y = pr.width_px / sc.width_m, pr.height_px / sc.height_m
+    pitch_x, pitch_y = pr.width_px / tm.cols, pr.height_px / tm.rows
+    half = pad.size_m / 2
+    u0 = pr.width_px / 2 + (pad.centre_m[0] - half) * px_per_m_x
+    u1 = pr.width_px / 2 + (pad.centre_m[0] + half) * px_per_m_x
+    y0 = pr.height_px / 2 + (pad.centre_m[1] - half) * px_per_m_y  # pixels up from the bottom edge
+    y1 = pr.height_px / 2 + (pad.centre_m[1] + half) * px_per_m_y
+    col0, col1 = max(0, math.floor(u0 / pitch_x)), min(tm.cols, math.ceil(u1 / pitch_x))
+    row0, row1 = max(0, math.floor(y0 / pitch_y)), min(tm.rows, math.ceil(y1 / pitch_y))
+    pitch = pad.tag_size_px * 10 // 8 + pad.gap_px
+    hole_w, hole_h = (col1 - col0) * pitch_x, (row1 - row0) * pitch_y
+    cols, rows = int((hole_w - pad.gap_px) // pitch), int((hole_h - pad.gap_px) // pitch)
+    block_w, block_h = cols * pitch - pad.gap_px, rows * pitch - pad.gap_px
+    left = round(col0 * pitch_x + (hole_w - block_w) / 2)
+    top = round(pr.height_px - row1 * pitch_y + (hole_h - block_h) / 2)
+    return PadGrid((col0, col1, row0, row1), (max(cols, 0), max(rows, 0), float(left), float(top)))
+
+
+def pads_problem(arena: ArenaConfig) -> str | None:
+    """What keeps the landing pads of ``arena`` from being laid out, or None: a pad in whose grid cells not
+    one of its small tags fits, or more tags in all than tag36h11 has ids. (The arena config itself checks
+    what it describes: every pad on the screen, no two overlapping, their names and tag sizes.)"""
+    tm = arena.tag_map
+    n_small = 0
+    for pad in tm.pads:
+        cols, rows, _, _ = pad_grid(arena, pad).block
+        if min(cols, rows) < 1:
+            return f"landing pad '{pad.name}': not one of its tags fits in the grid cells it covers"
+        n_small += cols * rows
+    if n_small and tm.first_id + tm.rows * tm.cols + n_small > 587:
+        return f"tag36h11 has 587 ids: the grid and the landing pads' {n_small} small tags need more"
+    return None
+
+
 def pad_tags(arena: ArenaConfig) -> list[tuple[TagPlacement, ...]]:
     """The small tags of each landing pad of the arena config: rows bottom to top, left to right, ids
-    counting on from the grid's last."""
+    counting on from the grid's last. Raises :class:`TagMapError` where the pads cannot be laid out
+    (:func:`pads_problem`)."""
+    problem = pads_problem(arena)
+    if problem is not None:
+        raise TagMapError(f"arena tag_map.pads: {problem}")
     tm = arena.tag_map
     next_id = tm.first_id + tm.rows * tm.cols
     out = []
     for pad in tm.pads:
-        _, (cols, rows, left0, top0) = arena.pad_grid(pad)
+        _, (cols, rows, left0, top0) = pad_grid(arena, pad)
         s = pad.tag_size_px
         quiet = s // 8
         pitch = s + 2 * quiet + pad.gap_px

@@ -32,7 +32,7 @@ from ipt.receiver.detect.detector import APRILTAG_TO_OPENCV_PX, TagDetector
 from ipt.sim.arena import SimulatedArena, scene_for
 from ipt.sim.config import SimConfig
 from ipt.sim.render import camera_info_of
-from ipt.tagmap import TagMap, export_map, grid_tag_map, layout_problem, load_layout, pad_tags
+from ipt.tagmap import TagMap, export_map, grid_tag_map, layout_problem, load_layout, pad_grid, pad_tags
 
 SHIPPED = load_arena_config(shipped_config_path("arena.yaml"))
 BASE = DetectScale(5, 3.0)
@@ -46,7 +46,7 @@ def shipped_map() -> TagMap:
 
 def test_shipped_map_has_a_pad_of_small_tags_after_the_grid(shipped_map: TagMap) -> None:
     (pad,) = SHIPPED.tag_map.pads
-    (cells, (cols, rows, _, _)), (small,) = SHIPPED.pad_grid(pad), pad_tags(SHIPPED)
+    (cells, (cols, rows, _, _)), (small,) = pad_grid(SHIPPED, pad), pad_tags(SHIPPED)
     col0, col1, row0, row1 = cells
     gone = {row * 9 + col for row in range(row0, row1) for col in range(col0, col1)}
     assert gone, "the pad replaces some big tags"
@@ -111,7 +111,7 @@ def _arena_with(**tag_map: object) -> dict[str, object]:
         ),
         ({"pads": [{"name": "a", "centre_m": [0, 0], "size_m": 0.3, "tag_size_px": 56}]}, "7 projector px per bit"),
         ({"pads": [{"name": "a", "centre_m": [0, 0], "size_m": 0.3, "tag_size_px": 60}]}, "multiple of 8"),
-        ({"pads": [{**PAD, "size_m": 2.1, "gap_px": 0}]}, "587 ids"),
+        # (too many small tags for tag36h11: the tag map says so, tests/test_tagmap_geometry.py)
         ({"pads": [{"name": "a", "centre_m": [0, 0], "size_m": 0.3, "shape": "round"}]}, "unknown key"),
     ],
 )

@@ -328,34 +328,11 @@ class ArenaConfig(StrictModel):
         self._check_pads()
         return self
 
-    def pad_grid(self, pad: LandingPadConfig) -> tuple[tuple[int, int, int, int], tuple[int, int, float, float]]:
-        """Where the small tags of ``pad`` go: the grid's cells (col0, col1, row0, row1: half-open ranges,
-        rows counted bottom to top) whose big tags they replace, every cell the pad's square reaches into;
-        and (cols, rows, left_px, top_px) of the small tags that fill those cells, the block centred in
-        them, left/top the projector pixel edges of its top-left quiet zone."""
-        pr, sc, tm = self.projector, self.screen, self.tag_map
-        px_per_m_x, px_per_m_y = pr.width_px / sc.width_m, pr.height_px / sc.height_m
-        pitch_x, pitch_y = pr.width_px / tm.cols, pr.height_px / tm.rows
-        half = pad.size_m / 2
-        u0 = pr.width_px / 2 + (pad.centre_m[0] - half) * px_per_m_x
-        u1 = pr.width_px / 2 + (pad.centre_m[0] + half) * px_per_m_x
-        y0 = pr.height_px / 2 + (pad.centre_m[1] - half) * px_per_m_y  # pixels up from the bottom edge
-        y1 = pr.height_px / 2 + (pad.centre_m[1] + half) * px_per_m_y
-        col0, col1 = max(0, math.floor(u0 / pitch_x)), min(tm.cols, math.ceil(u1 / pitch_x))
-        row0, row1 = max(0, math.floor(y0 / pitch_y)), min(tm.rows, math.ceil(y1 / pitch_y))
-        pitch = pad.tag_size_px * 10 // 8 + pad.gap_px
-        hole_w, hole_h = (col1 - col0) * pitch_x, (row1 - row0) * pitch_y
-        cols, rows = int((hole_w - pad.gap_px) // pitch), int((hole_h - pad.gap_px) // pitch)
-        block_w, block_h = cols * pitch - pad.gap_px, rows * pitch - pad.gap_px
-        left = round(col0 * pitch_x + (hole_w - block_w) / 2)
-        top = round(pr.height_px - row1 * pitch_y + (hole_h - block_h) / 2)
-        return (col0, col1, row0, row1), (max(cols, 0), max(rows, 0), float(left), float(top))
-
     def _check_pads(self) -> None:
-        """Every pad on the screen, no two overlapping, enough tag36h11 ids for their tags."""
+        """Every pad on the screen, no two overlapping. (Where their small tags go, and whether they fit, is
+        the tag map's geometry: :func:`ipt.tagmap.pad_grid`, :func:`ipt.tagmap.pads_problem`.)"""
         half_w, half_h = self.screen.width_m / 2, self.screen.height_m / 2
         squares: list[tuple[float, float, float]] = []
-        n_small = 0
         for pad in self.tag_map.pads:
             x, y = pad.centre_m
             s = pad.size_m / 2
@@ -364,17 +341,10 @@ class ArenaConfig(StrictModel):
                     f"landing pad '{pad.name}' ({pad.size_m:g} m square at {x:g}, {y:g}) is off the screen "
                     f"(x within ±{half_w:g} m, y within ±{half_h:g} m)"
                 )
-            cols, rows, _, _ = self.pad_grid(pad)[1]
-            if min(cols, rows) < 1:
-                raise ValueError(f"landing pad '{pad.name}': not one of its tags fits in the grid cells it covers")
             for other, (ox, oy, os_) in zip(self.tag_map.pads, squares, strict=False):
                 if abs(x - ox) < s + os_ and abs(y - oy) < s + os_:
                     raise ValueError(f"landing pads '{other.name}' and '{pad.name}' overlap")
             squares.append((x, y, s))
-            n_small += cols * rows
-        if n_small and self.tag_map.first_id + self.tag_map.rows * self.tag_map.cols + n_small > 587:
-            raise ValueError(f"tag36h11 has 587 ids: the grid and the landing pads' {n_small} small tags need more")
-
 
     def _check_tiles(self) -> None:
         tiles, pr = self.projectors or (), self.projector
