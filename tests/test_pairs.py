@@ -12,7 +12,7 @@ import pytest
 from test_invisibility import SHARMA_PAIRS
 
 from ipt.invisibility import ciede2000
-from ipt.sender import pairs
+from ipt.sender import framekernel, pairs
 from ipt.sender.colour import L8_PER_LSTAR, LUMINANCE_WEIGHTS, code_to_lab, code_to_linear, linear_to_lab, lstar
 from ipt.sender.modulator import IptModulator, PaperModulator
 from ipt.sender.pairs import COLOURS, allowance_budget_de00
@@ -271,7 +271,7 @@ def test_a_complete_table_takes_the_kernel_without_colour_maths_and_gives_the_sa
     filled = IptModulator(mask, DELTA_L, threads=threads, clip_allowance_l8=2.0)
     filled._pairs = complete[0]
     try:
-        assert filled._kernel() is pairs._modulate_rows_filled_c
+        assert filled._kernel() is framekernel._modulate_rows_filled_c
         want = _reference_frames(complete[0], rgb, mask)
         for fill in (0, 255):
             plus = np.full(rgb.size + 1, fill, np.uint8)

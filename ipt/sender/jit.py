@@ -3,8 +3,8 @@
 :func:`jit` compiles a pure-Python function (nogil, cached on disk where it can); where numba cannot run
 (not installed, or executable memory forbidden) it gives a stand-in that raises :class:`JitError` and
 says why in :data:`JIT_UNAVAILABLE`, so that everything else (the ``paper`` profile) still imports.
-:func:`intrinsics` makes the unaligned 32-bit load and store and the prefetch of :mod:`ipt.sender.pairs`'
-frame kernel.
+:func:`intrinsics` makes the unaligned 32-bit load and store and the prefetch of the frame kernels
+(:mod:`ipt.sender.framekernel`).
 """
 
 from __future__ import annotations

@@ -53,7 +53,8 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.errors import IptError
-from ipt.sender.pairs import JIT_UNAVAILABLE, _modulate_rows_c, _modulate_rows_filled_c, amplitude_grid
+from ipt.sender.framekernel import _modulate_rows_c, _modulate_rows_filled_c
+from ipt.sender.pairs import JIT_UNAVAILABLE, amplitude_grid
 from ipt.sender.pairtable import pair_table
 
 __all__ = ["JIT_UNAVAILABLE", "amplitude_grid"]  # re-exported: the simulator and the tests take them from here

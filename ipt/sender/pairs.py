@@ -30,15 +30,7 @@ starts (:meth:`~ipt.sender.pairtable.PairTable.complete_with_cache`): computed o
 a fraction of a second by the next run. Photographic content shows hundreds of thousands of new colours
 a second; filling them as they come cost the sender seconds of missed frames at every new scene.
 
-**The frame kernel** (:func:`_modulate_rows`) writes both output frames of an input frame in one pass:
-pixels outside the tags copied, tag pixels looked up (and filled if new). It reads each pixel as one
-unaligned 32-bit load, writes it as one 32-bit store (the fourth byte is overwritten by the next pixel;
-the last pixel of a range is written byte by byte, so ranges written by different threads never
-overlap) and prefetches the table entry of the pixel 64 ahead: on photographic content the entries of a
-frame span megabytes, and waiting for each in turn doubled the time of the pass. Once the table is
-complete, :func:`_modulate_rows_filled` does the same without the branch that fills new colours: every tag
-pixel is one load from the table and a select of its sign, which takes about half the time (the call to
-the colour maths inside the loop kept the compiled loop from being tight).
+**The frame kernels** that write whole frames from the table are :mod:`ipt.sender.framekernel`.
 """
 
 from __future__ import annotations
@@ -56,7 +48,7 @@ from ipt.sender.cielab import de00_c as _de00_c
 from ipt.sender.cielab import lab_c as _lab_c
 from ipt.sender.cielab import lstar_c as _lstar_c
 from ipt.sender.colour import CODE_TO_LINEAR, L8_PER_LSTAR, lstar
-from ipt.sender.jit import intrinsics, jit
+from ipt.sender.jit import jit
 
 U8 = npt.NDArray[np.uint8]
 F64 = npt.NDArray[np.float64]
@@ -77,10 +69,6 @@ entries and compares them, in case a change forgot to bump this.)"""
 
 AMPLITUDE_STEPS: Final = 1 << 16
 """Intervals of the luminance grid on which the amplitude a(Y) is solved (then interpolated linearly)."""
-
-PREFETCH_PX: Final = 64
-"""How many pixels ahead the frame kernel asks for a table entry (measured: 32-64 halve the time of a
-photographic frame against none; 8-16 gain less)."""
 
 _STEP_TOLERANCE: Final = 1e-4
 """A step within this fraction of 2ΔL counts as the full step."""
@@ -124,6 +112,8 @@ _LOW24: Final = np.uint64(0xFFFFFF)
 _SHIFT_DOWN: Final = np.uint64(24)
 _MIDS: Final = (CODE_TO_LINEAR[:-1] + CODE_TO_LINEAR[1:]) / 2
 """Linear light half way between consecutive codes: the nearest code to x is the number of mids below x."""
+
+
 def _nearest(x: float, mids: F64) -> int:
     """The 8-bit code nearest to linear ``x`` (``np.searchsorted(mids, x)``)."""
     lo, hi = 0, mids.shape[0]
@@ -497,132 +487,6 @@ def _compute_codes(codes: U8, out: U64, lin: F64, mids: F64, agrid: F64, w: F64,
         out[j] = _ipt_pair_c(r, g, b, lin, mids, agrid, w, target, budget)
 
 
-# --- frames -------------------------------------------------------------------------------------------
-
-
-def _modulate_rows(
-    rgb: U8,
-    mask: npt.NDArray[np.int8],
-    table: U64,
-    lin: F64,
-    mids: F64,
-    agrid: F64,
-    w: F64,
-    target: float,
-    budget: float,
-    out_plus: U8,
-    out_minus: U8,
-    want_plus: bool,
-    want_minus: bool,
-    row0: int,
-    row1: int,
-) -> None:
-    """Rows ``row0..row1`` of both phases (those wanted); fills the table entries it needs (see the module
-    doc). All arrays C-contiguous; ``rgb`` and the outputs H×W×3, ``mask`` H×W."""
-    width = mask.shape[1]
-    first, last = row0 * width, row1 * width - 1  # pixel indices
-    if last < first:
-        return
-    src = rgb.reshape(-1)
-    plus = out_plus.reshape(-1)
-    minus = out_minus.reshape(-1)
-    flat_mask = mask.reshape(-1)
-    m8, sh8, sh16 = np.uint32(255), np.uint32(8), np.uint32(16)
-    low24 = np.uint32(0xFFFFFF)
-    px: Any
-    for i in range(first, last + 1):
-        j = 3 * i
-        ahead = i + PREFETCH_PX
-        if ahead < last and flat_mask[ahead] != 0:
-            _prefetch(table, np.int64(_load_u32(src, 3 * ahead) & low24))
-        if i < last:
-            px = _load_u32(src, j) & low24
-        else:
-            px = np.uint32(src[j]) | (np.uint32(src[j + 1]) << sh8) | (np.uint32(src[j + 2]) << sh16)
-        m = flat_mask[i]
-        if m == 0:
-            up = down = px
-        else:
-            e = table[np.int64(px)]
-            if e == 0:
-                red, green, blue = np.int64(px & m8), np.int64((px >> sh8) & m8), np.int64(px >> sh16)
-                e = _ipt_pair_c(red, green, blue, lin, mids, agrid, w, target, budget)
-                table[np.int64(px)] = e
-            brighter = np.uint32(e & _LOW24)
-            darker = np.uint32((e >> _SHIFT_DOWN) & _LOW24)
-            up, down = (brighter, darker) if m > 0 else (darker, brighter)
-        if i < last:
-            if want_plus:
-                _store_u32(plus, j, up)
-            if want_minus:
-                _store_u32(minus, j, down)
-        else:
-            if want_plus:
-                plus[j], plus[j + 1], plus[j + 2] = up & m8, (up >> sh8) & m8, (up >> sh16) & m8
-            if want_minus:
-                minus[j], minus[j + 1], minus[j + 2] = down & m8, (down >> sh8) & m8, (down >> sh16) & m8
-
-
-def _modulate_rows_filled(
-    rgb: U8,
-    mask: npt.NDArray[np.int8],
-    table: U64,
-    lin: F64,
-    mids: F64,
-    agrid: F64,
-    w: F64,
-    target: float,
-    budget: float,
-    out_plus: U8,
-    out_minus: U8,
-    want_plus: bool,
-    want_minus: bool,
-    row0: int,
-    row1: int,
-) -> None:
-    """:func:`_modulate_rows` for a complete table (every entry filled): the same frames, no colour maths.
-    The arguments are :func:`_modulate_rows`' (those for the colour maths unused), so the two swap."""
-    width = mask.shape[1]
-    first, last = row0 * width, row1 * width - 1  # pixel indices
-    if last < first:
-        return
-    src = rgb.reshape(-1)
-    plus = out_plus.reshape(-1)
-    minus = out_minus.reshape(-1)
-    flat_mask = mask.reshape(-1)
-    low24 = np.uint32(0xFFFFFF)
-    for i in range(first, last):  # the last pixel, below, byte by byte
-        j = 3 * i
-        ahead = i + PREFETCH_PX
-        if ahead < last:
-            _prefetch(table, np.int64(_load_u32(src, 3 * ahead) & low24))
-        px = _load_u32(src, j) & low24
-        m = flat_mask[i]
-        e = table[np.int64(px)]
-        brighter = np.uint32(e & _LOW24)
-        darker = np.uint32((e >> _SHIFT_DOWN) & _LOW24)
-        up = px if m == 0 else (brighter if m > 0 else darker)
-        down = px if m == 0 else (darker if m > 0 else brighter)
-        if want_plus:
-            _store_u32(plus, j, up)
-        if want_minus:
-            _store_u32(minus, j, down)
-    j = 3 * last
-    m = flat_mask[last]
-    e = table[np.int64(src[j]) | (np.int64(src[j + 1]) << 8) | (np.int64(src[j + 2]) << 16)]
-    for c in range(3):
-        shift = np.uint64(8 * c)
-        code = src[j + c]
-        brighter_c = np.uint8((e >> shift) & np.uint64(255))
-        darker_c = np.uint8((e >> (_SHIFT_DOWN + shift)) & np.uint64(255))
-        if want_plus:
-            plus[j + c] = code if m == 0 else (brighter_c if m > 0 else darker_c)
-        if want_minus:
-            minus[j + c] = code if m == 0 else (darker_c if m > 0 else brighter_c)
-
-
-_load_u32, _store_u32, _prefetch = intrinsics()
-
 # The compiled versions. Each function calls the compiled version of the ones above it, looked up as a
 # global when it is compiled (at its first call).
 _nearest_c: Any = jit(_nearest)
@@ -642,8 +506,6 @@ _ipt_pair_c: Any = jit(_ipt_pair)
 _fill_range_c: Any = jit(_fill_range)
 _fill_codes_c: Any = jit(_fill_codes)
 _compute_codes_c: Any = jit(_compute_codes)
-_modulate_rows_c: Any = jit(_modulate_rows)
-_modulate_rows_filled_c: Any = jit(_modulate_rows_filled)
 
 JIT_UNAVAILABLE: str | None = jit_module.JIT_UNAVAILABLE
 """Why numba cannot compile here, or None if it can (:data:`ipt.sender.jit.JIT_UNAVAILABLE`, settled by
