@@ -23,6 +23,7 @@ from ipt.signals import Interrupted, interruption
 if TYPE_CHECKING:
     from ipt.config.receiver import ReceiverConfig
     from ipt.receiver.capture import CaptureSource
+    from ipt.receiver.capture.framelog import FrameLogWriter
 
 PROFILES = ("ipt", "paper")
 """The processing profiles of ``replay --profile`` (:meth:`ipt.config.models.PipelineConfig.profile`)."""
@@ -42,9 +43,19 @@ def _camera_rate(text: str) -> float:
 
 def _cmd_replay(args: argparse.Namespace) -> int:
     from ipt.config.models import PipelineConfig, load_arena_config, shipped_config_path
-    from ipt.receiver.replay import replay
+    from ipt.receiver.replay import ReplayError, replay, replay_frame_log
     from ipt.tagmap import grid_tag_map
 
+    if (args.video is None) == (args.frames is None):
+        raise ReplayError("replay: give either --video (with --camera) or --frames")
+    if args.frames is not None:
+        if args.camera or args.config or args.fps:
+            raise ReplayError("replay --frames: the recording holds its arena, camera and rate; drop the other flags")
+        summary = replay_frame_log(Path(args.frames), Path(args.output))
+        print(f"ipt-receiver replay: {summary.poses} poses from {summary.frames} frames -> {args.output}")
+        return 0
+    if args.camera is None:
+        raise ReplayError("replay --video: --camera CAMERA.yaml is needed")
     arena = load_arena_config(args.config or shipped_config_path("arena.yaml"))
     summary = replay(
         arena,
@@ -67,6 +78,16 @@ def _positive_int(text: str) -> int:
 
 
 _positive_int.__name__ = "positive integer"
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(text)
+    return value
+
+
+_positive_float.__name__ = "positive number"
 
 
 EMPTY_FINAL_LINE = (
@@ -122,14 +143,19 @@ def _run_daemon(args: argparse.Namespace) -> int:
         updates["record"] = {**cfg.record.model_dump(), "path": Path(args.record)}
     if updates:
         cfg = with_overrides(cfg, **updates)
+    _say_map_hash(cfg.arena)
     capture_stop = threading.Event()
     source = _simulated_camera(cfg, capture_stop) if cfg.source_spec.kind == "sim" else None
+    frame_log = _frame_log(cfg, args)
     try:
-        stats = run(cfg, max_frames=args.max_frames, source=source, capture_stop=capture_stop)
+        stats = run(cfg, max_frames=args.max_frames, source=source, capture_stop=capture_stop, frame_log=frame_log)
     except OutputError as exc:
         # Say where the target came from, so that the fix is one look away.
         where = "--send" if args.send else f"{config} (send:)"
         raise OutputError(f"{where}: {exc}") from None
+    finally:
+        if frame_log is not None:
+            frame_log.close()
     if stats.capture_running:
         # A read still inside native code (camera driver, renderer) must neither hold up the exit nor
         # see the C++ runtime torn down under it: leave now, everything worth keeping is written.
@@ -137,6 +163,28 @@ def _run_daemon(args: argparse.Namespace) -> int:
         sys.stderr.flush()
         os._exit(0)
     return 0
+
+
+def _say_map_hash(arena_path: Path) -> None:
+    """The arena's map hash on stderr (:mod:`ipt.maphash`): the sender prints it too."""
+    from ipt.config.models import load_arena_config
+    from ipt.maphash import map_hash_line
+    from ipt.tagmap import grid_tag_map
+
+    print(map_hash_line("ipt-receiver", grid_tag_map(load_arena_config(arena_path))), file=sys.stderr)
+
+
+def _frame_log(cfg: ReceiverConfig, args: argparse.Namespace) -> FrameLogWriter | None:
+    """The flight recorder of ``--record-frames`` (:mod:`ipt.receiver.capture.framelog`), if asked for."""
+    if args.record_frames is None:
+        return None
+    from ipt.receiver.capture.framelog import start_frame_log
+
+    def say(line: str) -> None:
+        print(f"ipt-receiver: {line}", file=sys.stderr, flush=True)
+
+    folder = Path(args.record_frames)
+    return start_frame_log(cfg, folder, say, max_mb=args.record_frames_max_mb, max_s=args.record_frames_max_s)
 
 
 SOURCE_PLUGINS = "ipt.capture_sources"
@@ -197,12 +245,15 @@ def _add_replay(sub: argparse._SubParsersAction[Parser]) -> None:
         "replay",
         help="localise every frame of a recording and write a TUM trajectory",
         description="Run a recorded flight (a video file, or a folder of images in name order) through the "
-        "receiver. Frame k has time k/fps. Writes one TUM line 't x y z qx qy qz qw' per pose: the camera's "
+        "receiver. Frame k has time k/fps. With --frames, a flight recorder's folder (run --record-frames) is played "
+        "with its own frame numbers and capture times and the settings it was recorded with, to the poses the live "
+        "run sent, bit for bit (exact TUM numbers). Writes one TUM line 't x y z qx qy qz qw' per pose: the camera's "
         "optical centre in arena metres and its rotation camera->arena (OpenCV optical axes).",
     )
     r.add_argument("--config", metavar="ARENA.yaml", help="arena YAML (default: the shipped paper arena)")
-    r.add_argument("--camera", required=True, metavar="CAMERA.yaml", help="ROS camera_info YAML of the camera")
-    r.add_argument("--video", required=True, metavar="VIDEO|DIR", help="recording: video file or image folder")
+    r.add_argument("--camera", metavar="CAMERA.yaml", help="ROS camera_info YAML of the camera (with --video)")
+    r.add_argument("--video", metavar="VIDEO|DIR", help="recording: video file or image folder")
+    r.add_argument("--frames", metavar="DIR", help="a flight recorder's folder (ipt-receiver run --record-frames DIR)")
     r.add_argument("--fps", type=_camera_rate, help="camera frame rate, 1-1000 Hz (default: from the video file)")
     r.add_argument("--output", required=True, metavar="POSES.tum", help="where to write the poses")
     r.add_argument(
@@ -269,6 +320,26 @@ def _add_run(sub: argparse._SubParsersAction[Parser]) -> None:
         metavar="FILE.mcap",
         help="write every frame's pose, odometry, transforms and diagnostics to an MCAP flight log with ROS 2 "
         "schemas, for Foxglove, ros2 bag and ipt eval (overrides the config's record.path)",
+    )
+    d.add_argument(
+        "--record-frames",
+        metavar="DIR",
+        help="flight recorder: keep every frame the pipeline gets, losslessly, with its number and capture time, "
+        "in DIR (new or empty), for 'ipt-receiver replay --frames DIR' (docs/doctor.md)",
+    )
+    d.add_argument(
+        "--record-frames-max-mb",
+        type=_positive_float,
+        default=4000.0,
+        metavar="MB",
+        help="stop recording frames at this size (default 4000 MB; localisation goes on)",
+    )
+    d.add_argument(
+        "--record-frames-max-s",
+        type=_positive_float,
+        default=600.0,
+        metavar="S",
+        help="stop recording frames after this many seconds of capture time (default 600)",
     )
     d.add_argument("--realtime", action="store_true", help="pace sim/video to the frame rate (a live source)")
     d.add_argument("--max-frames", type=_positive_int, metavar="N", help="stop after N captured frames")

@@ -77,6 +77,7 @@ from ipt.runtime import Histogram, run_loop, write_line
 from ipt.tagmap import grid_tag_map
 
 if TYPE_CHECKING:
+    from ipt.receiver.capture.framelog import FrameLogWriter
     from ipt.receiver.outputs.mavlink.output import MavlinkOutput
 
 MAX_IN_FLIGHT = 2
@@ -223,6 +224,7 @@ async def run_daemon(
     on_result: ResultHook | None = None,
     on_processed: ProcessedHook | None = None,
     capture_stop: threading.Event | None = None,
+    frame_log: FrameLogWriter | None = None,
 ) -> DaemonStats:
     """Run the receiver until ``stop`` is set (or SIGTERM/SIGINT), the recording ends or ``max_frames``
     frames were captured. Statistics go to ``stats_out`` (default: stderr). Configuration problems raise
@@ -236,7 +238,8 @@ async def run_daemon(
     ``lookahead_frames``); ``on_processed`` is called once each frame was processed and the results that
     became final with it were delivered, with the datagrams sent for them. ``capture_stop`` is the event
     that stops the capture thread (default: a new one): a source handed in paces its sleeps on it (as
-    :func:`make_source` does), so that they end at once at shutdown."""
+    :func:`make_source` does), so that they end at once at shutdown. ``frame_log`` keeps every frame handed to
+    the pipeline (``--record-frames``; :mod:`ipt.receiver.capture.framelog`); the caller closes it."""
     loop = asyncio.get_running_loop()
     stop_event = stop if stop is not None else asyncio.Event()
     unroute = signals.route_to_loop(loop, lambda _sig: stop_event.set()) if handle_signals else None
@@ -244,6 +247,7 @@ async def run_daemon(
         run = _DaemonRun(
             cfg, stop_event, stats_out, max_frames, source, on_result, on_processed, capture_stop or threading.Event()
         )
+        run.frame_log = frame_log
         return await run.run()
     finally:
         if unroute is not None:
@@ -312,6 +316,7 @@ class _DaemonRun:
         self.running = False
         """The source opened and frames began to flow (else the ROS recording is aborted, not closed)."""
         self.start_s = time.monotonic()
+        self.frame_log: FrameLogWriter | None = None
 
     async def run(self) -> DaemonStats:
         """Start, run until stopped or the source ends, shut down, and print and return the totals."""
@@ -400,9 +405,13 @@ class _DaemonRun:
                 if self.source.live and frame.index > self.last_taken + 1:
                     # Frames were dropped: the results that waited for them come out now, not after this run.
                     t_us = frame.capture_time_us
+                    if self.frame_log is not None:
+                        self.frame_log.finish_before(t_us)
                     results.put_nowait((None, loop.run_in_executor(worker, self.finish_before, t_us), False))
                 self.last_taken = run[-1].index
                 for k, item in enumerate(run):
+                    if self.frame_log is not None:
+                        self.frame_log.add(item)
                     results.put_nowait((item, loop.run_in_executor(worker, self.process, item), k == len(run) - 1))
         finally:
             results.put_nowait(None)
@@ -575,10 +584,13 @@ def run(
     max_frames: int | None = None,
     source: CaptureSource | None = None,
     capture_stop: threading.Event | None = None,
+    frame_log: FrameLogWriter | None = None,
 ) -> DaemonStats:
-    """Run the daemon on a fresh event loop (uvloop when installed) until it stops (``source`` and
-    ``capture_stop`` as for :func:`run_daemon`)."""
-    return run_loop(run_daemon(cfg, max_frames=max_frames, source=source, capture_stop=capture_stop))
+    """Run the daemon on a fresh event loop (uvloop when installed) until it stops (``source``,
+    ``capture_stop`` and ``frame_log`` as for :func:`run_daemon`)."""
+    return run_loop(
+        run_daemon(cfg, max_frames=max_frames, source=source, capture_stop=capture_stop, frame_log=frame_log)
+    )
 
 
 __all__ = ["DaemonStats", "make_source", "run", "run_daemon"]

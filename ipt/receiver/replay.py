@@ -5,12 +5,16 @@ output appears only when the run completes (it is written beside the target and 
 is read to its end: a frame that cannot be decoded (or an image that cannot be read, or is of another
 size) is skipped and counted, keeping the others' times, and a file that ends before the frames its
 header announces is reported as truncated.
+
+A ``--record-frames`` recording (:mod:`ipt.receiver.capture.framelog`) is replayed by
+:func:`replay_frame_log` instead: with its own frame numbers and capture times, not ``k / fps``.
 """
 
 from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
@@ -19,9 +23,11 @@ from ipt.config.camera_info import load_camera_info
 from ipt.config.models import MAX_RATE_HZ, MIN_CAMERA_RATE_HZ, ArenaConfig, PipelineConfig
 from ipt.errors import IptError
 from ipt.fileio import atomic_path
+from ipt.maphash import map_hash
 from ipt.ratelimit import LogThrottle
+from ipt.receiver.capture.framelog import KIND_FINISH, KIND_LOST, FrameLog
 from ipt.receiver.core.pipeline import FrameResult, Pipeline
-from ipt.tagmap import TagMap
+from ipt.tagmap import TagMap, grid_tag_map
 from ipt.tum import TUM_HEADER, format_tum_line
 from ipt.videoio import open_frames
 
@@ -138,4 +144,57 @@ def replay(
         progress.write(summary.line() + "\n")
         if summary.shortfall is not None:
             progress.write(f"replay: {summary.shortfall}\n")
+    return summary
+
+
+def exact_tum_line(capture_time_us: int, position_m: Iterable[float], quat_wxyz: Iterable[float]) -> str:
+    """A TUM line that keeps every bit: the time from its integer microseconds, the numbers in Python's
+    shortest round-trip form (``float(text)`` gives the same float64 back)."""
+    w, x, y, z = (float(v) for v in quat_wxyz)
+    t = f"{capture_time_us // 1_000_000}.{capture_time_us % 1_000_000:06d}"
+    return " ".join([t, *(repr(float(v)) for v in position_m), repr(x), repr(y), repr(z), repr(w)]) + "\n"
+
+
+def replay_frame_log(folder: Path, output_path: Path, progress: TextIO | None = sys.stderr) -> ReplaySummary:
+    """Play a ``--record-frames`` recording back through the pipeline the live run had (its arena, camera and
+    pipeline settings are in the recording) with the recorded frame numbers and capture times, and the
+    live run's finishing points where it dropped frames: the poses it sent, bit for bit, as exact TUM lines
+    (:func:`exact_tum_line`)."""
+    log = FrameLog(folder)
+    try:
+        arena = ArenaConfig.model_validate(log.meta["arena"])
+        pipeline_cfg = PipelineConfig.model_validate(log.meta["pipeline"])
+    except (KeyError, ValueError) as exc:
+        raise ReplayError(f"{folder}: the recording's settings cannot be read ({exc})") from None
+    tag_map = grid_tag_map(arena)
+    if map_hash(tag_map) != log.meta.get("map_hash"):
+        raise ReplayError(f"{folder}: the arena's map hash is not the recorded one (another version of ipt?)")
+    pipeline = Pipeline(tag_map, load_camera_info(log.camera_file), pipeline_cfg, projector_hz=arena.projector.rate_hz)
+    frames = poses = 0
+    notes: list[str] = []
+    start = time.monotonic()
+    with atomic_path(output_path) as tmp, tmp.open("w", encoding="utf-8") as out:
+        out.write(TUM_HEADER + "\n")
+
+        def write(results: list[FrameResult]) -> int:
+            kept = [r for r in results if r.pose is not None]
+            for r in kept:
+                assert r.pose is not None
+                out.write(exact_tum_line(r.capture_time_us, r.pose.position_m, r.pose.quat_wxyz))
+            return len(kept)
+
+        for event in log.events():
+            if event.kind == KIND_FINISH:
+                poses += write(pipeline.finish_before(event.capture_time_us))
+            elif event.kind == KIND_LOST:
+                notes.append(f"frames were not recorded before frame {event.index}: poses from there on may differ")
+            elif event.image is not None:
+                poses += write(pipeline.process(event.index, event.image, event.capture_time_us))
+                frames += 1
+        poses += write(pipeline.flush())
+    summary = ReplaySummary(frames, poses, time.monotonic() - start, dict(pipeline.reasons), shortfall=log.problem)
+    if progress is not None:
+        progress.write(summary.line() + "\n")
+        for note in [*notes, *([log.problem] if log.problem else [])]:
+            progress.write(f"replay: {note}\n")
     return summary

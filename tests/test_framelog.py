@@ -1,0 +1,290 @@
+"""The flight recorder (``ipt-receiver run --record-frames``) and its replay: the live run's poses, bit for bit,
+a bounded and fault-tolerant recording, and records that stay readable up to a fault."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import resource
+import socket
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ipt.config.models import shipped_config_path
+from ipt.config.receiver import load_receiver_config, with_overrides
+from ipt.protocol import decode_pose
+from ipt.receiver.capture import CapturedFrame, VideoCapture
+from ipt.receiver.capture.framelog import (
+    FRAMES_NAME,
+    KIND_FINISH,
+    KIND_FRAME,
+    FrameLog,
+    FrameLogError,
+    FrameLogWriter,
+    start_frame_log,
+)
+from ipt.receiver.core.pipeline import FrameResult
+from ipt.receiver.daemon import run_daemon
+from ipt.receiver.replay import exact_tum_line, replay_frame_log
+from ipt.sim.run import CAMERA_NAME, VIDEO_NAME
+from ipt.videoio import open_frames
+
+FRAMES = 24
+"""Frames of the short flight each daemon run takes (enough for poses, short on 2 busy cores)."""
+TIMEOUT_S = 120.0
+
+
+def _receive_all(sock: socket.socket) -> list[bytes]:
+    """Every datagram the kernel holds for ``sock`` (non-blocking)."""
+    sock.setblocking(False)
+    out: list[bytes] = []
+    with contextlib.suppress(BlockingIOError):
+        while True:
+            out.append(sock.recv(65536))
+    return out
+
+
+def _daemon(flight: Path, *extra: str, cwd: Path, port: int, limit_bytes: int | None = None) -> tuple[int, str]:
+    """``ipt-receiver run`` over the first :data:`FRAMES` frames of the flight, packets to 127.0.0.1:port."""
+
+    def limit() -> None:  # a small "disk": a file-size limit in the child only (Python ignores SIGXFSZ)
+        if limit_bytes is not None:
+            resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
+
+    args = ["--source", f"video:{flight / VIDEO_NAME}", "--camera", str(flight / CAMERA_NAME), "--fps", "120"]
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "ipt.receiver.cli",
+            "run",
+            *args,
+            "--send",
+            f"127.0.0.1:{port}",
+            "--max-frames",
+            str(FRAMES),
+            *extra,
+        ],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT_S,
+        preexec_fn=limit if limit_bytes is not None else None,
+        check=False,
+    )
+    return proc.returncode, proc.stderr
+
+
+def _exact_lines(path: Path) -> list[str]:
+    return [line for line in path.read_text().splitlines(keepends=True) if not line.startswith("#")]
+
+
+@pytest.mark.slow
+def test_replay_of_recorded_frames_gives_the_packets_the_live_run_sent(short_flight: Path, tmp_path: Path) -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+        code, err = _daemon(short_flight, "--record-frames", "rec", cwd=tmp_path, port=sock.getsockname()[1])
+        packets = [decode_pose(p) for p in _receive_all(sock)]
+    assert code == 0, err
+    assert "ipt-receiver: map hash sha256:" in err
+    assert f"frame recording: {FRAMES} frames" in err
+    assert len(packets) >= FRAMES // 2, err
+
+    replayed = subprocess.run(
+        [sys.executable, "-m", "ipt.receiver.cli", "replay", "--frames", "rec", "--output", "poses.tum"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT_S,
+        check=False,
+    )
+    assert replayed.returncode == 0, replayed.stderr
+    sent = [exact_tum_line(p.capture_time_us, p.position_m, p.quat_wxyz) for p in packets]
+    assert _exact_lines(tmp_path / "poses.tum") == sent  # every float64 equal (repr), same order, same count
+
+
+class _JitteredCamera:
+    """The flight's frames with a camera's irregular capture times and a frame lost before capture (a gap in the
+    numbers): the replay must use what was recorded, not ``k / fps``."""
+
+    live, retry_open, name = False, False, "jittered"
+
+    def __init__(self, video: VideoCapture) -> None:
+        self.video = video
+
+    def open(self) -> None:
+        self.video.open()
+
+    def close(self) -> None:
+        self.video.close()
+
+    def read(self) -> CapturedFrame | None:
+        frame = self.video.read()
+        if frame is None or frame.index >= FRAMES:
+            return None
+        k = frame.index + (frame.index >= 9)  # frame 9 was "lost": numbers 0..8, 10, 11, ...
+        t_us = 5_000_000 + round(k * 1e6 / 120) + (137 if k % 3 == 1 else -61 if k % 3 == 2 else 0)
+        return replace(frame, index=k, capture_time_us=t_us)
+
+
+@pytest.mark.slow
+def test_replay_uses_recorded_numbers_and_times_not_k_over_fps(short_flight: Path, tmp_path: Path) -> None:
+    cfg = load_receiver_config(shipped_config_path("receiver.yaml"))
+    cfg = with_overrides(cfg, camera=short_flight / CAMERA_NAME, send=["127.0.0.1:9"])
+    said: list[str] = []
+    log = start_frame_log(cfg, tmp_path / "rec", said.append, max_mb=1000, max_s=60)
+    source = _JitteredCamera(VideoCapture(short_flight / VIDEO_NAME, 120.0, False, grey=cfg.pipeline.luminance_only))
+    live: list[str] = []
+
+    def on_result(frame: CapturedFrame, result: FrameResult | None, sent: int) -> None:
+        if result is not None and result.pose is not None and sent:
+            live.append(exact_tum_line(frame.capture_time_us, result.pose.position_m, result.pose.quat_wxyz))
+
+    async def main() -> None:
+        with open(os.devnull, "w") as quiet:
+            await run_daemon(
+                cfg, handle_signals=False, source=source, on_result=on_result, stats_out=quiet, frame_log=log
+            )
+
+    asyncio.run(main())
+    log.close()
+    assert live, said
+    summary = replay_frame_log(tmp_path / "rec", tmp_path / "poses.tum", progress=None)
+    lines = _exact_lines(tmp_path / "poses.tum")
+    assert summary.frames == FRAMES
+    assert lines == live
+    assert any(line.startswith("5.0") for line in lines)  # the camera's times, not k / fps from zero
+
+
+def _frame(k: int, value: int = 0) -> CapturedFrame:
+    image = (np.arange(360 * 640, dtype=np.uint32).reshape(360, 640) * 7 + k + value).astype(np.uint8)
+    return CapturedFrame(k, 1000 + 8333 * k, image)
+
+
+def _writer(folder: Path, said: list[str], **kw: float) -> FrameLogWriter:
+    camera = shipped_config_path("camera.yaml")
+    return FrameLogWriter(folder, {"note": "test"}, camera, say=said.append, **kw)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("codec", ["raw", "zstd"])
+def test_frames_come_back_losslessly_with_their_marks(tmp_path: Path, codec: str) -> None:
+    said: list[str] = []
+    w = FrameLogWriter(tmp_path / "rec", {}, shipped_config_path("camera.yaml"), say=said.append, codec=codec)
+    frames = [_frame(k) for k in range(5)]
+    rgb = CapturedFrame(7, 99_000, np.dstack([frames[0].image, frames[1].image, frames[2].image]))
+    for f in frames[:3]:
+        w.add(f)
+    w.finish_before(77_777)
+    for f in [*frames[3:], rgb]:
+        w.add(f)
+    w.close()
+    log = FrameLog(tmp_path / "rec")
+    events = list(log.events())
+    assert log.problem is None
+    assert [e.kind for e in events] == [KIND_FRAME] * 3 + [KIND_FINISH] + [KIND_FRAME] * 3
+    assert events[3].capture_time_us == 77_777
+    got = [e for e in events if e.kind == KIND_FRAME]
+    for e, f in zip(got, [*frames, rgb], strict=True):
+        assert (e.index, e.capture_time_us) == (f.index, f.capture_time_us)
+        assert e.image is not None
+        assert e.image.dtype == np.uint8
+        np.testing.assert_array_equal(e.image, f.image)
+
+
+def test_size_bound_is_said_once_and_stops_recording(tmp_path: Path) -> None:
+    said: list[str] = []
+    w = _writer(tmp_path / "rec", said, max_mb=0.5, codec="raw")  # type: ignore[arg-type]
+    for k in range(6):  # 230 kB each: two fit in 0.5 MB
+        w.add(_frame(k))
+    w.close()
+    assert [s for s in said if "bound of" in s] == [
+        "frame recording: reached its bound of 0.5 MB at frame 2; recording stops, localisation goes on"
+    ]
+    assert [e.index for e in FrameLog(tmp_path / "rec").events()] == [0, 1]
+
+
+def test_duration_bound_stops_recording(tmp_path: Path) -> None:
+    said: list[str] = []
+    w = _writer(tmp_path / "rec", said, max_s=0.02)  # frames 8.333 ms apart: 0, 1, 2 are within 20 ms
+    for k in range(5):
+        w.add(_frame(k))
+    w.close()
+    assert sum("bound of 0.02 s at frame 3" in s for s in said) == 1
+    assert [e.index for e in FrameLog(tmp_path / "rec").events()] == [0, 1, 2]
+
+
+def test_a_cut_file_reads_up_to_the_cut(tmp_path: Path) -> None:
+    said: list[str] = []
+    w = _writer(tmp_path / "rec", said)
+    for k in range(4):
+        w.add(_frame(k))
+    w.close()
+    path = tmp_path / "rec" / FRAMES_NAME
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) - 100])  # a power cut in the last record
+    log = FrameLog(tmp_path / "rec")
+    assert [e.index for e in log.events()] == [0, 1, 2]
+    assert log.problem is not None
+    assert "record 3" in log.problem
+
+
+def test_a_folder_with_files_is_refused_not_overwritten(tmp_path: Path) -> None:
+    (tmp_path / "rec").mkdir()
+    (tmp_path / "rec" / "keep.txt").write_text("mine")
+    with pytest.raises(FrameLogError, match="not empty"):
+        _writer(tmp_path / "rec", [])
+    assert (tmp_path / "rec" / "keep.txt").read_text() == "mine"
+
+
+def test_cli_refuses_a_used_folder_in_one_line(tmp_path: Path) -> None:
+    (tmp_path / "rec").mkdir()
+    (tmp_path / "rec" / "x").write_text("x")
+    proc = subprocess.run(
+        [sys.executable, "-m", "ipt.receiver.cli", "run", "--record-frames", "rec", "--max-frames", "1"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT_S,
+        check=False,
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.strip().endswith(
+        "--record-frames rec: the folder is not empty (a recording is never overwritten)"
+    )
+    assert "Traceback" not in proc.stderr
+
+
+@pytest.mark.slow
+def test_full_disk_while_recording_one_line_localisation_goes_on(short_flight: Path, tmp_path: Path) -> None:
+    """A file-size limit of 1 MB in the daemon's process stands for a full disk (no system change)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        code, err = _daemon(
+            short_flight, "--record-frames", "rec", cwd=tmp_path, port=sock.getsockname()[1], limit_bytes=1_000_000
+        )
+        packets = _receive_all(sock)
+    assert code == 0, err
+    faults = [line for line in err.splitlines() if "File too large" in line]
+    assert len(faults) == 1, err
+    assert "recording stops, localisation goes on" in faults[0]
+    assert "Traceback" not in err
+    final = next(line for line in err.splitlines() if line.startswith("ipt-receiver: final:"))
+    assert f"{FRAMES} frames ({FRAMES} captured)" in final
+    assert packets
+    assert f"{len(packets)} poses" in final
+    log = FrameLog(tmp_path / "rec")
+    kept = [e for e in log.events() if e.kind == KIND_FRAME]
+    assert log.problem is None  # cut back to the last whole record
+    assert 2 <= len(kept) < FRAMES
+    assert os.path.getsize(tmp_path / "rec" / FRAMES_NAME) <= 1_000_000
+    with open_frames(short_flight / VIDEO_NAME, grey=True) as video:
+        for e, original in zip(kept, video, strict=False):
+            assert e.image is not None
+            np.testing.assert_array_equal(e.image, original)
