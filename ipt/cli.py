@@ -55,11 +55,13 @@ def _scene(spec: str, arena: ArenaConfig, seed: int) -> ContentSource:
 
 
 def _cmd_map_export(args: argparse.Namespace) -> int:
+    from ipt.maphash import map_hash
     from ipt.tagmap import export_map, grid_tag_map
 
     tm = grid_tag_map(_arena(args.config))
     export_map(tm, args.image, args.layout)
     print(f"ipt map export: {len(tm.tags)} tags -> {args.image} ({tm.width_px}x{tm.height_px}), {args.layout}")
+    print(f"ipt map export: map hash sha256:{map_hash(tm)} (the SHA-256 of {args.layout})")
     return 0
 
 

@@ -143,7 +143,6 @@ def _run_daemon(args: argparse.Namespace) -> int:
         updates["record"] = {**cfg.record.model_dump(), "path": Path(args.record)}
     if updates:
         cfg = with_overrides(cfg, **updates)
-    _say_map_hash(cfg.arena)
     capture_stop = threading.Event()
     source = _simulated_camera(cfg, capture_stop) if cfg.source_spec.kind == "sim" else None
     frame_log = _frame_log(cfg, args)
@@ -163,15 +162,6 @@ def _run_daemon(args: argparse.Namespace) -> int:
         sys.stderr.flush()
         os._exit(0)
     return 0
-
-
-def _say_map_hash(arena_path: Path) -> None:
-    """The arena's map hash on stderr (:mod:`ipt.maphash`): the sender prints it too."""
-    from ipt.config.models import load_arena_config
-    from ipt.maphash import map_hash_line
-    from ipt.tagmap import grid_tag_map
-
-    print(map_hash_line("ipt-receiver", grid_tag_map(load_arena_config(arena_path))), file=sys.stderr)
 
 
 def _frame_log(cfg: ReceiverConfig, args: argparse.Namespace) -> FrameLogWriter | None:
@@ -236,7 +226,30 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
     _add_replay(sub)
     _add_run(sub)
+    _add_doctor(sub)
     return p
+
+
+def _cmd_doctor(args: argparse.Namespace) -> int:
+    from ipt.config.models import shipped_config_path
+    from ipt.receiver.doctor import main_lines
+
+    config = Path(args.config) if args.config else shipped_config_path("receiver.yaml")
+    return main_lines(config, lambda line: print(line, flush=True))
+
+
+def _add_doctor(sub: argparse._SubParsersAction[Parser]) -> None:
+    """``ipt-receiver doctor``."""
+    d = sub.add_parser(
+        "doctor",
+        help="check this computer for the receiver: cameras, calibration, arena, key, targets, kernels, MAVLink",
+        description="One line per check, with what to do when it fails (docs/doctor.md): the cameras and the modes "
+        "their drivers advertise at the configured rate, the rate measured over 2 s, camera.yaml against the "
+        "frames, the arena and its map hash, the key file, every send target, the compiled kernels, the MAVLink "
+        "HEARTBEAT and the clock's synchronisation. Exit status 0 when every check passed, 1 otherwise.",
+    )
+    d.add_argument("--config", metavar="RECEIVER.yaml", help="receiver YAML (default: the shipped receiver.yaml)")
+    d.set_defaults(func=_cmd_doctor)
 
 
 def _add_replay(sub: argparse._SubParsersAction[Parser]) -> None:

@@ -58,6 +58,7 @@ from ipt import signals
 from ipt.config.camera_info import CameraInfo, load_camera_info
 from ipt.config.models import ArenaConfig, load_arena_config
 from ipt.config.receiver import ReceiverConfig, read_auth_key
+from ipt.maphash import map_hash
 from ipt.protocol import ProtocolError
 from ipt.receiver.capture import (
     CapturedFrame,
@@ -247,7 +248,7 @@ async def run_daemon(
         run = _DaemonRun(
             cfg, stop_event, stats_out, max_frames, source, on_result, on_processed, capture_stop or threading.Event()
         )
-        run.frame_log = frame_log
+        run.frame_log = frame_log  # typed and None in _DaemonRun.__init__
         return await run.run()
     finally:
         if unroute is not None:
@@ -285,7 +286,8 @@ class _DaemonRun:
         arena = load_arena_config(cfg.arena)
         self.camera = camera = load_camera_info(cfg.camera)
         self.key = key = read_auth_key(cfg.auth_key_file) if cfg.auth_key_file is not None else None
-        self.pipeline = Pipeline(grid_tag_map(arena), camera, cfg.pipeline, projector_hz=arena.projector.rate_hz)
+        self.map_hash = map_hash(tag_map := grid_tag_map(arena))  # the sender prints it too: a mismatch is seen
+        self.pipeline = Pipeline(tag_map, camera, cfg.pipeline, projector_hz=arena.projector.rate_hz)
         if source is None:
             source = make_source(cfg, arena, camera, capture_stop)
         self.source = source
@@ -360,7 +362,8 @@ class _DaemonRun:
         write_line(
             self.out,
             f"{PROG}: running: {source.name}{' (live)' if source.live else ''}, camera "
-            f"{camera.width_px}x{camera.height_px}, vehicle {cfg.vehicle_id} -> {', '.join(cfg.send)}{auth}",
+            f"{camera.width_px}x{camera.height_px}, vehicle {cfg.vehicle_id} -> {', '.join(cfg.send)}{auth}, "
+            f"map hash sha256:{self.map_hash}",
         )
         return True
 

@@ -273,6 +273,7 @@ def _main(argv: Sequence[str] | None) -> int:
 
 
 def _serve(args: argparse.Namespace) -> int:
+    from ipt.maphash import map_hash_line
     from ipt.sender.modulator import FrameTiming, Modulator, delta_l_warning, make_modulator
     from ipt.sender.options import SenderOptions
     from ipt.sender.overlay import ArOverlay
@@ -290,7 +291,7 @@ def _serve(args: argparse.Namespace) -> int:
             f"--gpu makes the ipt profile's phases; the arena's modulation.profile is {mod.profile!r}"
         )
     with contextlib.ExitStack() as stack:
-        mask = grid_tag_map(arena).render_mask()
+        mask = (tag_map := grid_tag_map(arena)).render_mask()
         modulator: Modulator = make_modulator(mod.profile, mask, mod.delta_l, args.threads, mod.clip_allowance_l8)
         stack.callback(_close, modulator)
         scene, input_rate_hz = _scene(args, arena)
@@ -304,6 +305,7 @@ def _serve(args: argparse.Namespace) -> int:
             stack.callback(_close, gpu_modulator)
         if sink is None:
             sink = _make_sink(args, arena)
+        print(map_hash_line("ipt-sender", tag_map), file=sys.stderr)
         _say_what_runs(args, arena, timing, sink, gpu_modulator is not None, max_vehicles)
         options = SenderOptions(
             frames=args.frames,

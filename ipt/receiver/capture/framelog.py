@@ -233,8 +233,16 @@ class FrameLogWriter:
             payload = self._encode(np.ascontiguousarray(image))
             shape = (image.shape[0], image.shape[1], image.shape[2] if image.ndim == 3 else 1)
         head = RECORD.pack(
-            MAGIC, item.kind, CODECS[self.codec], shape[2], item.index, item.capture_time_us, shape[1], shape[0],
-            len(payload), zlib.crc32(payload),
+            MAGIC,
+            item.kind,
+            CODECS[self.codec],
+            shape[2],
+            item.index,
+            item.capture_time_us,
+            shape[1],
+            shape[0],
+            len(payload),
+            zlib.crc32(payload),
         )
         if self.bytes + len(head) + len(payload) > self.max_bytes:
             self._stop(f"reached its bound of {self.max_bytes / 1e6:g} MB at frame {item.index}")
