@@ -235,7 +235,14 @@ def _cmd_doctor(args: argparse.Namespace) -> int:
     from ipt.receiver.doctor import main_lines
 
     config = Path(args.config) if args.config else shipped_config_path("receiver.yaml")
-    return main_lines(config, lambda line: print(line, flush=True))
+
+    def say(line: str) -> None:
+        try:
+            print(line, flush=True)
+        except BrokenPipeError:  # `doctor | head`: the reader left; the checks (and the exit status) go on
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+
+    return main_lines(config, say)
 
 
 def _add_doctor(sub: argparse._SubParsersAction[Parser]) -> None:

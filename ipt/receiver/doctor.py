@@ -208,32 +208,38 @@ class _Found:
 
 def run_checks(config_path: Path, probes: Probes | None = None) -> list[Check]:
     """Every check, in order; never raises."""
+    return list(iter_checks(config_path, probes))
+
+
+def iter_checks(config_path: Path, probes: Probes | None = None) -> Iterator[Check]:
+    """Every check, in order, each as soon as it is made; never raises."""
     from ipt.config.receiver import load_receiver_config
 
     p = probes if probes is not None else Probes()
-    checks: list[Check] = []
     cfg: ReceiverConfig | None = None
     try:
         cfg = load_receiver_config(config_path)
     except (IptError, OSError, ValueError) as exc:
-        checks.append(Check(FAIL, "config", str(exc), f"fix {config_path}, or give another with --config"))
+        yield Check(FAIL, "config", str(exc), f"fix {config_path}, or give another with --config")
     if cfg is not None:
-        checks.append(Check(OK, "config", f"{config_path}: source {cfg.source}, {len(cfg.send)} send target(s)"))
-    camera = _camera_info(cfg, checks)
+        yield Check(OK, "config", f"{config_path}: source {cfg.source}, {len(cfg.send)} send target(s)")
+    early: list[Check] = []
+    camera = _camera_info(cfg, early)
+    yield from early
     found = _Found()
-    checks += _guarded("cameras", lambda: _cameras(cfg, camera, p))
+    yield from _guarded("cameras", lambda: _cameras(cfg, camera, p))
     if cfg is not None and camera is not None:
-        checks += _guarded("camera rate", lambda: _camera_rate(cfg, camera, p, found))
-        checks += _guarded("camera.yaml", lambda: _camera_size(cfg, camera, found))
+        yield from _guarded("camera rate", lambda: _camera_rate(cfg, camera, p, found))
+        yield from _guarded("camera.yaml", lambda: _camera_size(cfg, camera, found))
     if cfg is not None:
-        checks += _guarded("arena", lambda: [_arena(cfg)])
-        checks += _guarded("key", lambda: [_key(cfg)])
-        checks += _guarded("send", lambda: [_send_target(t) for t in cfg.send])
-    checks += _guarded("kernels", lambda: [_kernels(p)])
+        yield from _guarded("arena", lambda: [_arena(cfg)])
+        yield from _guarded("key", lambda: [_key(cfg)])
+        for target in cfg.send:
+            yield from _guarded(f"send {target}", lambda: [_send_target(target)])  # noqa: B023 (called at once)
+    yield from _guarded("kernels", lambda: [_kernels(p)])
     if cfg is not None:
-        checks += _guarded("mavlink", lambda: [_mavlink(cfg, p)])
-    checks += _guarded("clock", lambda: [_clock(p)])
-    return checks
+        yield from _guarded("mavlink", lambda: [_mavlink(cfg, p)])
+    yield from _guarded("clock", lambda: [_clock(p)])
 
 
 def _guarded(name: str, make: Callable[[], list[Check]]) -> list[Check]:
@@ -296,7 +302,8 @@ def _cameras(cfg: ReceiverConfig | None, camera: CameraInfo | None, p: Probes) -
         if wants_camera:
             lines.append(Check(FAIL, "cameras", f"{what}, {pc}; the config's source {spec} is not here", _CAM_FIX))
         else:
-            lines.append(Check(SKIP, "cameras", f"{what}, {pc} (the config's source is {spec}: none needed)"))
+            why = f"the config's source is {spec}: none needed" if spec is not None else "no config to say which"
+            lines.append(Check(SKIP, "cameras", f"{what}, {pc} ({why})"))
     return lines
 
 
@@ -555,8 +562,9 @@ async def _heartbeat(cfg: ReceiverConfig, name: str, timeout_s: float) -> Check:
 
 def main_lines(config_path: Path, out: Callable[[str], None], probes: Probes | None = None) -> int:
     """Run the checks, print a line for each (as it comes) and a summary; the exit status (0: all passed)."""
-    checks = run_checks(config_path, probes)
-    for c in checks:
+    checks = []
+    for c in iter_checks(config_path, probes):
+        checks.append(c)
         out(c.line())
     failed = [c for c in checks if c.status == FAIL]
     out(
@@ -566,4 +574,14 @@ def main_lines(config_path: Path, out: Callable[[str], None], probes: Probes | N
     return 1 if failed else 0
 
 
-__all__ = ["Check", "DoctorError", "Mode", "Probes", "main_lines", "picamera2_modes", "run_checks", "v4l2_modes"]
+__all__ = [
+    "Check",
+    "DoctorError",
+    "Mode",
+    "Probes",
+    "iter_checks",
+    "main_lines",
+    "picamera2_modes",
+    "run_checks",
+    "v4l2_modes",
+]
