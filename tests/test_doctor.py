@@ -402,3 +402,49 @@ def test_a_real_run_here_agrees_with_this_machine(tmp_path: Path) -> None:
 
     kernels.ensure()
     assert by_name["kernels"].startswith("[ ok ]" if kernels.COMPILED else "[FAIL]")
+
+
+# --- V4L2 enumeration against a fake driver -----------------------------------------------------------------
+
+
+def test_the_ioctl_numbers_are_the_kernels() -> None:
+    from ipt.receiver import doctor
+
+    assert doctor.VIDIOC_ENUM_FMT == 0xC0405602
+    assert doctor.VIDIOC_ENUM_FRAMESIZES == 0xC02C564A
+    assert doctor.VIDIOC_ENUM_FRAMEINTERVALS == 0xC034564B
+
+
+def test_v4l2_modes_reads_formats_sizes_and_the_best_rate(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A fake driver behind ``fcntl.ioctl``: MJPG at 640x360 (1/30, 1/120 s) and 1280x720 (1/60 s), and a
+    stepwise size range (skipped)."""
+    import errno
+    import struct
+
+    from ipt.receiver import doctor
+
+    mjpg = int.from_bytes(b"MJPG", "little")
+    sizes = [(1, 640, 360), (1, 1280, 720), (3, 0, 0)]
+    intervals = {(640, 360): [(1, 30), (1, 120)], (1280, 720): [(1, 60)]}
+
+    def ioctl(fd: int, request: int, buf: bytearray, mutate: bool) -> int:
+        index = struct.unpack_from("<I", buf, 0)[0]
+        if request == doctor.VIDIOC_ENUM_FMT and index == 0:
+            struct.pack_into("<III32sI", buf, 0, 0, 1, 0, b"Motion-JPEG", mjpg)
+        elif request == doctor.VIDIOC_ENUM_FRAMESIZES and index < len(sizes):
+            kind, w, h = sizes[index]
+            struct.pack_into("<IIIII", buf, 0, index, mjpg, kind, w, h)
+        elif request == doctor.VIDIOC_ENUM_FRAMEINTERVALS:
+            w, h = struct.unpack_from("<II", buf, 8)
+            found = intervals.get((w, h), [])
+            if index >= len(found):
+                raise OSError(errno.EINVAL, "Invalid argument")
+            struct.pack_into("<IIIIIII", buf, 0, index, mjpg, w, h, 1, *found[index])
+        else:
+            raise OSError(errno.EINVAL, "Invalid argument")
+        return 0
+
+    node = tmp_path / "video0"
+    node.touch()
+    monkeypatch.setattr("ipt.receiver.doctor.fcntl.ioctl", ioctl)
+    assert doctor.v4l2_modes(node) == [Mode("MJPG", 640, 360, 120.0), Mode("MJPG", 1280, 720, 60.0)]

@@ -114,10 +114,10 @@ class _JitteredCamera:
     """The flight's frames with a camera's irregular capture times and a frame lost before capture (a gap in the
     numbers): the replay must use what was recorded, not ``k / fps``."""
 
-    live, retry_open, name = False, False, "jittered"
+    retry_open, name = False, "jittered"
 
-    def __init__(self, video: VideoCapture) -> None:
-        self.video = video
+    def __init__(self, video: VideoCapture, live: bool = False, frames: int = FRAMES) -> None:
+        self.video, self.live, self.limit = video, live, frames
 
     def open(self) -> None:
         self.video.open()
@@ -127,7 +127,7 @@ class _JitteredCamera:
 
     def read(self) -> CapturedFrame | None:
         frame = self.video.read()
-        if frame is None or frame.index >= FRAMES:
+        if frame is None or frame.index >= self.limit:
             return None
         k = frame.index + (frame.index >= 9)  # frame 9 was "lost": numbers 0..8, 10, 11, ...
         t_us = 5_000_000 + round(k * 1e6 / 120) + (137 if k % 3 == 1 else -61 if k % 3 == 2 else 0)
@@ -135,13 +135,20 @@ class _JitteredCamera:
 
 
 @pytest.mark.slow
-def test_replay_uses_recorded_numbers_and_times_not_k_over_fps(short_flight: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize("live_source", [False, True], ids=["recording", "live-with-drops"])
+def test_replay_uses_recorded_numbers_and_times_not_k_over_fps(
+    short_flight: Path, tmp_path: Path, live_source: bool
+) -> None:
+    """Also from a live source read faster than the pipeline keeps up (newest wins, frames dropped): the frames
+    the pipeline took and the points where the daemon finished early are replayed to the same poses."""
     cfg = load_receiver_config(shipped_config_path("receiver.yaml"))
     cfg = with_overrides(cfg, camera=short_flight / CAMERA_NAME, send=["127.0.0.1:9"])
     said: list[str] = []
     log = start_frame_log(cfg, tmp_path / "rec", said.append, max_mb=1000, max_s=60)
-    source = _JitteredCamera(VideoCapture(short_flight / VIDEO_NAME, 120.0, False, grey=cfg.pipeline.luminance_only))
+    video = VideoCapture(short_flight / VIDEO_NAME, 120.0, False, grey=cfg.pipeline.luminance_only)
+    source = _JitteredCamera(video, live=live_source, frames=60 if live_source else FRAMES)
     live: list[str] = []
+    drops = 0
 
     def on_result(frame: CapturedFrame, result: FrameResult | None, sent: int) -> None:
         if result is not None and result.pose is not None and sent:
@@ -149,16 +156,24 @@ def test_replay_uses_recorded_numbers_and_times_not_k_over_fps(short_flight: Pat
 
     async def main() -> None:
         with open(os.devnull, "w") as quiet:
-            await run_daemon(
+            stats = await run_daemon(
                 cfg, handle_signals=False, source=source, on_result=on_result, stats_out=quiet, frame_log=log
             )
+        nonlocal drops
+        drops = stats.drops
 
     asyncio.run(main())
     log.close()
     assert live, said
     summary = replay_frame_log(tmp_path / "rec", tmp_path / "poses.tum", progress=None)
     lines = _exact_lines(tmp_path / "poses.tum")
-    assert summary.frames == FRAMES
+    kinds = [e.kind for e in FrameLog(tmp_path / "rec").events()]
+    if live_source:
+        assert drops > 0, "the pipeline kept up with an unpaced source: nothing was dropped"
+        assert KIND_FINISH in kinds
+        assert summary.frames == kinds.count(KIND_FRAME) == 60 - drops
+    else:
+        assert summary.frames == FRAMES
     assert lines == live
     assert any(line.startswith("5.0") for line in lines)  # the camera's times, not k / fps from zero
 
