@@ -303,3 +303,31 @@ def test_full_disk_while_recording_one_line_localisation_goes_on(short_flight: P
         for e, original in zip(kept, video, strict=False):
             assert e.image is not None
             np.testing.assert_array_equal(e.image, original)
+
+
+def test_a_run_that_never_got_going_leaves_no_recording(tmp_path: Path) -> None:
+    """A send target that cannot be opened stops the daemon before its first frame: the folder is not left
+    behind half made (a second run with the same DIR would be refused)."""
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "ipt.receiver.cli",
+            "run",
+            "--record-frames",
+            "rec",
+            "--send",
+            "255.255.255.255:9",
+            "--max-frames",
+            "1",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT_S,
+        check=False,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not (tmp_path / "rec").exists(), proc.stderr
+    assert len(proc.stderr.splitlines()) == 1, proc.stderr  # the error, and nothing about the recording

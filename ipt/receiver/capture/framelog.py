@@ -141,6 +141,7 @@ class FrameLogWriter:
         self.max_bytes, self.max_us = int(max_mb * 1e6), int(max_s * 1e6)
         self.codec = codec if codec is not None else default_codec()
         self.queue_frames = queue_frames
+        self._made_folder = not folder.exists()
         _prepare(folder, camera_file, {**meta, "format": FORMAT, "version": VERSION, "codec": self.codec})
         path = folder / FRAMES_NAME
         try:
@@ -198,6 +199,14 @@ class FrameLogWriter:
             self._closing = True
             self._cond.notify()
         self._thread.join()
+        if self.frames == 0 and self.stopped is None:  # a run that never got going leaves nothing behind
+            for name in (FRAMES_NAME, META_NAME, CAMERA_NAME):
+                with contextlib.suppress(OSError):
+                    (self.folder / name).unlink()
+            if self._made_folder:
+                with contextlib.suppress(OSError):
+                    self.folder.rmdir()
+            return  # silently: the line that says why the run ended is the one to read
         lost = f", {self.lost} frames not kept (the disk fell behind)" if self.lost else ""
         self.say(
             f"frame recording: {self.frames} frames, {self.bytes / 1e6:.1f} MB ({self.codec}) -> {self.folder}{lost}"
