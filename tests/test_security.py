@@ -279,11 +279,12 @@ BANNED_CALLS = {
     "yaml.unsafe_load", "yaml.full_load", "yaml.load_all", "pickle.loads", "pickle.load", "marshal.loads",
 }  # fmt: skip
 BANNED_IMPORTS = {"pickle", "marshal", "shelve", "subprocess", "pty", "code", "codeop"}
-SUBPROCESS_ALLOWED: set[str] = {"receiver/detect/tagworker.py"}
+SUBPROCESS_ALLOWED: set[str] = {"receiver/detect/tagworker.py", "receiver/doctor.py"}
 """Modules (paths under ipt/) that may start processes. Add one only after checking that nothing it
 runs is built from network input, and never with shell=True. ``receiver/detect/tagworker.py`` starts this
 Python (``sys.executable -m ipt.receiver.detect.tagworker``) with an argument list of a descriptor number and
-the detector's settings from the configuration, as JSON."""
+the detector's settings from the configuration, as JSON. ``receiver/doctor.py`` runs the fixed argument list
+``timedatectl show --property=NTPSynchronized --value`` (no input of any kind in it)."""
 
 
 def test_no_shell_eval_or_unsafe_deserialisation_in_the_package() -> None:
