@@ -337,7 +337,7 @@ def test_map_export_prints_the_sha256_of_the_layout_it_wrote(tmp_path: Path) -> 
 @pytest.mark.slow
 def test_sender_and_receiver_print_the_same_map_hash(tmp_path: Path) -> None:
     sender = subprocess.run(
-        [sys.executable, "-m", "ipt.sender.cli", "--sink", "null", "--frames", "2"],
+        [sys.executable, "-m", "ipt.sender.cli", "--sink", "null", "--frames", "2", "--listen", "127.0.0.1:0"],
         cwd=tmp_path,
         capture_output=True,
         text=True,
