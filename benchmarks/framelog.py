@@ -78,10 +78,14 @@ def _recorder(frames: list[np.ndarray], codec: str, folder: Path) -> str:
     """Through the recorder itself: its thread's processor time per frame (encode + write), then the decode."""
     said: list[str] = []
     camera = Path(__file__).resolve().parent.parent / "ipt" / "config" / "camera.yaml"
-    writer = FrameLogWriter(folder, {}, camera, say=said.append, codec=codec, max_mb=1e6, max_s=1e6)
+    writer = FrameLogWriter(
+        folder, {}, camera, say=said.append, codec=codec, max_mb=1e6, max_s=1e6, queue_frames=len(frames)
+    )
     for k, f in enumerate(frames):
         writer.add(CapturedFrame(k, round(k / FPS * 1e6), f))
     writer.close()
+    assert writer.frames == len(frames), said  # a queue as long as the run: nothing lost
+    assert writer.lost == 0, said
     size = (folder / FRAMES_NAME).stat().st_size
     t0 = time.process_time()
     n = sum(e.image is not None for e in FrameLog(folder).events())

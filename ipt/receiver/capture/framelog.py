@@ -234,7 +234,7 @@ class FrameLogWriter:
                 os.close(self._fd)
 
     def _write(self, item: _Item) -> None:
-        t0 = time.process_time()
+        t0 = time.thread_time()
         image = item.image
         if image is None:
             payload, shape = b"", (0, 0, 0)
@@ -266,7 +266,7 @@ class FrameLogWriter:
             return
         self.bytes += len(head) + len(payload)
         self.frames += item.kind == KIND_FRAME
-        self.encode_s += time.process_time() - t0
+        self.encode_s += time.thread_time() - t0
 
 
 def start_frame_log(
