@@ -5,10 +5,18 @@ guard for the listening side. It is sans-IO: no sockets, no clocks, no files. By
 values come out; the daemons own the sockets and pass the time in where it is needed.
 
 The normative description, with the byte table and a worked example, is ``docs/protocol.md``. In
-short: a fixed-size little-endian packet of :data:`PACKET_SIZE` bytes (magic ``b"IPTL"``, version,
-message type, flags, the pose and its uncertainty, then a CRC-32), optionally followed by a 16-byte
-truncated HMAC-SHA256 tag (:data:`AUTH_PACKET_SIZE` bytes in all); the ``AUTHENTICATED`` flag says
-which of the two it is.
+short: a fixed-size little-endian packet (magic ``b"IPTL"``, version, message type, flags, the pose and
+its uncertainty, then a CRC-32), optionally followed by a 16-byte truncated HMAC-SHA256 tag; the
+``AUTHENTICATED`` flag says which of the two it is. Version 1 is :data:`PACKET_SIZE` bytes
+(:data:`AUTH_PACKET_SIZE` with the tag); version 2 adds the sending run's *stream identity* (a uint64)
+after the capture time, :data:`PACKET_SIZE_V2` bytes (:data:`AUTH_PACKET_SIZE_V2`). A packet with a
+``stream_id`` is written as version 2, one without as version 1, and both are read.
+
+Streams. A receiver daemon numbers its packets from 0 at every start; version 2 tells the runs apart:
+each run sends a stream identity newer than the last run's (by convention its start time in µs since
+the UNIX epoch), and :class:`PacketFilter` lets a newer stream of a vehicle supersede the older one at
+once, while the sequence check (replays) is done within a stream. With a key the stream identity is
+authenticated with the rest, so a packet recorded from an earlier run stays refused after a restart.
 
 Frames (see :mod:`ipt.geometry`): the position is the camera optical centre in the arena frame (ENU
 metres, origin at the tag-map centre, z up); the quaternion rotates camera vectors (OpenCV optical
@@ -34,12 +42,17 @@ from dataclasses import dataclass
 
 from ipt.errors import IptError
 from ipt.ratelimit import SourceRateLimit
+from ipt.streams import MAX_WINDOW, Conflict, VehicleRegistry
+from ipt.streams import seq_newer as seq_newer  # re-exported: part of this module's API
 
 MAGIC = b"IPTL"
 """The first four bytes of every IPT packet, in every version ("IPT Localisation")."""
 
-VERSION = 1
-"""The protocol version this module writes and the only one it reads."""
+VERSION = 2
+"""The newest protocol version: written for packets with a stream identity (version 1 otherwise)."""
+
+SUPPORTED_VERSIONS: tuple[int, ...] = (1, 2)
+"""The versions :func:`decode_pose` reads unless told otherwise."""
 
 AUTH_TAG_SIZE = 16
 """Bytes of the authentication tag: HMAC-SHA256 truncated to its first 16 bytes."""
@@ -55,6 +68,8 @@ _HEADER = struct.Struct("<4sBB")
 # Version 1 pose body up to (not including) the CRC: flags, vehicle id, tags used, sequence number,
 # capture time, position, quaternion, position std, attitude std, reprojection RMS.
 _POSE_V1 = struct.Struct("<4sBBHHHIQ3d4d3f3ff")
+# Version 2: the same, with the stream identity (uint64) after the capture time.
+_POSE_V2 = struct.Struct("<4sBBHHHIQQ3d4d3f3ff")
 _CRC = struct.Struct("<I")
 _F32 = struct.Struct("<f")
 
@@ -67,11 +82,21 @@ PACKET_SIZE = CRC_OFFSET + _CRC.size
 AUTH_PACKET_SIZE = PACKET_SIZE + AUTH_TAG_SIZE
 """Size in bytes of a version-1 pose packet with the authentication tag (128)."""
 
+CRC_OFFSET_V2 = _POSE_V2.size
+"""Offset of the CRC-32 in a version-2 pose packet (116)."""
+
+PACKET_SIZE_V2 = CRC_OFFSET_V2 + _CRC.size
+"""Size in bytes of a version-2 pose packet without the authentication tag (120)."""
+
+AUTH_PACKET_SIZE_V2 = PACKET_SIZE_V2 + AUTH_TAG_SIZE
+"""Size in bytes of a version-2 pose packet with the authentication tag (136)."""
+
+_LAYOUTS = {1: _POSE_V1, 2: _POSE_V2}
+
 _UINT16_MAX = 0xFFFF
 _UINT32_MAX = 0xFFFF_FFFF
 _UINT64_MAX = 0xFFFF_FFFF_FFFF_FFFF
-_SEQ_MODULUS = 1 << 32
-_MAX_WINDOW = (1 << 31) - 1
+_MAX_WINDOW = MAX_WINDOW
 
 ACCEPTED = "accepted"
 """The key of :attr:`PacketFilter.counts` for packets that passed."""
@@ -120,7 +145,8 @@ class Rejection(enum.StrEnum):
     UNKNOWN_VEHICLE = "unknown_vehicle"
     """A well-formed packet from a vehicle id that :class:`PacketFilter` was not told to accept."""
     REPLAYED = "replayed"
-    """A well-formed packet whose sequence number is not newer than the last one accepted."""
+    """A well-formed packet of an older stream than the vehicle's current one, or of the current stream
+    with a sequence number not newer than the last one accepted."""
     VEHICLE_LIMIT = "vehicle_limit"
     """A vehicle not yet tracked while :class:`PacketFilter` tracks ``max_vehicles`` others that are not
     silent; when no slot can be free the packet is refused before it is decoded."""
@@ -184,7 +210,7 @@ def _float32_non_negative(name: str, value: float) -> float:
 
 @dataclass(frozen=True)
 class PosePacket:
-    """One pose of one vehicle, as carried by a version-1 POSE packet.
+    """One pose of one vehicle, as carried by a POSE packet (version 2 with a ``stream_id``, else version 1).
 
     Construction validates every field and raises :class:`ProtocolError` (reason ``malformed``) on a bad
     value. Sequences of numbers (lists, numpy arrays) are stored as tuples of ``float``; the float32
@@ -215,6 +241,10 @@ class PosePacket:
     """RMS reprojection error of the tag corners in image pixels (float32, >= 0)."""
     flags: QualityFlags = QualityFlags.NONE
     """Quality flags; see :class:`QualityFlags`."""
+    stream_id: int | None = None
+    """The sending run's stream identity, 0..2**64-1 (uint64), version 2 only; ``None`` in a version-1
+    packet. Each start of a receiver daemon takes one newer than its last (its start time in µs since the
+    UNIX epoch); a newer stream of a vehicle supersedes an older one (:class:`PacketFilter`)."""
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
@@ -222,6 +252,8 @@ class PosePacket:
         set_(self, "seq", _uint("seq", self.seq, _UINT32_MAX))
         set_(self, "capture_time_us", _uint("capture_time_us", self.capture_time_us, _UINT64_MAX))
         set_(self, "num_tags", _uint("num_tags", self.num_tags, _UINT16_MAX))
+        if self.stream_id is not None:
+            set_(self, "stream_id", _uint("stream_id", self.stream_id, _UINT64_MAX))
         flags = _uint("flags", self.flags, _UINT16_MAX)
         if flags & _RESERVED_FLAG_BITS:
             raise ProtocolError(f"flags 0x{flags:04x} set reserved bits (mask 0x{_RESERVED_FLAG_BITS:04x})")
@@ -250,7 +282,8 @@ def _auth_tag(key: bytes, signed: bytes) -> bytes:
 
 
 def encode_pose(packet: PosePacket, key: bytes | None = None) -> bytes:
-    """The wire bytes of ``packet``: :data:`PACKET_SIZE` bytes, or :data:`AUTH_PACKET_SIZE` with a ``key``.
+    """The wire bytes of ``packet``: version 2 if it has a ``stream_id`` (:data:`PACKET_SIZE_V2` bytes, or
+    :data:`AUTH_PACKET_SIZE_V2` with a ``key``), else version 1 (:data:`PACKET_SIZE`, :data:`AUTH_PACKET_SIZE`).
 
     The ``AUTHENTICATED`` flag on the wire follows ``key`` (set with a key, cleared without), whatever
     ``packet.flags`` says. Raises :class:`AuthKeyError` for a key shorter than :data:`MIN_KEY_SIZE`.
@@ -259,15 +292,18 @@ def encode_pose(packet: PosePacket, key: bytes | None = None) -> bytes:
     flags = int(packet.flags) & ~int(QualityFlags.AUTHENTICATED)
     if key is not None:
         flags |= int(QualityFlags.AUTHENTICATED)
-    body = _POSE_V1.pack(
+    version = 1 if packet.stream_id is None else 2
+    stream = () if packet.stream_id is None else (packet.stream_id,)
+    body = _LAYOUTS[version].pack(
         MAGIC,
-        VERSION,
+        version,
         MessageType.POSE,
         flags,
         packet.vehicle_id,
         packet.num_tags,
         packet.seq,
         packet.capture_time_us,
+        *stream,
         *packet.position_m,
         *packet.quat_wxyz,
         *packet.position_std_m,
@@ -278,53 +314,72 @@ def encode_pose(packet: PosePacket, key: bytes | None = None) -> bytes:
     return signed if key is None else signed + _auth_tag(key, signed)
 
 
-def decode_pose(data: bytes, key: bytes | None = None) -> PosePacket:
-    """The pose in ``data``; raises :class:`ProtocolError` and nothing else if ``data`` is not a valid packet.
+def _speaks(versions: Iterable[int]) -> str:
+    known = sorted(versions)
+    if len(known) == 1:
+        return f"version {known[0]}"
+    return "versions " + ", ".join(str(v) for v in known[:-1]) + f" and {known[-1]}"
 
-    Checks, in this order: length of the header, magic, version, message type, total length, CRC, flags,
-    authentication tag, field values. With a ``key``, a packet without a tag is rejected
-    (``unauthenticated``) and a tag that does not match is rejected (``bad_auth``); the returned packet
-    has ``AUTHENTICATED`` set. Without a key, a tagged packet is accepted after its CRC check, its tag is
-    not checked, and the returned packet has ``AUTHENTICATED`` *cleared*: in a decoded packet the flag
-    means "verified", never merely "a tag was present".
 
-    Raises :class:`AuthKeyError` (not a packet problem) for a key shorter than :data:`MIN_KEY_SIZE`.
-    """
-    _check_key(key)
-    data = bytes(memoryview(data))
+def _check_header(data: bytes, versions: Iterable[int]) -> int:
+    """The version of ``data`` after checking its header and length; raises :class:`ProtocolError`."""
     size = len(data)
     if size < _HEADER.size:
         raise ProtocolError(f"packet too short: {size} bytes")
     magic, version, message_type = _HEADER.unpack_from(data)
     if magic != MAGIC:
         raise ProtocolError(f"bad magic {magic!r}, expected {MAGIC!r}")
-    if version != VERSION:
+    if version not in versions or version not in _LAYOUTS:
         raise ProtocolError(
-            f"version {version} not supported (this decoder speaks version {VERSION})", Rejection.UNSUPPORTED
+            f"version {version} not supported (this decoder speaks {_speaks(versions)})", Rejection.UNSUPPORTED
         )
     if message_type != MessageType.POSE:
         raise ProtocolError(f"message type {message_type} not supported", Rejection.UNSUPPORTED)
-    if size not in (PACKET_SIZE, AUTH_PACKET_SIZE):
+    plain = _LAYOUTS[version].size + _CRC.size
+    if size not in (plain, plain + AUTH_TAG_SIZE):
         raise ProtocolError(
-            f"bad length {size} bytes: a version-{VERSION} pose packet is {PACKET_SIZE} bytes, "
-            f"or {AUTH_PACKET_SIZE} with an authentication tag"
+            f"bad length {size} bytes: a version-{version} pose packet is {plain} bytes, "
+            f"or {plain + AUTH_TAG_SIZE} with an authentication tag"
         )
-    (crc,) = _CRC.unpack_from(data, CRC_OFFSET)
-    if crc != zlib.crc32(data[:CRC_OFFSET]):
+    return int(version)
+
+
+def decode_pose(data: bytes, key: bytes | None = None, versions: Iterable[int] = SUPPORTED_VERSIONS) -> PosePacket:
+    """The pose in ``data``; raises :class:`ProtocolError` and nothing else if ``data`` is not a valid packet.
+
+    Checks, in this order: length of the header, magic, version (one of ``versions``: by default
+    :data:`SUPPORTED_VERSIONS`; ``versions=(1,)`` is a version-1-only decoder), message type, total length
+    for that version, CRC, flags, authentication tag, field values. With a ``key``, a packet without a tag
+    is rejected (``unauthenticated``) and a tag that does not match is rejected (``bad_auth``); the
+    returned packet has ``AUTHENTICATED`` set. Without a key, a tagged packet is accepted after its CRC
+    check, its tag is not checked, and the returned packet has ``AUTHENTICATED`` *cleared*: in a decoded
+    packet the flag means "verified", never merely "a tag was present". A version-1 packet decodes with
+    ``stream_id`` ``None``.
+
+    Raises :class:`AuthKeyError` (not a packet problem) for a key shorter than :data:`MIN_KEY_SIZE`.
+    """
+    _check_key(key)
+    data = bytes(memoryview(data))
+    version = _check_header(data, versions)
+    layout = _LAYOUTS[version]
+    crc_offset = layout.size
+    signed_size = crc_offset + _CRC.size
+    (crc,) = _CRC.unpack_from(data, crc_offset)
+    if crc != zlib.crc32(data[:crc_offset]):
         raise ProtocolError("bad CRC", Rejection.BAD_CRC)
 
-    fields = _POSE_V1.unpack_from(data)
+    fields = layout.unpack_from(data)
     flags = fields[3]
     if flags & _RESERVED_FLAG_BITS:
         raise ProtocolError(f"flags 0x{flags:04x} set reserved bits (mask 0x{_RESERVED_FLAG_BITS:04x})")
     tagged = bool(flags & QualityFlags.AUTHENTICATED)
-    if tagged != (size == AUTH_PACKET_SIZE):
+    if tagged != (len(data) > signed_size):
         state = "set" if tagged else "clear"
-        raise ProtocolError(f"AUTHENTICATED flag is {state} but the packet is {size} bytes")
+        raise ProtocolError(f"AUTHENTICATED flag is {state} but the packet is {len(data)} bytes")
     if key is not None:
         if not tagged:
             raise ProtocolError("packet is not authenticated but a key is set", Rejection.UNAUTHENTICATED)
-        if not hmac.compare_digest(data[PACKET_SIZE:], _auth_tag(key, data[:PACKET_SIZE])):
+        if not hmac.compare_digest(data[signed_size:], _auth_tag(key, data[:signed_size])):
             raise ProtocolError(
                 "authentication tag does not match (wrong key or tampered)", Rejection.BAD_AUTH
             )
@@ -332,17 +387,19 @@ def decode_pose(data: bytes, key: bytes | None = None) -> PosePacket:
         flags &= ~int(QualityFlags.AUTHENTICATED)
 
     vehicle_id, num_tags, seq, capture_time_us = fields[4:8]
+    stream_id, pose = (None, fields[8:]) if version == 1 else (fields[8], fields[9:])
     return PosePacket(
         vehicle_id=vehicle_id,
         seq=seq,
         capture_time_us=capture_time_us,
-        position_m=fields[8:11],
-        quat_wxyz=fields[11:15],
-        position_std_m=fields[15:18],
-        attitude_std_rad=fields[18:21],
+        position_m=pose[0:3],
+        quat_wxyz=pose[3:7],
+        position_std_m=pose[7:10],
+        attitude_std_rad=pose[10:13],
         num_tags=num_tags,
-        reprojection_rms_px=fields[21],
+        reprojection_rms_px=pose[13],
         flags=QualityFlags(flags),
+        stream_id=stream_id,
     )
 
 
@@ -359,34 +416,28 @@ def peek_vehicle_id(data: bytes) -> int | None:
     return int.from_bytes(data[_VEHICLE_OFFSET : _VEHICLE_OFFSET + 2], "little")
 
 
-def seq_newer(seq: int, last: int, window: int = _MAX_WINDOW) -> bool:
-    """Whether ``seq`` comes after ``last`` in uint32 serial-number arithmetic (RFC 1982 style).
-
-    ``seq`` is newer if it is 1..``window`` steps ahead of ``last``, counting modulo 2**32, so 0 is newer
-    than 2**32 - 1. Equal, behind, or further ahead than ``window`` is not newer.
-    """
-    return 1 <= (seq - last) % _SEQ_MODULUS <= window
-
-
-@dataclass
-class _VehicleState:
-    last_seq: int
-    last_accept_time: float | None
-
-
 class PacketFilter:
     """The listening side's gate: decode, authenticate, check the vehicle, and reject replays.
 
-    Sans-IO: feed it datagrams with :meth:`accept`; it keeps per-vehicle sequence state and counts
-    outcomes. A packet is accepted if it decodes (with ``key``, when set: then unauthenticated packets
-    are refused), its vehicle is allowed, and its sequence number is newer than the last one accepted
-    from that vehicle (:func:`seq_newer` with ``window``). The first packet of a vehicle sets the baseline.
+    Sans-IO: feed it datagrams with :meth:`accept`; it keeps per-vehicle stream and sequence state and
+    counts outcomes. A packet is accepted if it decodes (with ``key``, when set: then unauthenticated
+    packets are refused), its vehicle is allowed, and it is newer than the last one accepted from that
+    vehicle: of a newer stream (version 2's ``stream_id``; a version-1 packet has none and ranks below
+    every stream), or of the same stream with a newer sequence number (:func:`seq_newer` with ``window``).
+    The first packet of a vehicle, and the first of each newer stream, sets the baseline. Packets of an
+    older stream are refused as ``replayed``.
 
-    A drone whose daemon restarts starts again from a low sequence number, which looks like a replay.
+    So a version-2 daemon that restarts (a new, newer stream) is accepted at its first packet, and a
+    packet recorded from its earlier run is refused; with a key the stream identity is authenticated.
+    A version-1 daemon that restarts starts again from a low sequence number, which looks like a replay.
     Call :meth:`forget` for that vehicle, or set ``resync_after_s``: a vehicle that has had nothing
-    accepted for longer than that is re-baselined by its next valid packet (pass ``now`` to
-    :meth:`accept`). The price: after that much silence an attacker could replay an old, validly
-    authenticated packet once.
+    accepted for longer than that is re-baselined by its next valid packet, whatever its stream (pass
+    ``now`` to :meth:`accept`). The price: after that much silence an attacker could replay an old,
+    validly authenticated packet once.
+
+    Conflicts: with ``now`` given, two sources (address and stream) heard alternately for one vehicle
+    within :data:`~ipt.streams.CONFLICT_WINDOW_S` are recorded once per pair (:meth:`take_conflicts`),
+    see :mod:`ipt.streams`; nothing else changes: the newer stream is kept as always.
 
     Protection against floods, both counted like any other refusal:
 
@@ -437,28 +488,29 @@ class PacketFilter:
         self.rate_limit = None if source_rate_hz is None else SourceRateLimit(source_rate_hz, source_burst)
         self.counts: Counter[str] = Counter({ACCEPTED: 0, **{reason.value: 0 for reason in Rejection}})
         """Outcomes so far: ``"accepted"`` and each :class:`Rejection` value, one increment per call."""
-        self.resyncs = 0
-        """Packets accepted by re-baselining after ``resync_after_s`` (also counted as accepted)."""
-        self._vehicles: dict[int, _VehicleState] = {}
-        self._no_slot_until = -math.inf  # while every slot is taken: no slot can free up before this time
+        self._registry = VehicleRegistry(window, resync_after_s, max_vehicles)
 
-    def accept(self, data: bytes, now: float | None = None, source: Hashable | None = None) -> PosePacket | None:
+    def accept(
+        self, data: bytes, now: float | None = None, source: Hashable | None = None, peer: Hashable | None = None
+    ) -> PosePacket | None:
         """The packet in ``data`` if it passes every check, else ``None`` (the reason is counted).
 
-        ``now`` is the caller's clock in seconds (any monotonic clock); it is only used, and then
-        required, when ``resync_after_s``, ``max_vehicles`` or ``source_rate_hz`` is set. ``source`` is
-        where the datagram came from (e.g. the sender's IP address), for the rate limit.
+        ``now`` is the caller's clock in seconds (any monotonic clock); it is required when
+        ``resync_after_s``, ``max_vehicles`` or ``source_rate_hz`` is set, and conflicts are only looked for
+        with it. ``source`` is where the datagram came from (e.g. the sender's IP address), for the rate
+        limit; ``peer`` names it in conflicts (e.g. ``"HOST:PORT"``; default ``source``).
         """
         if now is None and (self.resync_after_s is not None or self.rate_limit is not None):
             raise ValueError("accept() needs `now` when resync_after_s or source_rate_hz is set")
         if self.rate_limit is not None and source is not None and not self.rate_limit.allow(source, now or 0.0):
             self.counts[Rejection.RATE_LIMITED.value] += 1
             return None
-        if self.vehicle_ids is None and self.max_vehicles is not None and len(self._vehicles) >= self.max_vehicles:
+        registry = self._registry
+        if self.vehicle_ids is None and registry.full():
             # (With a list of vehicles, a stranger is refused as unknown_vehicle after decoding instead, so
             # that a forged packet is always counted as unauthenticated or bad_auth.)
             claimed = peek_vehicle_id(data)
-            if claimed is not None and claimed not in self._vehicles and not self._slot_may_free(now):
+            if claimed is not None and not registry.knows(claimed) and not registry.slot_may_free(now):
                 self.counts[Rejection.VEHICLE_LIMIT.value] += 1
                 return None
         try:
@@ -469,58 +521,37 @@ class PacketFilter:
         if self.vehicle_ids is not None and packet.vehicle_id not in self.vehicle_ids:
             self.counts[Rejection.UNKNOWN_VEHICLE.value] += 1
             return None
-        state = self._vehicles.get(packet.vehicle_id)
-        if state is None and not self._take_slot(now):
+        if not registry.knows(packet.vehicle_id) and not registry.take_slot(now):
             self.counts[Rejection.VEHICLE_LIMIT.value] += 1
             return None
-        if state is not None and not seq_newer(packet.seq, state.last_seq, self.window):
-            if not self._silent_too_long(state, now):
-                self.counts[Rejection.REPLAYED.value] += 1
-                return None
-            self.resyncs += 1
-        self._vehicles[packet.vehicle_id] = _VehicleState(packet.seq, now)
+        if not registry.judge(packet.vehicle_id, packet.stream_id, packet.seq, now, source if peer is None else peer):
+            self.counts[Rejection.REPLAYED.value] += 1
+            return None
         self.counts[ACCEPTED] += 1
         return packet
 
+    @property
+    def resyncs(self) -> int:
+        """Packets accepted by re-baselining after ``resync_after_s`` (also counted as accepted)."""
+        return self._registry.resyncs
+
+    @property
+    def new_streams(self) -> int:
+        """Packets accepted because they start a newer stream of a vehicle already heard (also accepted)."""
+        return self._registry.new_streams
+
+    def take_conflicts(self) -> list[Conflict]:
+        """The conflicts found since the last call (each pair of sources of a vehicle once), oldest first."""
+        return self._registry.take_conflicts()
+
     def tracked(self) -> int:
         """How many vehicles have a sequence baseline (a slot, with ``max_vehicles``)."""
-        return len(self._vehicles)
-
-    def _slot_may_free(self, now: float | None) -> bool:
-        """Whether a slot is free, or a silent vehicle's could be given up at ``now``."""
-        if self.max_vehicles is None or len(self._vehicles) < self.max_vehicles:
-            return True
-        return self.resync_after_s is not None and now is not None and now >= self._no_slot_until
-
-    def _take_slot(self, now: float | None) -> bool:
-        """Make room for a new vehicle if ``max_vehicles`` asks for it; whether there is room."""
-        if self.max_vehicles is None or len(self._vehicles) < self.max_vehicles:
-            return True
-        if not self._slot_may_free(now):
-            return False
-        assert self.resync_after_s is not None
-        assert now is not None
-        silent = [v for v, s in self._vehicles.items() if self._silent_too_long(s, now)]
-        for v in silent:
-            del self._vehicles[v]
-        if len(self._vehicles) < self.max_vehicles:
-            return True
-        # Every slot is held by a vehicle heard within resync_after_s: none frees up before the one heard
-        # longest ago falls silent for that long.
-        heard = [s.last_accept_time for s in self._vehicles.values() if s.last_accept_time is not None]
-        self._no_slot_until = (min(heard) if heard else now) + self.resync_after_s
-        return False
+        return self._registry.tracked()
 
     def forget(self, vehicle_id: int) -> None:
-        """Drop the baseline of ``vehicle_id``: its next valid packet is accepted whatever its number."""
-        self._vehicles.pop(vehicle_id, None)
+        """Drop the baseline of ``vehicle_id``: its next valid packet is accepted whatever its stream or number."""
+        self._registry.forget(vehicle_id)
 
     def last_seq(self, vehicle_id: int) -> int | None:
         """The sequence number last accepted from ``vehicle_id``, or ``None`` if there is no baseline."""
-        state = self._vehicles.get(vehicle_id)
-        return None if state is None else state.last_seq
-
-    def _silent_too_long(self, state: _VehicleState, now: float | None) -> bool:
-        if self.resync_after_s is None or now is None or state.last_accept_time is None:
-            return False
-        return now - state.last_accept_time > self.resync_after_s
+        return self._registry.last_seq(vehicle_id)

@@ -26,9 +26,13 @@ from hypothesis import strategies as st
 from ipt.errors import IptError
 from ipt.protocol import (
     AUTH_PACKET_SIZE,
+    AUTH_PACKET_SIZE_V2,
     CRC_OFFSET,
+    CRC_OFFSET_V2,
     MAGIC,
     PACKET_SIZE,
+    PACKET_SIZE_V2,
+    SUPPORTED_VERSIONS,
     AuthKeyError,
     MessageType,
     PacketFilter,
@@ -40,6 +44,7 @@ from ipt.protocol import (
     encode_pose,
     seq_newer,
 )
+from ipt.streams import Source
 
 DATA_DIR = Path(__file__).parent / "data" / "packets"
 DOCS = Path(__file__).parent.parent / "docs" / "protocol.md"
@@ -65,12 +70,16 @@ SAMPLE = PosePacket(
 SAMPLE_AUTH = dataclasses.replace(SAMPLE, flags=SAMPLE.flags | QualityFlags.AUTHENTICATED)
 """What decoding pose_v1_auth.bin with SAMPLE_KEY gives: the flag now means "verified"."""
 
+SAMPLE_V2 = dataclasses.replace(SAMPLE, stream_id=1_699_999_940_000_000)
+"""The documented version-2 sample: the same pose from a run (stream) that started 60 s before it was taken;
+pose_v2.bin is encode_pose(SAMPLE_V2), pose_v2_auth.bin adds SAMPLE_KEY."""
+
 FAST = settings(database=None, max_examples=300, deadline=None)
 """Hypothesis settings: no example database, so the tests leave no .hypothesis/ in the checkout."""
 
 
-def sample_bytes(authenticated: bool = False) -> bytes:
-    name = "pose_v1_auth.bin" if authenticated else "pose_v1.bin"
+def sample_bytes(authenticated: bool = False, version: int = 1) -> bytes:
+    name = f"pose_v{version}_auth.bin" if authenticated else f"pose_v{version}.bin"
     return (DATA_DIR / name).read_bytes()
 
 
@@ -157,9 +166,73 @@ def _doc_hex(name: str) -> bytes:
     return bytes.fromhex("".join(rows))
 
 
-@pytest.mark.parametrize(("name", "authenticated"), [("pose_v1.bin", False), ("pose_v1_auth.bin", True)])
-def test_docs_worked_example_matches_the_sample(name: str, authenticated: bool) -> None:
-    assert _doc_hex(name) == sample_bytes(authenticated)
+@pytest.mark.parametrize(
+    ("name", "authenticated", "version"),
+    [
+        ("pose_v1.bin", False, 1),
+        ("pose_v1_auth.bin", True, 1),
+        ("pose_v2.bin", False, 2),
+        ("pose_v2_auth.bin", True, 2),
+    ],
+)
+def test_docs_worked_example_matches_the_sample(name: str, authenticated: bool, version: int) -> None:
+    assert _doc_hex(name) == sample_bytes(authenticated, version)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Version 2: the stream identity
+
+
+def test_version_2_sizes_and_committed_bytes() -> None:
+    assert (CRC_OFFSET_V2, PACKET_SIZE_V2, AUTH_PACKET_SIZE_V2) == (116, 120, 136)
+    assert encode_pose(SAMPLE_V2) == sample_bytes(version=2)
+    assert encode_pose(SAMPLE_V2, SAMPLE_KEY) == sample_bytes(authenticated=True, version=2)
+    assert decode_pose(sample_bytes(version=2)) == SAMPLE_V2
+    assert decode_pose(sample_bytes(authenticated=True, version=2), SAMPLE_KEY) == dataclasses.replace(
+        SAMPLE_V2, flags=SAMPLE_V2.flags | QualityFlags.AUTHENTICATED
+    )
+    assert decode_pose(sample_bytes()).stream_id is None  # version 1 carries none
+
+
+def test_version_2_is_version_1_with_the_stream_after_the_capture_time() -> None:
+    v1, v2 = sample_bytes(), sample_bytes(version=2)
+    assert (v2[:4], v2[4], v1[4]) == (v1[:4], 2, 1)
+    assert v2[5:24] == v1[5:24]  # type, flags, vehicle, tags, sequence, capture time
+    assert struct.unpack_from("<Q", v2, 24) == (SAMPLE_V2.stream_id,)
+    assert v2[32:CRC_OFFSET_V2] == v1[24:CRC_OFFSET]  # the pose and its uncertainty, moved by 8 bytes
+    assert struct.unpack_from("<I", v2, CRC_OFFSET_V2) == (zlib.crc32(v2[:CRC_OFFSET_V2]),)
+    auth = sample_bytes(authenticated=True, version=2)
+    assert auth[PACKET_SIZE_V2:] == hmac.new(SAMPLE_KEY, auth[:PACKET_SIZE_V2], hashlib.sha256).digest()[:16]
+
+
+@pytest.mark.parametrize("authenticated", [False, True])
+def test_a_version_1_only_decoder_rejects_version_2_saying_so(authenticated: bool) -> None:
+    key = SAMPLE_KEY if authenticated else None
+    with pytest.raises(ProtocolError) as info:
+        decode_pose(sample_bytes(authenticated, version=2), key, versions=(1,))
+    assert str(info.value) == "version 2 not supported (this decoder speaks version 1)"
+    assert info.value.reason is Rejection.UNSUPPORTED
+    # ... and the version-1 samples still decode with it, as with today's decoder.
+    assert decode_pose(sample_bytes(), versions=(1,)) == SAMPLE
+
+
+def test_version_2_byte_corruption_is_rejected() -> None:
+    data = sample_bytes(authenticated=True, version=2)
+    for offset in range(6, len(data)):
+        for xor in (1, 0x80):
+            corrupt = bytearray(data)
+            corrupt[offset] ^= xor
+            error = rejection(bytes(corrupt), SAMPLE_KEY)
+            expected = Rejection.BAD_AUTH if offset >= PACKET_SIZE_V2 else Rejection.BAD_CRC
+            assert error.reason is expected, (offset, xor)
+    assert "bad length 128 bytes: a version-2 pose packet is 120 bytes" in str(rejection(data[:128]))
+
+
+def test_the_stream_id_is_checked() -> None:
+    with pytest.raises(ProtocolError, match="stream_id -1 is outside"):
+        dataclasses.replace(SAMPLE, stream_id=-1)
+    with pytest.raises(ProtocolError, match="stream_id must be an integer"):
+        dataclasses.replace(SAMPLE, stream_id=1.5)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -188,6 +261,7 @@ packets = st.builds(
     num_tags=st.integers(0, 0xFFFF),
     reprojection_rms_px=_std,
     flags=st.integers(0, 15).map(QualityFlags),
+    stream_id=st.one_of(st.none(), st.integers(0, 2**64 - 1)),
 )
 
 
@@ -195,7 +269,7 @@ packets = st.builds(
 @given(packets)
 def test_round_trip_without_key(packet: PosePacket) -> None:
     data = encode_pose(packet)
-    assert len(data) == PACKET_SIZE
+    assert len(data) == (PACKET_SIZE if packet.stream_id is None else PACKET_SIZE_V2)
     assert decode_pose(data) == dataclasses.replace(packet, flags=packet.flags & ~QualityFlags.AUTHENTICATED)
 
 
@@ -203,7 +277,7 @@ def test_round_trip_without_key(packet: PosePacket) -> None:
 @given(packets)
 def test_round_trip_with_key(packet: PosePacket) -> None:
     data = encode_pose(packet, SAMPLE_KEY)
-    assert len(data) == AUTH_PACKET_SIZE
+    assert len(data) == (AUTH_PACKET_SIZE if packet.stream_id is None else AUTH_PACKET_SIZE_V2)
     assert decode_pose(data, SAMPLE_KEY) == dataclasses.replace(
         packet, flags=packet.flags | QualityFlags.AUTHENTICATED
     )
@@ -280,6 +354,8 @@ def test_every_single_byte_corruption_is_rejected(authenticated: bool) -> None:
             message = str(info.value)
             if offset < 4:
                 assert message.startswith("bad magic"), (offset, xor)
+            elif offset == 4 and data[4] ^ xor in SUPPORTED_VERSIONS:  # another known version: its length is wrong
+                assert message.startswith(f"bad length {len(data)} bytes: a version-{data[4] ^ xor} pose packet")
             elif offset == 4:
                 assert message.startswith(f"version {data[4] ^ xor} not supported")
             elif offset == 5:
@@ -353,8 +429,8 @@ def test_malformed_packets_name_the_problem(
 def test_header_errors_are_reported_before_the_crc() -> None:
     # A version this build does not know says so even if the rest (CRC included) is not understood.
     data = bytearray(sample_bytes())
-    data[4] = 2
-    assert "version 2 not supported" in str(rejection(bytes(data)))
+    data[4] = 3
+    assert "version 3 not supported (this decoder speaks versions 1 and 2)" in str(rejection(bytes(data)))
 
 
 @FAST
@@ -460,8 +536,8 @@ def test_message_type_and_flags_values_are_stable() -> None:
 # PacketFilter
 
 
-def pose(seq: int, vehicle_id: int = 7, key: bytes | None = None) -> bytes:
-    return encode_pose(dataclasses.replace(SAMPLE, seq=seq, vehicle_id=vehicle_id), key)
+def pose(seq: int, vehicle_id: int = 7, key: bytes | None = None, stream: int | None = None) -> bytes:
+    return encode_pose(dataclasses.replace(SAMPLE, seq=seq, vehicle_id=vehicle_id, stream_id=stream), key)
 
 
 def nonzero(counts: dict[str, int]) -> dict[str, int]:
@@ -536,7 +612,7 @@ def test_filter_counts_each_rejection_reason_once_per_packet() -> None:
         pose(3, key=b"not-the-right-key-at-all"),  # bad_auth
         bytes(bad_crc),  # bad_crc
         b"",  # malformed
-        b"IPTL\x02\x01" + bytes(106),  # unsupported (version 2)
+        b"IPTL\x03\x01" + bytes(106),  # unsupported (version 3)
         pose(4, vehicle_id=8, key=SAMPLE_KEY),  # unknown_vehicle
         pose(5, key=SAMPLE_KEY),  # accepted
     ]
@@ -604,6 +680,8 @@ def _write_samples() -> None:
     for name, data in (
         ("pose_v1.bin", encode_pose(SAMPLE)),
         ("pose_v1_auth.bin", encode_pose(SAMPLE, SAMPLE_KEY)),
+        ("pose_v2.bin", encode_pose(SAMPLE_V2)),
+        ("pose_v2_auth.bin", encode_pose(SAMPLE_V2, SAMPLE_KEY)),
     ):
         (DATA_DIR / name).write_bytes(data)
         print(f"{DATA_DIR / name}: {len(data)} bytes", file=sys.stderr)
@@ -613,3 +691,104 @@ def _write_samples() -> None:
 
 if __name__ == "__main__":
     _write_samples()
+
+
+# ---------------------------------------------------------------------------------------------------
+# Streams: a restarted receiver is a newer stream, heard at once; an older stream's packets stay refused
+
+
+OLD_RUN, NEW_RUN = 1_764_000_000_000_000, 1_764_000_005_000_000  # two runs' start times, µs
+
+
+@pytest.mark.parametrize("key", [None, SAMPLE_KEY])
+def test_a_newer_stream_is_accepted_at_its_first_packet(key: bytes | None) -> None:
+    gate = PacketFilter(key=key, resync_after_s=10.0)
+    for seq in range(100):
+        assert gate.accept(pose(seq, key=key, stream=OLD_RUN), now=1.0 + seq / 120) is not None
+    assert gate.accept(pose(0, key=key, stream=NEW_RUN), now=2.0) is not None  # 0.2 s after: no silence
+    assert (gate.new_streams, gate.resyncs) == (1, 0)
+    assert gate.accept(pose(1, key=key, stream=NEW_RUN), now=2.01) is not None
+    assert nonzero(gate.counts) == {"accepted": 102}
+
+
+def test_a_packet_of_an_older_run_is_refused_after_the_restart() -> None:
+    gate = PacketFilter(key=SAMPLE_KEY, resync_after_s=10.0)
+    recorded = [pose(seq, key=SAMPLE_KEY, stream=OLD_RUN) for seq in range(50)]
+    for k, data in enumerate(recorded):
+        assert gate.accept(data, now=k / 120) is not None
+    assert gate.accept(pose(0, key=SAMPLE_KEY, stream=NEW_RUN), now=3.0) is not None
+    # Replayed: any packet of the old run, even with a sequence number far ahead of the new run's.
+    for data in (recorded[0], recorded[-1], pose(10_000, key=SAMPLE_KEY, stream=OLD_RUN)):
+        assert gate.accept(data, now=3.1) is None
+    # A forged stream identity does not pass the tag.
+    forged = bytearray(pose(10_000, key=SAMPLE_KEY, stream=OLD_RUN))
+    struct.pack_into("<Q", forged, 24, NEW_RUN + 1)
+    assert gate.accept(bytes(with_crc_v2(bytes(forged))), now=3.2) is None
+    assert nonzero(gate.counts) == {"accepted": 51, "replayed": 3, "bad_auth": 1}
+    assert gate.last_seq(7) == 0
+
+
+def with_crc_v2(data: bytes) -> bytes:
+    """A version-2 packet with its CRC recomputed after an edit (the tag, if any, left as it was)."""
+    body = data[:CRC_OFFSET_V2]
+    return body + struct.pack("<I", zlib.crc32(body)) + data[PACKET_SIZE_V2:]
+
+
+def test_version_1_packets_keep_todays_rules_and_rank_below_every_stream() -> None:
+    gate = PacketFilter(resync_after_s=10.0)
+    assert gate.accept(pose(500), now=0.0) is not None
+    assert gate.accept(pose(501), now=0.1) is not None
+    assert gate.accept(pose(0), now=0.2) is None  # a version-1 restart: refused until 10 s of silence
+    assert gate.accept(pose(1), now=10.2) is not None
+    assert gate.resyncs == 1
+    assert gate.accept(pose(0, stream=0), now=10.3) is not None  # any stream is newer than none
+    assert gate.accept(pose(2), now=10.4) is None  # and version 1 is then older
+    assert nonzero(gate.counts) == {"accepted": 4, "replayed": 2}
+
+
+def test_two_sources_alternating_are_one_conflict_a_restart_is_none() -> None:
+    gate = PacketFilter(resync_after_s=10.0)
+    t = 0.0
+    for seq in range(20):  # a run, then its restart from another port: no conflict
+        gate.accept(pose(seq, stream=OLD_RUN), now=t, source="h", peer="h:1000")
+        t += 0.01
+    for seq in range(20):
+        assert gate.accept(pose(seq, stream=NEW_RUN), now=t, source="h", peer="h:1001") is not None
+        t += 0.01
+    assert gate.take_conflicts() == []
+    # A third receiver with the same id, started earlier, keeps speaking: one conflict, however long.
+    for seq in range(20, 60):
+        assert gate.accept(pose(seq, stream=NEW_RUN), now=t, source="h", peer="h:1001") is not None
+        assert gate.accept(pose(seq + 1000, stream=OLD_RUN + 1), now=t + 0.005, source="g", peer="g:2000") is None
+        t += 0.01
+    conflicts = gate.take_conflicts()
+    assert len(conflicts) == 1
+    (conflict,) = conflicts
+    assert (conflict.vehicle_id, conflict.kept, conflict.other) == (
+        7, Source("h:1001", NEW_RUN), Source("g:2000", OLD_RUN + 1)
+    )
+    text = str(conflict)
+    assert text.startswith("vehicle 7 is claimed by two sources within 1 s: h:1001 (stream ")
+    assert "g:2000 (stream 1764000000000001)" in text
+    assert "drawing the newer stream (h:1001" in text
+    assert gate.take_conflicts() == []
+
+
+def test_two_version_1_sources_are_named_and_judged_by_sequence_number() -> None:
+    gate = PacketFilter(resync_after_s=10.0)
+    for k in range(10):
+        gate.accept(pose(100 + k), now=k * 0.01, source="a", peer="a:1")
+        gate.accept(pose(k), now=k * 0.01 + 0.005, source="b", peer="b:1")
+    (conflict,) = gate.take_conflicts()
+    assert {conflict.kept.peer, conflict.other.peer} == {"a:1", "b:1"}
+    assert conflict.same_stream
+    assert "sequence number" in str(conflict)
+    assert gate.counts["accepted"] == 10  # a's, whose numbers are ahead: as before
+
+
+def test_sources_heard_more_than_a_second_apart_are_no_conflict() -> None:
+    gate = PacketFilter(resync_after_s=10.0)
+    gate.accept(pose(1, stream=OLD_RUN), now=0.0, peer="a:1")
+    gate.accept(pose(1, stream=NEW_RUN), now=0.5, peer="b:1")
+    gate.accept(pose(2, stream=OLD_RUN), now=1.6, peer="a:1")  # b was last heard 1.1 s ago
+    assert gate.take_conflicts() == []

@@ -73,7 +73,7 @@ from ipt.receiver.capture import (
 from ipt.receiver.core.pipeline import FrameResult, Pipeline
 from ipt.receiver.core.reasons import FrameReason
 from ipt.receiver.outputs.ros.output import RosOutputs
-from ipt.receiver.outputs.udp import PacketMaker, UdpPoseSender
+from ipt.receiver.outputs.udp import PacketMaker, UdpPoseSender, new_stream_id
 from ipt.runtime import Histogram, run_loop, write_line
 from ipt.tagmap import grid_tag_map
 
@@ -296,7 +296,7 @@ class _DaemonRun:
         self.capture = CaptureThread(source, self.frames, loop, stop=capture_stop, max_frames=max_frames, report=out)
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ipt-pipeline")
         self.sender = UdpPoseSender(cfg.send_targets)
-        self.maker = PacketMaker(cfg.vehicle_id, key)
+        self.maker = PacketMaker(cfg.vehicle_id, key, stream_id=new_stream_id())  # each run a newer stream
         self.mavlink = _mavlink_output(cfg, out)
         self.ros = RosOutputs.create(cfg, arena.projector.rate_hz, lambda line: write_line(out, f"{PROG}: {line}"))
         self.meter = _Meter()

@@ -29,7 +29,10 @@ source address, to a :class:`~ipt.protocol.PacketFilter`; accepted poses update 
 the loop: anything unexpected is counted as ``error``. The default filter tracks at most
 :data:`~ipt.sender.overlay.DEFAULT_MAX_VEHICLES` vehicles and takes at most :data:`DEFAULT_SOURCE_RATE_HZ`
 datagrams a second from one source address, so that a flood of made-up vehicle ids neither grows the
-overlay's work nor takes the event loop's time from the frames (``docs/reliability.md``).
+overlay's work nor takes the event loop's time from the frames (``docs/reliability.md``). A restarted
+receiver is a newer stream and is taken at its first packet; when two sources (address and stream) claim
+one vehicle within a second, one line on stderr names the vehicle and both, once per pair, and the newer
+stream is drawn (``docs/protocol.md``).
 
 Stopping. SIGTERM, SIGINT and SIGHUP only set a flag (a second SIGINT also skips the waits); one that
 arrived while the sender was starting stops it as soon as its loop runs (:mod:`ipt.signals`). The loop
@@ -102,9 +105,10 @@ flood from one address costs a token-bucket check per datagram instead of a deco
 
 
 def default_packet_filter(key: bytes | None = None, vehicle_ids: list[int] | None = None) -> PacketFilter:
-    """The sender's packet filter: ``key`` and ``vehicle_ids`` as given, a restarted drone re-baselined after
-    10 s of silence, at most :data:`DEFAULT_MAX_VEHICLES` vehicles and :data:`DEFAULT_SOURCE_RATE_HZ`
-    datagrams a second from one source address."""
+    """The sender's packet filter: ``key`` and ``vehicle_ids`` as given, at most :data:`DEFAULT_MAX_VEHICLES`
+    vehicles and :data:`DEFAULT_SOURCE_RATE_HZ` datagrams a second from one source address. A restarted
+    drone sending version 2 is taken at its first packet (a newer stream); one sending version 1, and a
+    drone whose clock went back, after 10 s of silence."""
     return PacketFilter(
         key=key,
         vehicle_ids=vehicle_ids,
@@ -138,22 +142,34 @@ WARM_FRAMES: Final = 6
 overlay and phases in flight; more than any one thread holds at once)."""
 
 
+def _stderr_line(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
 class _PoseListener(asyncio.DatagramProtocol):
     """Every datagram goes through the filter; accepted poses update the overlay."""
 
     def __init__(
-        self, packet_filter: PacketFilter, overlay: ArOverlay | None, clock: Callable[[], float] | None = None
+        self,
+        packet_filter: PacketFilter,
+        overlay: ArOverlay | None,
+        clock: Callable[[], float] | None = None,
+        log: Callable[[str], None] = _stderr_line,
     ) -> None:
         self.filter = packet_filter
         self.overlay = overlay
         self.clock = clock
+        self.log = log
         self.errors = 0
         self.socket_errors = 0
 
     def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
         now = time.monotonic()
         try:
-            packet = self.filter.accept(data, now, addr[0] if addr else None)
+            peer = _peer_name(addr)
+            packet = self.filter.accept(data, now, addr[0] if addr else None, peer)
+            for conflict in self.filter.take_conflicts():  # two sources of one vehicle: said once per pair
+                self.log(f"ipt-sender: {conflict}")
             if packet is not None and self.overlay is not None:
                 self.overlay.update(packet, now if self.clock is None else self.clock())
         except Exception:  # a bug somewhere below: count it, keep listening
@@ -163,15 +179,19 @@ class _PoseListener(asyncio.DatagramProtocol):
         self.socket_errors += 1
 
 
+def _peer_name(addr: tuple[str | Any, int] | None) -> str | None:
+    """``"HOST:PORT"`` (``"[HOST]:PORT"`` for IPv6) of a datagram's source, naming it in conflict lines."""
+    if not addr:
+        return None
+    host = str(addr[0])
+    return f"[{host}]:{addr[1]}" if ":" in host else f"{host}:{addr[1]}"
+
+
 def _wrap(fut: Future[Any]) -> asyncio.Future[Any]:
     """``fut`` as an asyncio future whose exception counts as seen (the run reports it its own way)."""
     wrapped = asyncio.wrap_future(fut)
     wrapped.add_done_callback(lambda f: f.cancelled() or f.exception())
     return wrapped
-
-
-def _stderr_line(text: str) -> None:
-    print(text, file=sys.stderr, flush=True)
 
 
 def _nothing() -> None:
@@ -302,7 +322,7 @@ class Sender:
         if self.sink.threaded:
             self._display = Worker("ipt-display")
         if self.options.listen is not None:
-            self._listener = _PoseListener(self.filter, self.overlay, self.options.overlay_clock)
+            self._listener = _PoseListener(self.filter, self.overlay, self.options.overlay_clock, self.log)
             self._transport, self.bound = await self._bind(loop, *self.options.listen)
             self.log(f"ipt-sender: listening for pose packets on udp {self.bound[0]}:{self.bound[1]}")
             if self.options.on_listening is not None:

@@ -3,12 +3,17 @@
 One connected datagram endpoint per target, so that the kernel reports an unreachable target (ICMP
 port unreachable comes back as ``ECONNREFUSED`` through ``error_received``). Send problems are counted,
 never fatal: a listener that is not up yet, or goes away, must not stop the drone's localisation.
+
+Each run of the daemon is one stream (``docs/protocol.md``): :func:`new_stream_id` at its start, sent in
+every version-2 packet, so that a listener takes a restarted daemon at its first packet and still refuses
+the packets of an earlier run.
 """
 
 from __future__ import annotations
 
 import asyncio
 import functools
+import time
 from collections import Counter
 from collections.abc import Sequence
 
@@ -26,11 +31,28 @@ class OutputError(IptError):
     """A pose output cannot be set up (e.g. a send target's host name does not resolve)."""
 
 
-class PacketMaker:
-    """Turns poses into encoded pose packets of one vehicle, numbering them 0, 1, ... (wrapping at 2**32)."""
+_last_stream_id = 0
 
-    def __init__(self, vehicle_id: int, key: bytes | None = None, first_seq: int = 0) -> None:
-        self.vehicle_id, self.key = vehicle_id, key
+
+def new_stream_id() -> int:
+    """A stream identity for a run starting now: the wall clock in µs since the UNIX epoch, and larger than
+    any given before in this process. Newer than an earlier run's as long as the clock has not gone back."""
+    global _last_stream_id
+    _last_stream_id = max(time.time_ns() // 1000, _last_stream_id + 1)
+    return _last_stream_id
+
+
+class PacketMaker:
+    """Turns poses into encoded pose packets of one vehicle, numbering them 0, 1, ... (wrapping at 2**32).
+
+    With a ``stream_id`` (the daemon passes :func:`new_stream_id`) the packets are version 2 and carry it;
+    without, version 1 (what receivers before version 2 sent).
+    """
+
+    def __init__(
+        self, vehicle_id: int, key: bytes | None = None, first_seq: int = 0, stream_id: int | None = None
+    ) -> None:
+        self.vehicle_id, self.key, self.stream_id = vehicle_id, key, stream_id
         self.seq = first_seq % SEQ_MODULUS
         """The sequence number of the next packet."""
 
@@ -45,6 +67,7 @@ class PacketMaker:
             quat_wxyz=(float(q[0]), float(q[1]), float(q[2]), float(q[3])),
             num_tags=len(pose.tag_ids),
             reprojection_rms_px=pose.reprojection_rms_px,
+            stream_id=self.stream_id,
         )
         self.seq = (self.seq + 1) % SEQ_MODULUS
         return packet
