@@ -6,9 +6,9 @@ daemon that restarts becomes a new source (a new stream, usually a new port too)
 falls silent. Two daemons that claim one vehicle id are two sources that both keep speaking.
 
 :class:`SourceLog` tells the two apart by alternation: a source heard again after another source of
-the same vehicle was heard, the two within :data:`CONFLICT_WINDOW_S` of each other, is a conflict, and
-each pair of sources is reported once. A restart never alternates (the old run is gone before the new
-one speaks), so it is never reported.
+the same vehicle was heard in between, within :data:`CONFLICT_WINDOW_S` of one of the two packets around
+it, is a conflict, and each pair of sources is reported once. A restart never alternates (the old run
+is gone before the new one speaks), so it is never reported.
 
 :class:`VehicleRegistry` is the per-vehicle state of the listening side (:class:`ipt.protocol.PacketFilter`):
 which stream and sequence number a vehicle is at, whether a packet is newer, the vehicles' slots, and the
@@ -24,6 +24,9 @@ from typing import Final
 
 CONFLICT_WINDOW_S: Final = 1.0
 """Two sources of one vehicle heard within this many seconds of each other, alternately, are a conflict."""
+
+FORGET_SOURCE_S: Final = 10.0
+"""A source not heard for this long is forgotten (it can no longer be half of a conflict)."""
 
 MAX_SOURCES: Final = 8
 """Sources of one vehicle remembered at once (those heard within the window); the oldest goes first."""
@@ -92,17 +95,19 @@ class SourceLog:
     def heard(self, source: Source, now: float) -> Source | None:
         """Note a packet from ``source`` at ``now``; the other source it newly conflicts with, if any.
 
-        A conflict: ``source`` was heard before, and since then (and within :data:`CONFLICT_WINDOW_S` of
-        ``now``) another source was heard. Each pair is returned once.
+        A conflict: ``source`` was heard before (at ``before``), and another source was heard since, at a
+        time ``t`` within :data:`CONFLICT_WINDOW_S` of ``before`` or of ``now``: the two packets of one
+        source have one of the other between them, and close to one of them. Each pair is returned once.
         """
         before = self._heard.pop(source, None)
-        for stale in [s for s, t in self._heard.items() if now - t > CONFLICT_WINDOW_S]:
+        for stale in [s for s, t in self._heard.items() if now - t > FORGET_SOURCE_S]:
             del self._heard[stale]
         rival = None
         if before is not None:
             for other, t in self._heard.items():
                 pair = frozenset((source, other))
-                if t >= before and pair not in self._reported:
+                near = t - before <= CONFLICT_WINDOW_S or now - t <= CONFLICT_WINDOW_S
+                if t >= before and near and pair not in self._reported:
                     if len(self._reported) >= MAX_REPORTED:
                         self._reported.clear()
                     self._reported.add(pair)

@@ -789,6 +789,18 @@ def test_two_version_1_sources_are_named_and_judged_by_sequence_number() -> None
 def test_sources_heard_more_than_a_second_apart_are_no_conflict() -> None:
     gate = PacketFilter(resync_after_s=10.0)
     gate.accept(pose(1, stream=OLD_RUN), now=0.0, peer="a:1")
-    gate.accept(pose(1, stream=NEW_RUN), now=0.5, peer="b:1")
-    gate.accept(pose(2, stream=OLD_RUN), now=1.6, peer="a:1")  # b was last heard 1.1 s ago
+    gate.accept(pose(1, stream=NEW_RUN), now=1.5, peer="b:1")
+    gate.accept(pose(2, stream=OLD_RUN), now=2.6, peer="a:1")  # b 1.5 s after a, and 1.1 s before it again
     assert gate.take_conflicts() == []
+    gate.accept(pose(2, stream=NEW_RUN), now=3.0, peer="b:1")  # a 0.4 s before b: now within the second
+    assert len(gate.take_conflicts()) == 1
+
+
+def test_slow_sources_alternating_are_a_conflict() -> None:
+    # Two receivers each sending a pose every 2 s (a loaded machine): b falls between two of a's packets,
+    # within a second of the first.
+    gate = PacketFilter(resync_after_s=10.0)
+    gate.accept(pose(1, stream=OLD_RUN), now=0.0, peer="a:1")
+    gate.accept(pose(1, stream=NEW_RUN), now=0.7, peer="b:1")
+    gate.accept(pose(2, stream=OLD_RUN), now=2.0, peer="a:1")
+    assert [c.other.peer for c in gate.take_conflicts()] == ["a:1"]
