@@ -264,9 +264,11 @@ class _CountingFilter(PacketFilter):
         super().__init__(resync_after_s=10.0)
         self._lockstep = lockstep
 
-    def accept(self, data: bytes, now: float | None = None, source: Hashable | None = None) -> PosePacket | None:
+    def accept(
+        self, data: bytes, now: float | None = None, source: Hashable | None = None, peer: Hashable | None = None
+    ) -> PosePacket | None:
         try:
-            return super().accept(data, now, source)
+            return super().accept(data, now, source, peer)
         finally:
             self._lockstep.packet_seen()
 
