@@ -123,23 +123,23 @@ class Relay(Tap):
                 out.sendto(data, ("127.0.0.1", self.sender_port))
                 self.forwarded.append((now, addr, data))
 
-    def wait_forwarded(self, count: int, addr: tuple[str, int], proc: subprocess.Popen[bytes], log: Path) -> float:
-        """Until ``count`` datagrams of ``addr`` were forwarded; when the first one was."""
+    def wait_forwarded(self, count: int, t0: float, proc: subprocess.Popen[bytes], log: Path) -> float:
+        """Until ``count`` datagrams were forwarded after ``t0``; when the first one was."""
         end = time.monotonic() + START_TIMEOUT_S
         while time.monotonic() < end and proc.poll() is None:
             with self._lock:
-                times = [t for t, a, _ in self.forwarded if a == addr]
+                times = [t for t, _, _ in self.forwarded if t > t0]
             if len(times) >= count:
                 return times[0]
             time.sleep(0.02)
         raise AssertionError(f"{count} packets not forwarded (exit {proc.poll()}):\n{log.read_text(errors='replace')}")
 
-    def wait_for_another(self, proc: subprocess.Popen[bytes], log: Path) -> tuple[str, int]:
-        """Until a source other than ``current`` is heard; its address."""
+    def wait_for_another(self, t0: float, proc: subprocess.Popen[bytes], log: Path) -> tuple[str, int]:
+        """Until a source other than ``current`` is heard after ``t0``; its address."""
         end = time.monotonic() + START_TIMEOUT_S
         while time.monotonic() < end and proc.poll() is None:
             with self._lock:
-                others = [addr for _, addr, _ in self.datagrams if addr != self.current]
+                others = [addr for t, addr, _ in self.datagrams if t > t0 and addr != self.current]
             if others:
                 return others[0]
             time.sleep(0.02)
@@ -283,18 +283,21 @@ def test_a_restarted_receiver_is_accepted_from_its_first_packet(tmp_path: Path, 
             receiver, log = _receiver(tmp_path, "run0", [relay.port], key_file)
             procs.append(receiver)
             relay.wait_for(3, 0.0, receiver, log)
-            gaps, earlier = [], []
+            gaps: list[float] = []
+            earlier: list[bytes] = []
+            started_old = 0.0
             for run, stop in enumerate((signal.SIGTERM, signal.SIGKILL), start=1):
+                started = time.monotonic()
                 new, log = _receiver(tmp_path, f"run{run}", [relay.port], key_file)
                 procs.append(new)
-                new_addr = relay.wait_for_another(new, log)  # the new run is up; its packets dropped so far
+                new_addr = relay.wait_for_another(started, new, log)  # the new run is up; its packets dropped so far
                 _stop(receiver, stop)
                 with relay._lock:
-                    earlier += [d for _, a, d in relay.forwarded if a == relay.current]
+                    earlier += [d for t, a, d in relay.forwarded if a == relay.current and t > started_old]
                     last_old = relay.forwarded[-1][0]
                     relay.current = new_addr  # from now on the new run reaches the sender
-                receiver = new
-                gaps.append(relay.wait_forwarded(3, new_addr, receiver, log) - last_old)
+                receiver, started_old = new, started
+                gaps.append(relay.wait_forwarded(3, last_old, receiver, log) - last_old)
             # With a key: packets recorded from the earlier runs, sent again after the restarts: refused.
             replays = [earlier[0], earlier[-1]] if keyed else []
             attacker_port = _replay(replays, port)
