@@ -24,7 +24,9 @@ axes: x right, y down, z forward) into the arena frame.
 
 Public API: :class:`PosePacket`, :func:`encode_pose`, :func:`decode_pose`, :class:`PacketFilter`,
 :func:`seq_newer`, :class:`MessageType`, :class:`QualityFlags`, :class:`Rejection`,
-:class:`ProtocolError`, :class:`AuthKeyError`, and the size and format constants.
+:class:`ProtocolError`, :class:`AuthKeyError`, the size and format constants (``*_V2`` for version 2),
+:data:`SUPPORTED_VERSIONS`; the per-vehicle state and the conflicts of two sources live in
+:mod:`ipt.streams` (:class:`~ipt.streams.Conflict` from :meth:`PacketFilter.take_conflicts`).
 """
 
 from __future__ import annotations
