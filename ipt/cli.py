@@ -15,12 +15,15 @@ from typing import TYPE_CHECKING
 
 from ipt import __version__
 from ipt.calib.cli import add_calibrate_parser
-from ipt.cliutil import Parser, positive_float, run_main
+from ipt.cliutil import Parser, bounded_float, run_main, same_file, seed_int
 from ipt.errors import IptError
 
 if TYPE_CHECKING:  # loaded only by the commands that use them
     from ipt.config.models import ArenaConfig
     from ipt.sender.content import ContentSource
+
+MAX_FLIGHT_S = 3600.0
+"""The longest flight ``ipt sim`` and ``ipt demo`` take (``--seconds``): an hour of 120 FPS frames."""
 
 DEFAULT_ARENA_NAME = "arena.yaml"
 """The arena shipped in ``ipt/config``, used when ``--config`` is not given."""
@@ -56,8 +59,10 @@ def _scene(spec: str, arena: ArenaConfig, seed: int) -> ContentSource:
 
 def _cmd_map_export(args: argparse.Namespace) -> int:
     from ipt.maphash import map_hash
-    from ipt.tagmap import export_map, grid_tag_map
+    from ipt.tagmap import TagMapError, export_map, grid_tag_map
 
+    if same_file(args.image, args.layout):
+        raise TagMapError(f"--image and --layout name the same file ({args.layout}): the layout would replace the map")
     tm = grid_tag_map(_arena(args.config))
     export_map(tm, args.image, args.layout)
     print(f"ipt map export: {len(tm.tags)} tags -> {args.image} ({tm.width_px}x{tm.height_px}), {args.layout}")
@@ -96,9 +101,11 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     from ipt.config.models import load_yaml_model
     from ipt.sim.arena import scene_for
     from ipt.sim.config import SimConfig, apply_arena_changes
+    from ipt.sim.limits import check_flight
     from ipt.sim.run import simulate_to_folder
 
     sim = load_yaml_model(args.sim_config, SimConfig) if args.sim_config else SimConfig()
+    check_flight(sim, args.sim_config)
     if args.seed is not None:
         sim = sim.model_copy(update={"seed": args.seed})
     arena = apply_arena_changes(_arena(args.config), sim.arena)
@@ -113,10 +120,11 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from ipt.config.models import load_yaml_model
     from ipt.sim.config import SimConfig
     from ipt.sim.demo import run_demo
+    from ipt.sim.limits import check_flight
 
     arena_path = Path(args.config) if args.config is not None else _default_arena()
     _arena(str(arena_path))  # a bad arena file is one line before anything starts
-    sim = load_yaml_model(args.sim_config, SimConfig) if args.sim_config else None
+    sim = check_flight(load_yaml_model(args.sim_config, SimConfig), args.sim_config) if args.sim_config else None
     out = Path(args.out) if args.out else Path("results") / time.strftime("demo-%Y%m%d-%H%M%S")
     return run_demo(arena_path, args.seconds, out, args.seed, sim)
 
@@ -247,13 +255,20 @@ def _add_sim_parser(sub: argparse._SubParsersAction[Parser], cfg_help: str) -> N
     )
     s.add_argument("--config", metavar="ARENA.yaml", help=cfg_help)
     s.add_argument("--out", required=True, metavar="DIR", help="output folder (created if needed)")
-    s.add_argument("--seconds", type=positive_float, default=15.0, help="flight length (default 15, as in the paper)")
+    s.add_argument(
+        "--seconds",
+        type=bounded_float(0, MAX_FLIGHT_S, " s"),
+        default=15.0,
+        help="flight length, at most 3600 (default 15, as in the paper)",
+    )
     s.add_argument(
         "--sim-config",
         metavar="SIM.yaml",
         help="the flight: camera, timing, noise, path, vibration, shadow, content (default: the realistic flight)",
     )
-    s.add_argument("--seed", type=int, help="random seed (noise, pilot, vibration and generated content)")
+    s.add_argument(
+        "--seed", type=seed_int, help="random seed, 0 to 2^32-1 (noise, pilot, vibration and generated content)"
+    )
     s.add_argument(
         "--content",
         metavar="photos|map|FILE",
@@ -282,12 +297,14 @@ def _add_demo_parser(sub: argparse._SubParsersAction[Parser], cfg_help: str) -> 
     d.add_argument("--config", metavar="ARENA.yaml", help=cfg_help)
     d.add_argument(
         "--seconds",
-        type=positive_float,
+        type=bounded_float(0, MAX_FLIGHT_S, " s"),
         default=15.0,
-        help="simulated flight length (default 15, the paper's test unit; about 10 s of wall time per simulated "
-        "second here)",
+        help="simulated flight length, at most 3600 (default 15, the paper's test unit; about 10 s of wall time "
+        "per simulated second here)",
     )
-    d.add_argument("--seed", type=int, default=0, help="random seed (content and camera noise; default 0)")
+    d.add_argument(
+        "--seed", type=seed_int, default=0, help="random seed, 0 to 2^32-1 (content and camera noise; default 0)"
+    )
     d.add_argument(
         "--sim-config",
         metavar="SIM.yaml",
@@ -339,7 +356,12 @@ def _add_invisibility_parser(sub: argparse._SubParsersAction[Parser], cfg_help: 
         help="how far apart (projector pixels) a moving eye sees the two phases for the saccade figure (default 4; "
         "0: none)",
     )
-    v.add_argument("--seed", type=int, default=0, help="seed of the generated and the photographic content (default 0)")
+    v.add_argument(
+        "--seed",
+        type=seed_int,
+        default=0,
+        help="seed of the generated and the photographic content, 0 to 2^32-1 (default 0)",
+    )
     v.set_defaults(func=_cmd_invisibility)
 
 

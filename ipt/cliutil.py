@@ -40,6 +40,51 @@ def positive_float(text: str) -> float:
     return value
 
 
+def bounded_float(low: float, high: float, unit: str = "") -> Callable[[str], float]:
+    """An argparse ``type``: a number above ``low`` and at most ``high`` (``nan`` and ``inf`` are refused)."""
+
+    def parse(text: str) -> float:
+        value = positive_float(text) if low == 0 else _float(text)
+        if not (math.isfinite(value) and low < value <= high):
+            raise argparse.ArgumentTypeError(f"must be above {low:g} and at most {high:g}{unit}, got '{text}'")
+        return value
+
+    return parse
+
+
+def _float(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid float value: '{text}'") from None
+
+
+SEED_MAX = 2**32 - 1
+"""The largest ``--seed`` the tools take."""
+
+
+def seed_int(text: str) -> int:
+    """An argparse ``type``: a random seed, a whole number from 0 to :data:`SEED_MAX`."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid int value: '{text}'") from None
+    if not 0 <= value <= SEED_MAX:
+        raise argparse.ArgumentTypeError(f"must be a whole number from 0 to {SEED_MAX}, got '{text}'")
+    return value
+
+
+def same_file(a: str, b: str) -> bool:
+    """True if the paths ``a`` and ``b`` name one file: the same path once links are followed (also when it does
+    not exist yet), or the same inode (a hard link). Two outputs of one command must not be one file."""
+    if os.path.realpath(a) == os.path.realpath(b):
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except (OSError, ValueError):  # one of them does not exist yet (or holds a NUL): two different files
+        return False
+
+
 def one_line(text: str) -> str:
     """``text`` with line breaks and other control characters shown escaped, so it prints as one line."""
     return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)

@@ -32,9 +32,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from ipt.cliutil import Parser
+from ipt.cliutil import Parser, one_line, same_file
 from ipt.errors import IptError
-from ipt.fileio import atomic_path, write_text_atomic
+from ipt.fileio import atomic_path, output_group, write_text_atomic
 from ipt.geometry import (
     R_BODY_CAM_DOWNWARD,
     matrix_from_quat_wxyz,
@@ -70,6 +70,30 @@ PAPER_IPT_YIELD: tuple[int, int] = (625, 1800)
 
 class EvalError(IptError):
     """The truth and the estimates cannot be compared (e.g. they do not overlap in time)."""
+
+
+MAX_POSITION_M = 1e6
+"""The largest position coordinate ``ipt eval`` compares, metres: past it the differences and their squares
+overflow (1e308 gave inf in the table and Infinity, not valid JSON, in the report)."""
+UNIT_QUAT_TOLERANCE = 1e-6
+"""How far from 1 the norm of a read quaternion may be."""
+
+
+def check_trajectory(traj: Trajectory, source: str | Path) -> None:
+    """Refuse, naming ``source``, poses that cannot be compared: positions beyond :data:`MAX_POSITION_M`,
+    quaternions that are not rotations (an MCAP recording's are not normalised for us)."""
+    big = np.abs(traj.positions_m).max(axis=1)
+    if (bad := np.flatnonzero(~(big <= MAX_POSITION_M))).size:
+        i = int(bad[0])
+        raise EvalError(
+            f"{source}: pose {i + 1} (t = {traj.times_s[i]:.6f} s) is {big[i]:g} m from the origin; "
+            f"positions beyond {MAX_POSITION_M:g} m cannot be compared"
+        )
+    with np.errstate(all="ignore"):
+        norms = np.sqrt(np.sum(traj.quats_wxyz**2, axis=1))
+    if (bad := np.flatnonzero(~(np.abs(norms - 1.0) <= UNIT_QUAT_TOLERANCE))).size:
+        i = int(bad[0])
+        raise EvalError(f"{source}: pose {i + 1} (t = {traj.times_s[i]:.6f} s) has a quaternion that is not a rotation")
 
 
 @dataclass(frozen=True)
@@ -499,8 +523,11 @@ def eval_main(argv: list[str] | None = None) -> int:
             raise EvalError(f"--max-dt must be a finite number >= 0, got {args.max_dt}")
         if args.time_offset is not None and not (args.align and math.isfinite(args.time_offset)):
             raise EvalError("--time-offset needs --align and a finite number of seconds")
+        _check_outputs(args.json, args.plot)
         truth = read_trajectory(args.truth, args.topic)
+        check_trajectory(truth, args.truth)
         est = read_trajectory(args.poses, args.topic)
+        check_trajectory(est, args.poses)
         if args.align:
             from ipt.align import align
 
@@ -508,17 +535,18 @@ def eval_main(argv: list[str] | None = None) -> int:
             truth = alignment.apply(truth)
             sys.stdout.write(format_alignment(alignment))
         report = evaluate(truth, est, max_dt_s=args.max_dt)
+        summary = _json_text(report, args.poses)
         sys.stdout.write(format_table(report, paper=not args.no_paper))
-        if args.json:
-            _write_output(
-                args.json, lambda p: write_text_atomic(p, json.dumps(report.to_dict(), indent=1) + "\n")
-            )
-            print(f"wrote {args.json}")
-        if args.plot:
-            _write_output(args.plot, lambda p: plot_report(truth, est, report, p))
-            print(f"wrote {args.plot}")
+        with output_group():  # both files or neither, also when a signal or a failed write stops the run
+            if args.json:
+                _write_output(args.json, lambda p: write_text_atomic(p, summary))
+            if args.plot:
+                _write_output(args.plot, lambda p: plot_report(truth, est, report, p))
+        for written in (args.json, args.plot):
+            if written:
+                print(f"wrote {written}")
     except IptError as exc:
-        print(f"ipt eval: error: {exc}", file=sys.stderr)
+        print(f"ipt eval: error: {one_line(str(exc))}", file=sys.stderr)
         return 2
     return 0
 
@@ -544,6 +572,20 @@ def format_alignment(a: Any) -> str:
         f"translation {x:.4f} {y:.4f} {z:.4f} m; position rms {1e3 * a.rms_m:.2f} mm over {a.pairs} pairs\n"
         f"alignment: camera -> mocap body: yaw {body[0]:.2f}, pitch {body[1]:.2f}, roll {body[2]:.2f} deg\n\n"
     )
+
+
+def _check_outputs(json_path: str | None, plot_path: str | None) -> None:
+    """--json and --plot must be two files: the figure would replace the summary."""
+    if json_path and plot_path and same_file(json_path, plot_path):
+        raise EvalError(f"--json and --plot name the same file ({plot_path}): one would replace the other")
+
+
+def _json_text(report: ErrorReport, poses: str) -> str:
+    """The report as JSON; every figure must be a number JSON can hold (no NaN, no Infinity)."""
+    try:
+        return json.dumps(report.to_dict(), indent=1, allow_nan=False) + "\n"
+    except ValueError:
+        raise EvalError(f"{poses}: the errors are not finite numbers; nothing was written") from None
 
 
 def _write_output(path: str, write: Callable[[str], None]) -> None:

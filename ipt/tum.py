@@ -129,7 +129,7 @@ def read_tum(path: str | Path) -> Trajectory:
                 "(times must be strictly increasing)"
             )
         qx, qy, qz, qw = values[4:]
-        norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+        norm = math.hypot(qx, qy, qz, qw)  # no overflow to inf for huge components (1e200 gave NaN poses)
         if norm < _MIN_QUAT_NORM:
             raise TumError(f"{where}: zero quaternion (qx qy qz qw all 0)")
         rows.append([t, *values[1:4], qw / norm, qx / norm, qy / norm, qz / norm])

@@ -26,6 +26,13 @@ MIN_VIEWS = 3
 MIN_CHARUCO_CORNERS = 6
 """A ChArUco view with fewer interpolated corners than this is not used."""
 CHARUCO_DICTIONARIES = ("DICT_4X4_50", "DICT_4X4_100", "DICT_5X5_50", "DICT_5X5_100", "DICT_6X6_250", "DICT_7X7_1000")
+BOARD_SIDE_RANGE = (3, 100)
+"""Corners (chessboard) or squares (ChArUco) along a side of the board: OpenCV's chessboard finder needs 3 or
+more; past 100 the board is a typo (100000x100000 asked numpy for 149 GiB)."""
+SQUARE_M_RANGE = (0.001, 1.0)
+"""Side of one square, metres: a printed board's squares are millimetres to decimetres."""
+MIN_MARKER_RATIO = 0.1
+"""A ChArUco marker is at least this fraction of its square (and smaller than the square)."""
 
 
 class CalibrationError(IptError):
@@ -49,19 +56,31 @@ class Board:
     """ChArUco: the ArUco dictionary (OpenCV's name)."""
 
     def __post_init__(self) -> None:
-        if self.cols < 2 or self.rows < 2:
-            raise CalibrationError(f"the board needs at least 2x2 {self._unit()}, got {self.cols}x{self.rows}")
-        if not self.square_m > 0:
-            raise CalibrationError(f"the square size must be positive, got {self.square_m}")
+        lo, hi = BOARD_SIDE_RANGE
+        if not (lo <= self.cols <= hi and lo <= self.rows <= hi):
+            raise CalibrationError(
+                f"--cols and --rows must each be {lo} to {hi} {self._unit()}, got {self.cols}x{self.rows}"
+            )
+        if not SQUARE_M_RANGE[0] <= self.square_m <= SQUARE_M_RANGE[1]:  # also refuses nan
+            raise CalibrationError(
+                f"--square-m must be {SQUARE_M_RANGE[0]:g} to {SQUARE_M_RANGE[1]:g} m, got {self.square_m:g}"
+            )
         if self.kind == "charuco":
-            if not 0 < self.marker_m < self.square_m:
+            if not MIN_MARKER_RATIO * self.square_m <= self.marker_m < self.square_m:
                 raise CalibrationError(
-                    f"the ChArUco marker size must be positive and smaller than the square ({self.square_m} m), "
-                    f"got {self.marker_m}"
+                    f"--marker-m: the ChArUco marker size must be at least {MIN_MARKER_RATIO:g} of the square and "
+                    f"smaller than it ({MIN_MARKER_RATIO * self.square_m:g} to {self.square_m:g} m), "
+                    f"got {self.marker_m:g}"
                 )
             if self.dictionary not in CHARUCO_DICTIONARIES:
                 raise CalibrationError(
                     f"unknown ArUco dictionary {self.dictionary!r} (one of {', '.join(CHARUCO_DICTIONARIES)})"
+                )
+            markers, have = self.cols * self.rows // 2, int(self.dictionary.rsplit("_", 1)[1])
+            if markers > have:
+                raise CalibrationError(
+                    f"a {self.cols}x{self.rows} ChArUco board has {markers} markers; --dictionary "
+                    f"{self.dictionary} has only {have}"
                 )
 
     def _unit(self) -> str:

@@ -384,10 +384,16 @@ def add_calibrate_parser(sub: argparse._SubParsersAction[Parser]) -> None:
     cam.add_argument("--size", default="640x360", help="live camera resolution WIDTHxHEIGHT (default 640x360)")
     cam.add_argument("--views", type=int, default=15, help="live views to take (default 15)")
     cam.add_argument("--pattern", choices=("chessboard", "charuco"), default="chessboard", help="the board")
-    cam.add_argument("--cols", type=int, required=True, help="chessboard: inner corners per row; ChArUco: squares")
-    cam.add_argument("--rows", type=int, required=True, help="chessboard: inner corners per column; ChArUco: squares")
-    cam.add_argument("--square-m", type=float, required=True, help="side of one square in metres, e.g. 0.025")
-    cam.add_argument("--marker-m", type=float, help="ChArUco: side of one marker in metres")
+    cam.add_argument(
+        "--cols", type=int, required=True, help="chessboard: inner corners per row; ChArUco: squares (3 to 100)"
+    )
+    cam.add_argument(
+        "--rows", type=int, required=True, help="chessboard: inner corners per column; ChArUco: squares (3 to 100)"
+    )
+    cam.add_argument(
+        "--square-m", type=float, required=True, help="side of one square in metres, 0.001 to 1, e.g. 0.025"
+    )
+    cam.add_argument("--marker-m", type=float, help="ChArUco: side of one marker in metres (0.1 to 1 of the square)")
     cam.add_argument("--dictionary", default="DICT_5X5_100", help="ChArUco: ArUco dictionary (default DICT_5X5_100)")
     cam.add_argument("--k3", action="store_true", help="also fit the sixth-order radial term k3 (wide-angle lenses)")
     cam.add_argument("--name", default="camera", help="camera_name in the YAML (default camera)")

@@ -89,11 +89,20 @@ class ProjectorConfig(StrictModel):
     )
 
 
+MIN_SCREEN_M = 0.1
+"""The smallest projected image, metres a side: below it no drone camera could fly over a tag (5e-324 m gave
+a division by zero in the simulator)."""
+
+
 class ScreenConfig(StrictModel):
     """The size of the projected image on the floor, measured once the projector is fixed."""
 
-    width_m: float = Field(2.17, gt=0, le=100, description="Width of the projected image in metres.")
-    height_m: float = Field(2.47, gt=0, le=100, description="Height of the projected image in metres.")
+    width_m: float = Field(
+        2.17, ge=MIN_SCREEN_M, le=100, description="Width of the projected image in metres, 0.1 to 100."
+    )
+    height_m: float = Field(
+        2.47, ge=MIN_SCREEN_M, le=100, description="Height of the projected image in metres, 0.1 to 100."
+    )
 
 
 class FloorConfig(StrictModel):

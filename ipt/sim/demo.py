@@ -529,6 +529,18 @@ def write_results(run: DemoRun, out: Path) -> str | None:
     return format_table(report)
 
 
+def _remove_run_files(out: Path, made: list[Path]) -> None:
+    """Remove what a failed run wrote in ``out``, and the folders it created if they are empty then."""
+    for name in (*RESULT_NAMES, "camera.yaml", "arena.yaml", "sender.log", "receiver.log"):
+        with contextlib.suppress(OSError):
+            (out / name).unlink(missing_ok=True)
+    for folder in made:  # innermost first
+        try:
+            folder.rmdir()
+        except OSError:
+            return
+
+
 def run_demo(arena_path: Path, seconds: float, out: Path, seed: int = 0, sim: SimConfig | None = None) -> int:
     """``ipt demo``: the closed loop, then the paper's table on stdout and the results in ``out``.
 
@@ -543,8 +555,13 @@ def run_demo(arena_path: Path, seconds: float, out: Path, seed: int = 0, sim: Si
         f"(results -> {out})\nipt demo: the flight: {describe_flight(flight)}",
         flush=True,
     )
-    run = run_loop(closed_loop(arena_path, seconds, out, seed, sim=flight, status=sys.stderr))
-    table = write_results(run, out)
+    made = [p for p in (out, *out.parents) if not p.exists()]  # the folders this run creates
+    try:
+        run = run_loop(closed_loop(arena_path, seconds, out, seed, sim=flight, status=sys.stderr))
+        table = write_results(run, out)
+    except Exception:  # a failed run leaves nothing behind (an interrupted one is scored: no exception)
+        _remove_run_files(out, made)
+        raise
     s = summary_dict(run)
     print(
         f"ipt demo: {s['camera_frames']} camera frames, {s['projector_frames']} projector frames, "
