@@ -112,6 +112,15 @@ def _file_names_print_as_given() -> None:
         sys.stdout.reconfigure(errors="surrogateescape")  # type: ignore[union-attr]
 
 
+def _launcher(action: str) -> None:
+    """The console scripts hold the stop signals while the tool loads (:mod:`ipt.launch`). ``release``: the
+    handlers are in place, let them through (one that came while loading is delivered now and stops the tool in
+    order). ``hold``: the tool is done, hold them again before Python's own handlers come back."""
+    do = getattr(sys.modules.get("ipt.launch"), action, None)
+    if do is not None:
+        do()
+
+
 def run_main(
     prog: str,
     body: Callable[[Sequence[str] | None], int],
@@ -132,6 +141,8 @@ def run_main(
         quiet_native_logs()
         _file_names_print_as_given()
         try:
+            if main_thread:
+                _launcher("release")
             return body(argv)
         except IptError as exc:
             # One line, whatever a file name or key in the message contains.
@@ -150,4 +161,6 @@ def run_main(
         print(f"{prog}: interrupted; nothing was left half-written", file=sys.stderr)
         return 130
     finally:
+        if main_thread:
+            _launcher("hold")
         restore()
