@@ -1,7 +1,9 @@
 """The stop signals (SIGINT, SIGTERM, SIGHUP): one story for every program, from its first line to its last.
 
 Every command-line tool installs the handler of this module first thing in ``main``
-(:func:`ipt.cliutil.run_main` does it, before the heavy imports). From then on:
+(:func:`ipt.cliutil.run_main` does it, before the heavy imports). Before that, while the tool's modules
+load, the console scripts hold the signals back (:mod:`ipt.launch`); ``run_main`` lets them through once
+the handler is in place, so one that came meanwhile acts then. From then on:
 
 - **A tool at work** (no event loop running): the first stop signal raises :class:`Interrupted` in the
   main thread, as Ctrl-C raises ``KeyboardInterrupt``. The ``with`` blocks and ``finally`` clauses on
