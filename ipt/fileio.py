@@ -5,7 +5,10 @@ is read whole, so the read is bounded (a ``--config /dev/zero`` would otherwise 
 only regular files are read. The file is opened with ``O_NONBLOCK`` and checked with ``fstat`` before
 a byte is read, so a named pipe with no writer is refused at once instead of blocking for ever.
 
-Writing (:func:`atomic_path`): write beside the target, then rename. Inside :func:`output_group`, the
+Writing (:func:`atomic_path`): write beside the target, then rename. A symbolic link is followed to its
+target (the link stays); a character device (``/dev/null``) is written through, as ``> /dev/null`` does
+in a shell; a named pipe, a socket, a block device or a folder is refused with one line before anything is
+written (a pipe with no reader would block): no output ever replaces any of them. Inside :func:`output_group`, the
 renames wait until the whole group succeeded, so the outputs of one run appear together or not at all.
 A disk that cannot take a file (full, over quota, read-only, file too large) is reported as one
 :class:`WriteError` naming the target, wherever the error surfaced (:func:`disk_write_error`); the
@@ -139,10 +142,7 @@ def output_group() -> Iterator[None]:
     placed: list[Path] = []
     try:
         for tmp, target in group.done:
-            try:
-                os.replace(tmp, target)
-            except OSError as exc:
-                raise _write_error(target, exc) from None
+            _replace(tmp, target)
             placed.append(target)
     except BaseException:
         # Half a set looks like a whole one: take back what was already put in place.
@@ -153,6 +153,64 @@ def output_group() -> Iterator[None]:
         raise
 
 
+def _refused(target: Path, mode: int) -> WriteError:
+    if stat.S_ISDIR(mode):
+        return WriteError(errno.EISDIR, "is a directory", str(target))
+    if stat.S_ISLNK(mode):
+        return WriteError(errno.ELOOP, "a loop of symbolic links", str(target))
+    kind = _file_kind(mode)
+    return WriteError(errno.EINVAL, f"{kind}, not a regular file: an output never replaces one", str(target))
+
+
+def _output_target(target: Path) -> tuple[Path, bool]:
+    """Where an output named ``target`` goes, and whether it is written straight through (a character device).
+
+    A symbolic link is followed to its final target. A regular file or no file: written beside, then
+    renamed. A folder, a named pipe, a socket or a block device: :class:`WriteError` naming ``target``.
+    """
+    try:
+        real = Path(os.path.realpath(target)) if os.path.islink(target) else target
+        mode = os.lstat(real).st_mode
+    except FileNotFoundError:
+        return real, False
+    except ValueError:  # a NUL character in the name
+        raise WriteError(errno.EINVAL, "the name contains a NUL character", str(target)) from None
+    except OSError as exc:  # a path through a file, a loop of links, no permission to look
+        if exc.errno == errno.ENOTDIR:
+            return target, False  # reported as before, when the temporary file cannot be made
+        raise _write_error(target, exc) from None
+    if stat.S_ISREG(mode):
+        return real, False
+    if stat.S_ISCHR(mode):
+        return real, True
+    raise _refused(target, mode)
+
+
+def _write_through(device: Path) -> Iterator[Path]:
+    """The body of :func:`atomic_path` for a character device: it writes to the device itself."""
+    try:
+        yield device
+    except OSError as exc:
+        disk = disk_write_error(device, exc)
+        if disk is None:
+            raise
+        raise disk from None
+
+
+def _replace(tmp: Path, target: Path) -> None:
+    """Rename ``tmp`` onto ``target``, unless something other than a regular file took its place meanwhile."""
+    try:
+        mode = os.lstat(target).st_mode
+    except OSError:
+        mode = stat.S_IFREG
+    if not stat.S_ISREG(mode):
+        raise _refused(target, mode)
+    try:
+        os.replace(tmp, target)
+    except OSError as exc:
+        raise _write_error(target, exc) from None
+
+
 @contextlib.contextmanager
 def atomic_path(target: str | Path) -> Iterator[Path]:
     """Yield a temporary path beside ``target``; on success it is renamed onto ``target``.
@@ -161,8 +219,16 @@ def atomic_path(target: str | Path) -> Iterator[Path]:
     saying the disk is full or read-only (:func:`disk_write_error`) becomes a :class:`WriteError` naming
     ``target``. If the temporary file cannot be made beside ``target`` or cannot be renamed onto it,
     :class:`WriteError` is raised. Inside :func:`output_group` the rename waits for the group.
+
+    ``target`` may be a symbolic link (its target is written, the link kept) or a character device (the
+    yielded path is the device itself: written through, nothing renamed); a folder, a named pipe, a socket
+    or a block device is refused with :class:`WriteError` before the body runs.
     """
-    t = Path(target)
+    named = Path(target)
+    t, through = _output_target(named)
+    if through:
+        yield from _write_through(t)
+        return
     parent = t.parent if str(t.parent) else Path(".")
     group = _GROUP.get()
     kept = False
@@ -184,16 +250,16 @@ def atomic_path(target: str | Path) -> Iterator[Path]:
                 raise FileExistsError(errno.EEXIST, "no free temporary name", str(parent))
         except OSError as exc:
             tmp_path = None  # nothing was made (and a read-only disk refuses even to unlink what is not there)
-            raise _write_error(t, exc) from None
+            raise _write_error(named, exc) from None
         except ValueError:  # a NUL character in the name
             tmp_path = None
-            raise WriteError(errno.EINVAL, "the name contains a NUL character", str(t)) from None
+            raise WriteError(errno.EINVAL, "the name contains a NUL character", str(named)) from None
         os.close(fd)
         os.chmod(tmp_path, _FILE_MODE)  # as readable as any other result, whatever the umask did
         try:
             yield tmp_path
         except OSError as exc:
-            disk = disk_write_error(t, exc)
+            disk = disk_write_error(named, exc)
             if disk is None:
                 raise
             raise disk from None
@@ -201,10 +267,7 @@ def atomic_path(target: str | Path) -> Iterator[Path]:
             group.done.append((tmp_path, t))
             kept = True
         else:
-            try:
-                os.replace(tmp_path, t)
-            except OSError as exc:
-                raise _write_error(t, exc) from None
+            _replace(tmp_path, t)
     finally:
         if tmp_path is not None and not kept:
             tmp_path.unlink(missing_ok=True)
@@ -279,9 +342,7 @@ def read_bytes_file(
         os.close(fd)
 
 
-def read_text_file(
-    path: Path, error: type[Exception], expected: str, *, max_bytes: int = MAX_CONFIG_BYTES
-) -> str:
+def read_text_file(path: Path, error: type[Exception], expected: str, *, max_bytes: int = MAX_CONFIG_BYTES) -> str:
     """The UTF-8 text of ``path`` (a regular file of at most ``max_bytes``); any problem becomes ``error``
     with one line naming the file (see :func:`read_bytes_file`).
 
