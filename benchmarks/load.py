@@ -290,6 +290,7 @@ def sender_load(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     arena_path.write_text(yaml.safe_dump(arena), encoding="utf-8")
     key_file = work / "key"
     key_file.write_bytes(KEY)
+    key_file.chmod(0o600)  # a key file others can read is refused
     log = work / "sender.log"
     vehicles = [str(v) for v in range(1, args.vehicles + 1)]
     cmd = [sys.executable, "-m", "ipt.sender.cli", "--config", str(arena_path), "--sink", "null", "--listen",

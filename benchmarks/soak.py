@@ -200,6 +200,7 @@ def soak(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     arena_path.write_text(yaml.safe_dump(arena_for(args.width, args.height)), encoding="utf-8")
     key_file = work / "key"
     key_file.write_bytes(KEY)
+    key_file.chmod(0o600)  # a key file others can read is refused
     sender_log, receiver_log = work / "sender.log", work / "receiver.log"
     sender_cmd = [sys.executable, "-m", "ipt.sender.cli", "--config", str(arena_path), "--sink", "null",
                   "--listen", "127.0.0.1:0", "--auth-key-file", str(key_file), "--vehicles", "1",

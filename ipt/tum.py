@@ -92,6 +92,17 @@ class Trajectory:
         )
 
 
+_MAX_QUOTED_CHARS = 40
+"""Longest piece of a line quoted in an error (a 5 KB field made a 5 KB error line)."""
+
+
+def _quote(field: str, *, bare: bool = False) -> str:
+    """``field`` for an error line: cut to :data:`_MAX_QUOTED_CHARS` characters (with the full length said)."""
+    head = field[:_MAX_QUOTED_CHARS]
+    shown = head if bare else repr(head)
+    return shown if len(field) <= _MAX_QUOTED_CHARS else f"{shown}… ({len(field)} characters)"
+
+
 def read_tum(path: str | Path) -> Trajectory:
     """Read a TUM file; quaternions are normalised and reordered to (w, x, y, z).
 
@@ -118,14 +129,15 @@ def read_tum(path: str | Path) -> Trajectory:
             try:
                 v = float(field)
             except ValueError:
-                raise TumError(f"{where}: {name} is not a number: {field!r}") from None
+                raise TumError(f"{where}: {name} is not a number: {_quote(field)}") from None
             if not math.isfinite(v):
-                raise TumError(f"{where}: {name} is not finite: {field!r}")
+                raise TumError(f"{where}: {name} is not finite: {_quote(field)}")
             values.append(v)
         t = values[0]
         if t <= prev_t:
             raise TumError(
-                f"{where}: time {fields[0]} is not after {prev_field} on line {prev_line} "
+                f"{where}: time {_quote(fields[0], bare=True)} is not after {_quote(prev_field, bare=True)} on line "
+                f"{prev_line} "
                 "(times must be strictly increasing)"
             )
         qx, qy, qz, qw = values[4:]
@@ -154,18 +166,14 @@ def format_tum_line(t: float, position_m: Sequence[float] | F64, quat_wxyz: Sequ
         raise ValueError(f"format_tum_line: non-finite pose at t={t}: {pos}, {q}")
     w, x, y, z = q
     tp, pp, qp = _TIME_DECIMALS, _POSITION_DECIMALS, _QUAT_DECIMALS
-    return (
-        f"{t:.{tp}f} {pos[0]:.{pp}f} {pos[1]:.{pp}f} {pos[2]:.{pp}f} "
-        f"{x:.{qp}f} {y:.{qp}f} {z:.{qp}f} {w:.{qp}f}\n"
-    )
+    return f"{t:.{tp}f} {pos[0]:.{pp}f} {pos[1]:.{pp}f} {pos[2]:.{pp}f} {x:.{qp}f} {y:.{qp}f} {z:.{qp}f} {w:.{qp}f}\n"
 
 
 def format_tum(traj: Trajectory) -> str:
     """The whole file text: the header comment, then one line per pose."""
     lines = [TUM_HEADER + "\n"]
     lines.extend(
-        format_tum_line(float(t), p, q)
-        for t, p, q in zip(traj.times_s, traj.positions_m, traj.quats_wxyz, strict=True)
+        format_tum_line(float(t), p, q) for t, p, q in zip(traj.times_s, traj.positions_m, traj.quats_wxyz, strict=True)
     )
     return "".join(lines)
 

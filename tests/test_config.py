@@ -486,6 +486,7 @@ def test_camera_matrix_values_raise_only_camera_info_errors(tmp_path: Path, fx: 
     )
     path = _dump(tmp_path, "cam.yaml", data)
     ok = math.isfinite(fx) and fx > 0 and isinstance(cy, float) and math.isfinite(cy) and ncoef in (4, 5, 8)
+    ok = ok and 0.05 * 640 <= fx <= 20 * 640 and -0.5 <= cy <= 359.5  # a real camera's intrinsics (issue 33)
     if ok:
         info = load_camera_info(path)
         assert info.fx_px == fx

@@ -426,6 +426,7 @@ async def test_sender_counts_refused_datagrams_and_keeps_sending() -> None:
 
 def test_receiver_config_resolves_paths_against_its_folder(tmp_path: Path) -> None:
     (tmp_path / "key").write_bytes(b"0123456789abcdef\n")
+    (tmp_path / "key").chmod(0o600)  # a key file others can read is refused
     path = tmp_path / "receiver.yaml"
     path.write_text(
         "arena: a.yaml\ncamera: /abs/camera.yaml\nsource: video:rec/f.mkv\nauth_key_file: key\n"

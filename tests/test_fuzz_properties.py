@@ -369,6 +369,7 @@ def test_source_parses_or_says_why(text: str) -> None:
 def test_key_file_is_its_bytes_less_one_newline_or_a_config_error(tmp_path: Path, content: bytes) -> None:
     path = tmp_path / "key"
     path.write_bytes(content)
+    path.chmod(0o600)  # a key file others can read is refused
     expected = content[:-2] if content.endswith(b"\r\n") else content[:-1] if content.endswith(b"\n") else content
     if len(expected) < 16:
         with pytest.raises(ConfigError, match=r"at least 16"):

@@ -210,6 +210,7 @@ def _tampered(data: bytes) -> bytes:
 def test_authenticated_sender_refuses_and_counts_forged_and_replayed_packets(tmp_path: Path, arena: Path) -> None:
     key_file = tmp_path / "key"
     key_file.write_bytes(KEY + b"\n")
+    key_file.chmod(0o600)  # a key file others can read is refused
     datagrams = [
         (encode_pose(_pose(1, 10), KEY), "accepted"),
         (encode_pose(_pose(1, 10), KEY), "replayed"),  # the same datagram again

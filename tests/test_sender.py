@@ -305,6 +305,7 @@ async def test_authenticated_listener_counts_each_rejection(tmp_path: Path, aren
     key = b"ipt-test-key-0123456789abcdef"
     key_file = tmp_path / "key"
     key_file.write_bytes(key + b"\n")  # as `echo` writes it
+    key_file.chmod(0o600)  # a key file others can read is refused
     assert _read_key(str(key_file)) == key
 
     loop = asyncio.get_running_loop()

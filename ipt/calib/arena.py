@@ -30,7 +30,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 import yaml
+from pydantic import ValidationError
 
+from ipt.config.base import _describe_validation_error
 from ipt.config.camera_info import CameraInfo
 from ipt.config.models import ArenaConfig, ConfigError, DetectorConfig, PoseConfig
 from ipt.errors import IptError
@@ -38,6 +40,10 @@ from ipt.fileio import atomic_path, read_text_file, write_text_atomic
 from ipt.tagmap import TagMap, grid_tag_map, pixel_to_arena_m
 
 U8 = npt.NDArray[np.uint8]
+
+
+MAX_DISTANCE_M = 1000.0
+"""Longest floor distance accepted for --distance-m (an arena is at most 100 m across)."""
 
 
 class ArenaCalibrationError(IptError):
@@ -53,8 +59,13 @@ def scaled_arena(arena: ArenaConfig, factor: float) -> ArenaConfig:
     )
     try:
         return ArenaConfig.model_validate({**arena.model_dump(), "screen": screen.model_dump()})
+    except ValidationError as exc:
+        raise ArenaCalibrationError(
+            f"the measurement makes the projected image {screen.width_m:.4g} x {screen.height_m:.4g} m, which is "
+            f"not a usable arena ({_describe_validation_error(exc)})"
+        ) from None
     except ValueError as exc:
-        raise ArenaCalibrationError(f"the scaled arena is not valid: {exc}") from None
+        raise ArenaCalibrationError(f"the scaled arena is not valid: {str(exc).splitlines()[0][:200]}") from None
 
 
 def tag_centre_px(tag_map: TagMap, tag_id: int) -> tuple[float, float]:
@@ -71,8 +82,10 @@ def factor_from_points(
     arena: ArenaConfig, a_px: tuple[float, float], b_px: tuple[float, float], distance_m: float
 ) -> float:
     """The scale factor from the measured floor distance between projector pixels ``a_px`` and ``b_px``."""
-    if not math.isfinite(distance_m) or distance_m <= 0:
-        raise ArenaCalibrationError(f"the measured distance must be positive, got {distance_m}")
+    if not 0 < distance_m <= MAX_DISTANCE_M:  # also false for nan
+        raise ArenaCalibrationError(
+            f"--distance-m must be positive and at most {MAX_DISTANCE_M:g} m, got {distance_m:g}"
+        )
     pr = arena.projector
     for u, v in (a_px, b_px):
         if not (0 <= u <= pr.width_px and 0 <= v <= pr.height_px):

@@ -90,6 +90,10 @@ class FloorFit:
         return FloorConfig(pixel_to_floor=rows, points=len(self.points), rms_m=round(self.rms_m, 7))
 
 
+MAX_POINT_VALUE = 100_000.0
+"""Largest magnitude of a survey value: projector pixels are at most 16384, floor positions a few tens of metres."""
+
+
 def _number(path: Path, row: int, column: str, text: str, *, blank_ok: bool) -> float | None:
     text = text.strip()
     if not text:
@@ -102,6 +106,10 @@ def _number(path: Path, row: int, column: str, text: str, *, blank_ok: bool) -> 
         raise FloorCalibrationError(f"{path}: row {row}: {column} is not a number ({text[:40]!r})") from None
     if not math.isfinite(value):
         raise FloorCalibrationError(f"{path}: row {row}: {column} is {text[:40]}, not a finite number")
+    if abs(value) > MAX_POINT_VALUE:  # a floor 1e308 m away overflowed the fit (numpy warnings, then a traceback)
+        raise FloorCalibrationError(
+            f"{path}: row {row}: {column} is {text[:40]}, beyond ±{MAX_POINT_VALUE:g} (not a pixel or a floor position)"
+        )
     return value
 
 

@@ -61,7 +61,10 @@ def _describe_validation_error(exc: ValidationError) -> str:
         if not where.isprintable():
             where = repr(where)
         msg = err["msg"]
-        if err["type"] == "extra_forbidden":
+        value = err.get("input")
+        if isinstance(value, float) and math.isnan(value):
+            msg = "nan is not a number"  # a bound check's "should be less than or equal to 1000" misled
+        elif err["type"] == "extra_forbidden":
             msg = "unknown key"
         elif err["type"] == "missing":
             msg = "missing key"

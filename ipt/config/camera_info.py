@@ -101,6 +101,36 @@ def _matrix(path: Path, data: dict[str, Any], key: str, shapes: set[tuple[int, i
     return out
 
 
+MIN_FOCAL_WIDTHS = 0.05
+"""Shortest focal length accepted, in image widths (a 0.05-width focal length sees 170° across: no lens here)."""
+MAX_FOCAL_WIDTHS = 20.0
+"""Longest focal length accepted, in image widths (20 widths sees 2.9° across: a telescope, not a drone camera)."""
+MAX_DISTORTION = 10.0
+"""Largest distortion coefficient accepted, either sign (calibrated lenses stay well within ±2)."""
+
+
+def _check_intrinsics(path: Path, width: int, height: int, k: list[float], dist: list[float]) -> None:
+    """Refuse intrinsics no real camera has (they gave 0 poses and no word why): focal lengths outside
+    0.05–20 image widths, a distortion coefficient beyond ±10, a principal point outside the image."""
+    lo, hi = MIN_FOCAL_WIDTHS * width, MAX_FOCAL_WIDTHS * width
+    for name, f in (("fx", k[0]), ("fy", k[4])):
+        if not lo <= f <= hi:
+            raise CameraInfoError(
+                f"{path}: camera_matrix: {name}={f:g} px is not a camera's focal length for an image {width} px wide "
+                f"(expected {lo:g} to {hi:g} px)"
+            )
+    for name, c, size in (("cx", k[2], width), ("cy", k[5], height)):
+        if not -0.5 <= c <= size - 0.5:
+            raise CameraInfoError(
+                f"{path}: camera_matrix: the principal point {name}={c:g} px is outside the image (0 to {size - 1} px)"
+            )
+    for i, d in enumerate(dist):
+        if abs(d) > MAX_DISTORTION:
+            raise CameraInfoError(
+                f"{path}: distortion_coefficients: value {i + 1} is {d:g}, beyond ±{MAX_DISTORTION:g} (not a lens)"
+            )
+
+
 def load_camera_info(path: str | Path) -> CameraInfo:
     """Read a ROS camera_info YAML file. Raises :class:`CameraInfoError` naming the file and the problem."""
     p = Path(path)
@@ -126,6 +156,7 @@ def load_camera_info(path: str | Path) -> CameraInfo:
         raise CameraInfoError(f"{p}: camera_matrix: focal lengths must be positive (fx={fx}, fy={fy})")
     if k[1] != 0.0 or k[3] != 0.0 or k[6] != 0.0 or k[7] != 0.0 or k[8] != 1.0:
         raise CameraInfoError(f"{p}: camera_matrix: expected [fx 0 cx; 0 fy cy; 0 0 1]")
+    _check_intrinsics(p, int(data["image_width"]), int(data["image_height"]), k, dist)
     name = data.get("camera_name", "camera")
     return CameraInfo(
         width_px=int(data["image_width"]),

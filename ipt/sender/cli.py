@@ -28,8 +28,11 @@ if TYPE_CHECKING:
 
 DEFAULT_ARENA_NAME = "arena.yaml"
 """The arena shipped in ``ipt/config``, used when ``--config`` is not given."""
-MAX_KEY_BYTES = 4096
-"""Largest key file read (keys are 16 bytes and up; 32 random bytes is the usual)."""
+MIN_STATS_EVERY_S = 0.1
+"""Shortest --stats-every: ten lines a second is already more than anyone reads (1e-300 gave one a frame)."""
+MAX_STATS_EVERY_S = 86400.0
+"""Longest --stats-every (a day)."""
+
 T = TypeVar("T")
 
 
@@ -144,19 +147,22 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--display", type=int, default=0, metavar="N", help="display index of --sink window (default 0)")
     p.add_argument("--windowed", action="store_true", help="--sink window in a window rather than full screen")
-    p.add_argument("--stats-every", type=float, default=5.0, metavar="S", help="statistics interval (default 5 s)")
+    p.add_argument(
+        "--stats-every",
+        type=float,
+        default=5.0,
+        metavar="S",
+        help=f"statistics interval ({MIN_STATS_EVERY_S:g} to {MAX_STATS_EVERY_S:g} s; default 5 s)",
+    )
     return p
 
 
 def _read_key(path: str) -> bytes:
-    """The key file's bytes, without one trailing line break (keys are often written with ``echo``)."""
-    from ipt.fileio import read_bytes_file
+    """The key file's bytes, without one trailing line break (keys are often written with ``echo``); the key
+    file must be private and the key at least 16 bytes."""
+    from ipt.keyfile import read_key_file
 
-    key = read_bytes_file(path, SenderCliError, "a key file", max_bytes=MAX_KEY_BYTES, missing="no such key file")
-    for ending in (b"\r\n", b"\n"):
-        if key.endswith(ending):
-            return key[: -len(ending)]
-    return key
+    return read_key_file(path)  # one line naming the file: missing, not private, too short (ipt.keyfile)
 
 
 def _scene(args: argparse.Namespace, arena: ArenaConfig) -> tuple[Any, float]:
@@ -233,8 +239,10 @@ def _check_flags(parser: argparse.ArgumentParser, args: argparse.Namespace) -> N
         parser.error("--output is only for --sink file")
     if args.frames is not None and args.frames < 1:
         parser.error(f"--frames must be at least 1, got {args.frames}")
-    if not (math.isfinite(args.stats_every) and args.stats_every > 0):
-        parser.error(f"--stats-every must be a positive number, got {args.stats_every}")
+    if not (MIN_STATS_EVERY_S <= args.stats_every <= MAX_STATS_EVERY_S):  # also false for nan
+        parser.error(
+            f"--stats-every must be {MIN_STATS_EVERY_S:g} to {MAX_STATS_EVERY_S:g} seconds, got {args.stats_every}"
+        )
     if not 1 <= args.threads <= 64:
         parser.error(f"--threads must be 1..64, got {args.threads}")
     if args.gpu and args.sink != "window":
@@ -287,9 +295,7 @@ def _serve(args: argparse.Namespace) -> int:
     listen = _listen(args)
     packet_filter, max_vehicles = _packet_filter(args)
     if args.gpu and mod.profile != "ipt":
-        raise SenderCliError(
-            f"--gpu makes the ipt profile's phases; the arena's modulation.profile is {mod.profile!r}"
-        )
+        raise SenderCliError(f"--gpu makes the ipt profile's phases; the arena's modulation.profile is {mod.profile!r}")
     with contextlib.ExitStack() as stack:
         mask = (tag_map := grid_tag_map(arena)).render_mask()
         modulator: Modulator = make_modulator(mod.profile, mask, mod.delta_l, args.threads, mod.clip_allowance_l8)

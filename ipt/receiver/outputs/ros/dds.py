@@ -37,6 +37,7 @@ from cyclonedds.topic import Topic
 
 from ipt.config.receiver import Ros2Config
 from ipt.errors import IptError
+from ipt.receiver.outputs.ros.ddsconfig import check_cyclonedds_uri
 from ipt.receiver.outputs.ros.frames import Outgoing
 from ipt.rosmsg import ODOMETRY, POSE, TF, Message, dds_topic_name
 
@@ -270,6 +271,7 @@ class Ros2Output:
     ) -> None:
         """``topics``: (ROS topic, ``pkg/msg/Type``) pairs to create writers for."""
         self.domain_id = domain_from(cfg, environ)
+        check_cyclonedds_uri()  # the environment CycloneDDS itself reads: a folder there meant default settings
         self.topics = [topic for topic, _ in topics]
         self.report = report
         self.published = 0
