@@ -162,7 +162,7 @@ def _refused(target: Path, mode: int) -> WriteError:
     return WriteError(errno.EINVAL, f"{kind}, not a regular file: an output never replaces one", str(target))
 
 
-def _output_target(target: Path) -> tuple[Path, bool]:
+def output_target(target: Path) -> tuple[Path, bool]:
     """Where an output named ``target`` goes, and whether it is written straight through (a character device).
 
     A symbolic link is followed to its final target. A regular file or no file: written beside, then
@@ -225,7 +225,7 @@ def atomic_path(target: str | Path) -> Iterator[Path]:
     or a block device is refused with :class:`WriteError` before the body runs.
     """
     named = Path(target)
-    t, through = _output_target(named)
+    t, through = output_target(named)
     if through:
         yield from _write_through(t)
         return

@@ -18,6 +18,7 @@ import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -194,4 +195,33 @@ def test_the_tools_write_through_devices_and_refuse_pipes(tmp_path: Path, argv: 
     full = _device(tmp_path / "full", 7)
     _one_line(_run(tmp_path, *argv, "full"), "full", "No space left")
     assert _kind(full) == "chr"
+    assert _leftovers(tmp_path) == []
+
+
+def _record(path: Path) -> Any:
+    pytest.importorskip("mcap_ros2")
+    from ipt.receiver.outputs.ros.record import McapRecorder
+
+    recorder = McapRecorder(path)
+    recorder.start()
+    recorder.close()
+    return recorder
+
+
+def test_the_flight_log_follows_links_and_writes_through_devices(tmp_path: Path) -> None:
+    (tmp_path / "link.mcap").symlink_to("real.mcap")
+    assert _record(tmp_path / "link.mcap").completed
+    assert _kind(tmp_path / "link.mcap") == "link"
+    assert (tmp_path / "real.mcap").read_bytes().startswith(b"\x89MCAP")
+    null = _device(tmp_path / "null", 3)
+    _record(null)
+    assert _kind(null) == "chr"
+    assert _leftovers(tmp_path) == []
+
+
+def test_the_flight_log_refuses_a_pipe(tmp_path: Path) -> None:
+    os.mkfifo(tmp_path / "log.mcap")
+    with pytest.raises(WriteError, match="named pipe"):
+        _record(tmp_path / "log.mcap")
+    assert _kind(tmp_path / "log.mcap") == "fifo"
     assert _leftovers(tmp_path) == []

@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ipt.fileio import WriteError
+from ipt.fileio import WriteError, output_target
 from ipt.receiver.outputs.ros.frames import Outgoing
 from ipt.rosmsg import COMPRESSED_IMAGE, DIAGNOSTICS, METADATA_NAME, ODOMETRY, POSE, TF, message_definition, time_msg
 
@@ -116,10 +116,13 @@ class RecorderStats:
 
 
 def _open_partial(path: Path) -> tuple[Path, BinaryIO]:
-    """Create ``path.partial`` (or raise :class:`WriteError` naming ``path``)."""
+    """Create ``path.partial`` (or raise :class:`WriteError` naming ``path``). A link is followed (the partial
+    file goes beside its target); a character device is opened itself, written through, never replaced; a
+    pipe, a socket or a folder is refused (:func:`ipt.fileio.output_target`)."""
     if path.is_dir():
         raise WriteError(errno.EISDIR, "is a directory", str(path))
-    partial = path.with_name(path.name + PARTIAL_SUFFIX)
+    target, through = output_target(path)
+    partial = target if through else target.with_name(target.name + PARTIAL_SUFFIX)
     try:
         return partial, partial.open("wb")
     except OSError as exc:
@@ -154,6 +157,7 @@ class McapRecorder:
         self.camera_frame_id, self.image_topic = camera_frame_id, image_topic
         self._metadata = dict(metadata or {})
         self._metadata_written = False
+        self._target, self._through = output_target(self.path)  # the link's target; a device: no rename or unlink
         self.partial, self._file = _open_partial(self.path)
         try:
             self._writer = Writer(self._file, chunk_size=CHUNK_BYTES)
@@ -227,8 +231,9 @@ class McapRecorder:
     def _discard(self) -> None:
         with contextlib.suppress(OSError):
             self._file.close()
-        with contextlib.suppress(OSError):
-            self.partial.unlink()
+        if not self._through:
+            with contextlib.suppress(OSError):
+                self.partial.unlink()
 
     # -- the writer thread -------------------------------------------------------------------------------
 
@@ -301,7 +306,8 @@ class McapRecorder:
                 self._write_metadata_once()
                 self._writer.finish()
                 self._file.flush()
-                os.fsync(self._file.fileno())
+                if not self._through:
+                    os.fsync(self._file.fileno())
         except OSError as exc:
             self._fail(exc)
         finally:
@@ -314,7 +320,8 @@ class McapRecorder:
             self._say(f"{self.partial} is incomplete: it holds the chunks written before the failure")
             return
         try:
-            os.replace(self.partial, self.path)
+            if not self._through:
+                os.replace(self.partial, self._target)
         except OSError as exc:
             self._fail(exc)
             return
