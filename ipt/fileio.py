@@ -7,8 +7,9 @@ a byte is read, so a named pipe with no writer is refused at once instead of blo
 
 Writing (:func:`atomic_path`): write beside the target, then rename. A symbolic link is followed to its
 target (the link stays); a character device (``/dev/null``) is written through, as ``> /dev/null`` does
-in a shell; a named pipe, a socket, a block device or a folder is refused with one line before anything is
-written (a pipe with no reader would block): no output ever replaces any of them. Inside :func:`output_group`, the
+in a shell; a named pipe, a socket or a block device is refused with one line before anything is
+written (a pipe with no reader would block): no output ever replaces any of them (nor a folder: the
+rename onto one fails). Inside :func:`output_group`, the
 renames wait until the whole group succeeded, so the outputs of one run appear together or not at all.
 A disk that cannot take a file (full, over quota, read-only, file too large) is reported as one
 :class:`WriteError` naming the target, wherever the error surfaced (:func:`disk_write_error`); the
@@ -154,8 +155,6 @@ def output_group() -> Iterator[None]:
 
 
 def _refused(target: Path, mode: int) -> WriteError:
-    if stat.S_ISDIR(mode):
-        return WriteError(errno.EISDIR, "is a directory", str(target))
     if stat.S_ISLNK(mode):
         return WriteError(errno.ELOOP, "a loop of symbolic links", str(target))
     kind = _file_kind(mode)
@@ -166,7 +165,8 @@ def output_target(target: Path) -> tuple[Path, bool]:
     """Where an output named ``target`` goes, and whether it is written straight through (a character device).
 
     A symbolic link is followed to its final target. A regular file or no file: written beside, then
-    renamed. A folder, a named pipe, a socket or a block device: :class:`WriteError` naming ``target``.
+    renamed (a folder too: the rename fails). A named pipe, a socket or a block device: :class:`WriteError`
+    naming ``target``.
     """
     try:
         real = Path(os.path.realpath(target)) if os.path.islink(target) else target
@@ -179,8 +179,8 @@ def output_target(target: Path) -> tuple[Path, bool]:
         if exc.errno == errno.ENOTDIR:
             return target, False  # reported as before, when the temporary file cannot be made
         raise _write_error(target, exc) from None
-    if stat.S_ISREG(mode):
-        return real, False
+    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
+        return real, False  # a folder: the rename onto it fails and says so, as it always did
     if stat.S_ISCHR(mode):
         return real, True
     raise _refused(target, mode)
@@ -203,7 +203,7 @@ def _replace(tmp: Path, target: Path) -> None:
         mode = os.lstat(target).st_mode
     except OSError:
         mode = stat.S_IFREG
-    if not stat.S_ISREG(mode):
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):  # a folder: os.replace refuses it below
         raise _refused(target, mode)
     try:
         os.replace(tmp, target)
@@ -221,8 +221,8 @@ def atomic_path(target: str | Path) -> Iterator[Path]:
     :class:`WriteError` is raised. Inside :func:`output_group` the rename waits for the group.
 
     ``target`` may be a symbolic link (its target is written, the link kept) or a character device (the
-    yielded path is the device itself: written through, nothing renamed); a folder, a named pipe, a socket
-    or a block device is refused with :class:`WriteError` before the body runs.
+    yielded path is the device itself: written through, nothing renamed); a named pipe, a socket or a block
+    device is refused with :class:`WriteError` before the body runs.
     """
     named = Path(target)
     t, through = output_target(named)

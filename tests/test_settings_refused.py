@@ -198,7 +198,7 @@ def test_the_senders_short_key_error_names_the_key_file(tmp_path: Path) -> None:
     _one_line(_run(tmp_path, *SENDER_KEY), "ipt.key", "5 bytes", "at least 16")
 
 
-@pytest.mark.parametrize("mode", [0o644, 0o604, 0o602, 0o601, 0o666])
+@pytest.mark.parametrize("mode", [0o644, 0o604, 0o602, 0o601, 0o666], ids=lambda m: f"{m:04o}")
 def test_a_key_file_open_to_others_is_refused_by_sender_and_receiver(tmp_path: Path, mode: int) -> None:
     _files(tmp_path)
     key = _key(tmp_path, KEY + b"\n", mode)
@@ -207,7 +207,7 @@ def test_a_key_file_open_to_others_is_refused_by_sender_and_receiver(tmp_path: P
         read_auth_key(key)
 
 
-@pytest.mark.parametrize("mode", [0o600, 0o640, 0o400])
+@pytest.mark.parametrize("mode", [0o600, 0o640, 0o400], ids=lambda m: f"{m:04o}")
 def test_a_private_key_file_is_accepted(tmp_path: Path, mode: int) -> None:
     assert read_auth_key(_key(tmp_path, KEY + b"\n", mode)) == KEY
 
