@@ -205,7 +205,9 @@ def test_key_file_missing_open_to_others_or_short_fails_private_passes(tmp_path:
     key.write_bytes(b"k" * 32)
     key.chmod(0o644)
     assert check().status == FAIL
-    assert check().fix == f"chmod 600 {key}"
+    assert check().fix == f"chmod o-rwx {key}"
+    key.chmod(0o640)  # the sender's and the daemon's rule (ipt.keyfile): closed to others, a group may read
+    assert check().status == OK, check().line()
     key.chmod(0o600)
     assert check().status == OK, check().line()
     key.write_bytes(b"short")

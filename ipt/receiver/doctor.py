@@ -5,9 +5,9 @@ line ends with what to do (``-> ...``). The checks: the receiver config loads; t
 (V4L2 nodes with the modes their drivers advertise at the camera file's size and the configured rate, and
 picamera2 cameras with their sensor modes), and for a configured camera the pixel format it delivers and the
 rate measured over :data:`MEASURE_S` seconds; ``camera.yaml`` against the frames' size; the arena file and
-its map hash (the sender prints the same hash); the key file (there, not readable by group or others); every
-send target (parses, a UDP socket to it opens; nothing is sent); the compiled kernels load in this process;
-the MAVLink link opens and a HEARTBEAT arrives within :data:`HEARTBEAT_TIMEOUT_S` (when one is configured);
+its map hash (the sender prints the same hash); the key file (there, closed to other users: the rule of
+:mod:`ipt.keyfile`); every send target (parses, a UDP socket to it opens; nothing is sent); the compiled
+kernels load in this process; the MAVLink link opens and a HEARTBEAT arrives within :data:`HEARTBEAT_TIMEOUT_S` (when one is configured);
 the clock is synchronised (``timedatectl``, when the system has it). Exit status 0 when no check failed, 1
 otherwise. A check never raises: what went wrong (a camera that vanished, an unreadable file) is its line.
 
@@ -421,8 +421,9 @@ def _arena(cfg: ReceiverConfig) -> Check:
 
 
 def _key(cfg: ReceiverConfig) -> Check:
-    """The key file: there, a regular file, not readable by group or others, a key the receiver accepts."""
-    from ipt.config.receiver import read_auth_key
+    """The key file: there, a regular file, closed to other users, a key the receiver accepts (the one rule of
+    :func:`ipt.keyfile.read_key_file`, which the sender and the daemon apply too)."""
+    from ipt.keyfile import KeyFileError, read_key_file
 
     path = cfg.auth_key_file
     if path is None:
@@ -432,14 +433,12 @@ def _key(cfg: ReceiverConfig) -> Check:
     except OSError as exc:
         fix = f"copy the sender's key file to {path} (chmod 600)"
         return Check(FAIL, "key", f"{path}: {exc.strerror or exc}", fix)
-    if stat.S_IMODE(mode) & 0o044:
-        return Check(
-            FAIL, "key", f"{path}: readable by group or others (mode {stat.S_IMODE(mode):o})", f"chmod 600 {path}"
-        )
     try:
-        key = read_auth_key(path)
-    except IptError as exc:
-        return Check(FAIL, "key", str(exc), "write a key of 16 bytes or more (e.g. head -c 32 /dev/urandom)")
+        key = read_key_file(path)
+    except KeyFileError as exc:
+        private = not stat.S_IMODE(mode) & 0o007
+        fix = "write a key of 16 bytes or more (e.g. head -c 32 /dev/urandom)" if private else f"chmod o-rwx {path}"
+        return Check(FAIL, "key", str(exc), fix)
     return Check(OK, "key", f"{path}: {len(key)} bytes, mode {stat.S_IMODE(mode):o}")
 
 
