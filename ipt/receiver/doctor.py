@@ -1,15 +1,15 @@
 """``ipt-receiver doctor``: the questions of a lab's first day, answered by the receiver itself.
 
-One line per check, ``[ ok ]``, ``[FAIL]`` or ``[skip]``, then the check's name and what was found; a failing
-line ends with what to do (``-> ...``). The checks: the receiver config loads; the cameras this computer has
-(V4L2 nodes with the modes their drivers advertise at the camera file's size and the configured rate, and
-picamera2 cameras with their sensor modes), and for a configured camera the pixel format it delivers and the
-rate measured over :data:`MEASURE_S` seconds; ``camera.yaml`` against the frames' size; the arena file and
-its map hash (the sender prints the same hash); the key file (there, closed to other users: the rule of
-:mod:`ipt.keyfile`); every send target (parses, a UDP socket to it opens; nothing is sent); the compiled
-kernels load in this process; the MAVLink link opens and a HEARTBEAT arrives within :data:`HEARTBEAT_TIMEOUT_S` (when one is configured);
-the clock is synchronised (``timedatectl``, when the system has it). Exit status 0 when no check failed, 1
-otherwise. A check never raises: what went wrong (a camera that vanished, an unreadable file) is its line.
+One line per check, ``[ ok ]``, ``[FAIL]`` or ``[skip]``, then the check's name and what was found; a failing line
+ends with what to do (``-> ...``). The checks: the receiver config loads; the cameras this computer has (V4L2
+nodes with the modes their drivers advertise at the camera file's size and the configured rate, and picamera2
+cameras with their sensor modes), and for a configured camera the pixel format it delivers and the rate measured
+over :data:`MEASURE_S` seconds; ``camera.yaml`` against the frames' size; the arena file and its map hash (the
+sender prints the same hash); the key file (there, closed to other users: the rule of :mod:`ipt.keyfile`); every
+send target (parses, a UDP socket to it opens; nothing is sent); the compiled kernels load in this process; the
+MAVLink link opens and a HEARTBEAT arrives within :data:`HEARTBEAT_TIMEOUT_S` (when one is configured); the clock
+is synchronised (``timedatectl``, when the system has it). Exit status 0 when no check failed, 1 otherwise. A
+check never raises: what went wrong (a camera that vanished, an unreadable file) is its line.
 
 What the checks touch of the machine is in :class:`Probes`, so that the tests give each a fake.
 """
