@@ -184,9 +184,9 @@ def _copy_with_runnable_exec_start(name: str, folder: Path) -> Path:
     stand_in = folder / Path(program).name
     stand_in.write_text("#!/bin/sh\nexit 0\n", encoding="utf-8")
     stand_in.chmod(0o755)
-    pattern = re.compile(rf"^(ExecStart=){re.escape(program)}(?=\s|$)", re.MULTILINE)
+    pattern = re.compile(rf"^(ExecStart(?:Pre)?=-?){re.escape(program)}(?=\s|$)", re.MULTILINE)
     copied, count = pattern.subn(lambda m: m.group(1) + str(stand_in), text)
-    assert count == 1, f"{name}: ExecStart= line not found"
+    assert count == 1 + len(values(parse_unit(text), "Service", "ExecStartPre")), f"{name}: ExecStart= line not found"
     target = folder / name
     target.write_text(copied, encoding="utf-8")
     return target
@@ -255,8 +255,11 @@ def test_receiver_can_use_the_camera_and_serial_ports() -> None:
     assert "char-video4linux rw" in allowed
     for serial in ("char-ttyAMA rw", "char-ttyACM rw", "char-ttyUSB rw"):
         assert serial in allowed, f"DeviceAllow={serial} missing"
-    # numpy, OpenCV and pupil-apriltags need no W+X memory (see test_receiver_runs_without_wx_memory).
-    assert last(unit, "Service", "MemoryDenyWriteExecute") == "yes"
+    # numba's kernels need memory made executable, also when loaded from its cache (see
+    # test_kernels_run_compiled_from_the_units_cache); the unit must say so rather than forget it.
+    assert last(unit, "Service", "MemoryDenyWriteExecute") == "no"
+    text = (UNIT_DIR / "ipt-receiver.service").read_text(encoding="utf-8")
+    assert re.search(r"^# MemoryDenyWriteExecute= is off on purpose", text, re.MULTILINE)
 
 
 def test_sender_reaches_the_display_and_gpu_and_hears_the_drones() -> None:
@@ -386,3 +389,57 @@ def test_receiver_runs_without_wx_memory(tmp_path: Path) -> None:
     print(result.stderr)
     assert result.returncode == 0, result.stderr
     assert packets > 0, f"no pose packets arrived:\n{result.stderr}"
+
+
+# --- the compiled kernels under the unit, from the cache it gives them ------------------------------------
+
+_KERNELS_LINE = re.compile(r"kernels: compiled, cache (\S+), (\d+) loaded from the cache, (\d+) compiled")
+
+
+def _as_the_unit_runs(args: list[str], env: dict[str, str], wx: bool, cwd: Path) -> subprocess.CompletedProcess[str]:
+    """``python -m ipt.receiver.cli ARGS`` with the unit's environment, under W^X when the unit asks for it."""
+    command = [sys.executable, "-m", "ipt.receiver.cli", *args]
+    if wx:
+        command = [sys.executable, "-c", _MDWE_EXEC, *command]
+    return subprocess.run(command, capture_output=True, text=True, timeout=600, env=env, cwd=cwd, check=False)
+
+
+def test_kernels_run_compiled_from_the_units_cache(tmp_path: Path, short_flight: Path) -> None:
+    """As the unit starts the receiver (its ExecStartPre, its Environment, its CacheDirectory, its W^X
+    setting; no home): `ipt-receiver warm` compiles the kernels into the cache, and a new process then runs
+    them compiled, loaded from that cache, compiling none. Fails when the kernels fall back to numpy."""
+    unit = load("ipt-receiver.service")
+    pre = [shlex.split(v.lstrip("-@:+!")) for v in values(unit, "Service", "ExecStartPre")]
+    assert any(Path(c[0]).name == "ipt-receiver" and c[1:] == ["warm"] for c in pre), (
+        "the unit does not run `ipt-receiver warm` before the daemon: the kernels would compile in flight"
+    )
+    cache_dirs = words(unit, "Service", "CacheDirectory")
+    assert cache_dirs, "no CacheDirectory=: under ProtectSystem=strict and no home, numba has nowhere to cache"
+    unit_env = environment(unit)
+    numba_dir = Path(unit_env.get("NUMBA_CACHE_DIR", "/nonexistent"))
+    assert any(numba_dir.is_relative_to(Path("/var/cache") / d) for d in cache_dirs), (
+        f"NUMBA_CACHE_DIR={numba_dir} is not in the unit's CacheDirectory= (/var/cache/{cache_dirs})"
+    )
+    here = tmp_path / "var-cache" / numba_dir.relative_to("/var/cache")  # what systemd makes, here
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("NUMBA_", "XDG_"))}
+    env.update(unit_env, NUMBA_CACHE_DIR=str(here), HOME="/nonexistent")
+    wx = last(unit, "Service", "MemoryDenyWriteExecute") == "yes"
+    if wx and _as_the_unit_runs(["--version"], env, True, tmp_path).returncode == 77:
+        pytest.skip(f"the unit asks for W^X and this kernel ({os.uname().release}) has no PR_SET_MDWE")
+
+    warm = _as_the_unit_runs(["warm"], env, wx, tmp_path)
+    print(warm.stdout, warm.stderr)
+    assert warm.returncode == 0, f"ipt-receiver warm failed under the unit's settings:\n{warm.stdout}{warm.stderr}"
+    replay = _as_the_unit_runs(
+        ["replay", "--camera", str(short_flight / "camera.yaml"), "--video", str(short_flight / "frames.mkv"),
+         "--fps", "120", "--output", str(tmp_path / "poses.tum")],
+        env, wx, tmp_path,
+    )  # fmt: skip
+    print(replay.stderr[-2000:])
+    assert replay.returncode == 0, replay.stderr
+    found = _KERNELS_LINE.search(replay.stderr)
+    assert found is not None, f"the replay's kernels are not compiled and cached:\n{replay.stderr[-1000:]}"
+    cache, loaded, compiled = Path(found.group(1)), int(found.group(2)), int(found.group(3))
+    assert cache.is_relative_to(here), f"kernels cached in {cache}, not in the unit's cache folder {here}"
+    assert loaded > 0, "no kernel was loaded from the cache"
+    assert compiled == 0, f"{compiled} kernel versions compiled in flight after `ipt-receiver warm`"

@@ -67,7 +67,28 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         PipelineConfig.profile(args.profile),
     )
     print(f"ipt-receiver replay: {summary.poses} poses from {summary.frames} frames -> {args.output}")
+    _say_kernels()
     return 0
+
+
+def _say_kernels() -> None:
+    """The kernels' line (compiled? from the cache? compiled in this process?) on stderr."""
+    from ipt.receiver.kernelcache import status
+
+    print(f"ipt-receiver: {status().line()}", file=sys.stderr)
+
+
+def _cmd_warm(_args: argparse.Namespace) -> int:
+    """``ipt-receiver warm``: exit 0 when every kernel is compiled and in numba's disk cache, else 1."""
+    from ipt.receiver.kernelcache import cache_env_hint, warm
+
+    kernel_status = warm()
+    print(f"ipt-receiver warm: {kernel_status.line()}")
+    if kernel_status.compiled and kernel_status.cache_dir:
+        return 0
+    print(f"ipt-receiver warm: the kernels are not cached ({cache_env_hint()}): they will compile or fall back "
+          "in every start; see docs/raspberry-pi.md", file=sys.stderr)  # fmt: skip
+    return 1
 
 
 def _positive_int(text: str) -> int:
@@ -155,6 +176,7 @@ def _run_daemon(args: argparse.Namespace) -> int:
     finally:
         if frame_log is not None:
             frame_log.close()
+    _say_kernels()
     if stats.capture_running:
         # A read still inside native code (camera driver, renderer) must neither hold up the exit nor
         # see the C++ runtime torn down under it: leave now, everything worth keeping is written.
@@ -227,6 +249,16 @@ def build_parser() -> argparse.ArgumentParser:
     _add_replay(sub)
     _add_run(sub)
     _add_doctor(sub)
+    w = sub.add_parser(
+        "warm",
+        help="compile the receiver's kernels into numba's disk cache, so that nothing compiles in flight",
+        description="Compile every compiled kernel of the receiver (numba) and store it in numba's disk cache "
+        "($NUMBA_CACHE_DIR; the systemd unit runs this with /var/cache/ipt-receiver before the daemon), so that "
+        "`run` loads them in a fraction of a second instead of compiling for seconds. Prints one line; exit "
+        "status 0 when every kernel is compiled and cached, 1 when they cannot compile (numba missing, "
+        "executable memory forbidden) or no cache folder is writable.",
+    )
+    w.set_defaults(func=_cmd_warm)
     return p
 
 

@@ -37,8 +37,15 @@ COMPILED = True
 """Whether the kernels below are compiled (False: numba is unavailable and they run as Python, or as numpy
 where they have a fallback); known once :func:`ensure` has run."""
 
+NOT_COMPILED_BECAUSE: str | None = None
+"""Why the kernels are not compiled (numba's import error), or None."""
+NOT_CACHED_BECAUSE: str | None = None
+"""Why numba keeps no disk cache of the kernels (no writable cache folder: set ``NUMBA_CACHE_DIR``), or None."""
+
 _lock = threading.Lock()
 _ready = threading.Event()
+_dispatchers: list[Any] = []
+"""numba's dispatcher of every compiled kernel, the helpers included (for :func:`status`)."""
 
 
 class _Kernel:
@@ -59,16 +66,20 @@ class _Kernel:
 
 def _jit(fn: Callable[..., Any]) -> Any:
     """``fn`` compiled by numba (cached on disk where possible), else ``fn`` itself."""
-    global COMPILED
+    global COMPILED, NOT_COMPILED_BECAUSE, NOT_CACHED_BECAUSE
     try:
         import numba
-    except (ImportError, OSError):  # OSError: llvmlite refused executable memory
+    except (ImportError, OSError) as exc:  # OSError: llvmlite refused executable memory
         COMPILED = False
+        NOT_COMPILED_BECAUSE = f"{type(exc).__name__}: {exc}"
         return fn
     try:
-        return numba.njit(nogil=True, cache=True)(fn)
-    except RuntimeError:  # no writable cache location: compile in every process
-        return numba.njit(nogil=True)(fn)
+        compiled = numba.njit(nogil=True, cache=True)(fn)
+    except RuntimeError as exc:  # no writable cache location: compile in every process
+        NOT_CACHED_BECAUSE = str(exc)
+        compiled = numba.njit(nogil=True)(fn)
+    _dispatchers.append(compiled)
+    return compiled
 
 
 def ensure() -> None:
