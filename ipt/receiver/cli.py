@@ -78,13 +78,19 @@ def _say_kernels() -> None:
     print(f"ipt-receiver: {status().line()}", file=sys.stderr)
 
 
-def _cmd_warm(_args: argparse.Namespace) -> int:
+def _cmd_warm(args: argparse.Namespace) -> int:
     """``ipt-receiver warm``: exit 0 when every kernel is compiled and in numba's disk cache, else 1."""
-    from ipt.receiver.kernelcache import cache_env_hint, warm
+    from ipt.receiver.kernelcache import STAMP_NAME, already_warm, cache_env_hint, warm
 
+    if not args.force and already_warm():
+        print(f"ipt-receiver warm: kernels already cached for this installation ({STAMP_NAME} matches); "
+              "--force loads them all")  # fmt: skip
+        return 0
     kernel_status = warm()
     print(f"ipt-receiver warm: {kernel_status.line()}")
-    if kernel_status.compiled and kernel_status.cache_dir:
+    wanted = os.environ.get("NUMBA_CACHE_DIR")
+    cached = kernel_status.cache_dir
+    if kernel_status.compiled and cached and (not wanted or Path(cached).is_relative_to(Path(wanted).resolve())):
         return 0
     print(f"ipt-receiver warm: the kernels are not cached ({cache_env_hint()}): they will compile or fall back "
           "in every start; see docs/raspberry-pi.md", file=sys.stderr)  # fmt: skip
@@ -257,6 +263,11 @@ def build_parser() -> argparse.ArgumentParser:
         "`run` loads them in a fraction of a second instead of compiling for seconds. Prints one line; exit "
         "status 0 when every kernel is compiled and cached, 1 when they cannot compile (numba missing, "
         "executable memory forbidden) or no cache folder is writable.",
+    )
+    w.add_argument(
+        "--force",
+        action="store_true",
+        help="load (or compile) every kernel even when the cache's stamp says it is complete for this installation",
     )
     w.set_defaults(func=_cmd_warm)
     return p

@@ -1,0 +1,105 @@
+"""The processor time of a replay as the systemd unit runs the receiver, against an unrestricted one.
+
+"As the unit runs it": the unit's Environment= (``NUMBA_CACHE_DIR`` pointing into its ``CacheDirectory=``,
+here a temporary folder standing for /var/cache/ipt-receiver), no home (``HOME=/nonexistent``, no
+``XDG_*``), the cache filled by the unit's ``ExecStartPre=ipt-receiver warm``, and W^X (the kernel's
+``prctl(PR_SET_MDWE)``, as tests/test_systemd.py applies it) if and only if the unit sets
+``MemoryDenyWriteExecute=yes``. "Unrestricted": the developer's environment, numba's default cache, warmed
+first. Each replay runs pinned to one core, ``taskset -c 0 /usr/bin/time -f '%U %S' ipt-receiver replay``,
+rounds alternating so that a change in the machine's load hits both. ``--wx`` adds the same replay under
+W^X whatever the unit says (what the old unit cost). Prints one JSON object.
+
+    ./dev run python benchmarks/unit_kernels.py --video DIR/bmp --camera DIR/camera.yaml --config DIR/arena.yaml
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+UNIT = ROOT / "deploy" / "systemd" / "ipt-receiver.service"
+MDWE_EXEC = """
+import ctypes, os, sys
+if ctypes.CDLL(None, use_errno=True).prctl(65, 1, 0, 0, 0) != 0:
+    sys.exit(77)
+os.execv(sys.argv[1], sys.argv[1:])
+"""
+
+
+def _unit_settings() -> tuple[dict[str, str], bool]:
+    """The unit's Environment= variables and whether it sets MemoryDenyWriteExecute=yes."""
+    env: dict[str, str] = {}
+    wx = False
+    for line in UNIT.read_text(encoding="utf-8").splitlines():
+        if line.startswith("Environment="):
+            for item in shlex.split(line.partition("=")[2]):
+                name, _, value = item.partition("=")
+                env[name] = value
+        elif line.startswith("MemoryDenyWriteExecute="):
+            wx = line.partition("=")[2].strip() == "yes"
+    return env, wx
+
+
+def _timed(command: list[str], env: dict[str, str], wx: bool) -> dict[str, object]:
+    if wx:
+        command = [sys.executable, "-c", MDWE_EXEC, *command]
+    full = ["taskset", "-c", "0", "/usr/bin/time", "-f", "%U %S", *command]
+    result = subprocess.run(full, capture_output=True, text=True, env=env, check=False, timeout=1800)
+    lines = result.stderr.strip().splitlines()
+    user, sys_s = (float(x) for x in lines[-1].split())
+    kernels = next((ln for ln in result.stdout.splitlines() + lines if "kernels:" in ln), "")
+    return {"cpu_s": round(user + sys_s, 2), "user_s": user, "sys_s": sys_s, "exit": result.returncode,
+            "kernels": kernels.partition("kernels: ")[2]}  # fmt: skip
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--video", required=True, help="the recording (an image folder: BMP costs no decoding)")
+    parser.add_argument("--camera", required=True)
+    parser.add_argument("--config", required=True, help="the arena YAML")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--wx", action="store_true", help="also one replay under W^X (the old unit's setting)")
+    args = parser.parse_args()
+    unit_env, unit_wx = _unit_settings()
+    with tempfile.TemporaryDirectory(prefix="ipt-unit-") as tmp:
+        cli = [sys.executable, "-m", "ipt.receiver.cli"]
+        replay = [*cli, "replay", "--config", args.config, "--camera", args.camera, "--video", args.video,
+                  "--fps", "120", "--output", str(Path(tmp) / "poses.tum")]  # fmt: skip
+        free = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+        as_unit = {k: v for k, v in free.items() if not k.startswith(("NUMBA_", "XDG_"))}
+        as_unit.update(unit_env, HOME="/nonexistent")
+        if "NUMBA_CACHE_DIR" in unit_env:
+            as_unit["NUMBA_CACHE_DIR"] = str(Path(tmp) / "var-cache" / Path(unit_env["NUMBA_CACHE_DIR"]).name)
+        warm_free = subprocess.run([*cli, "warm"], capture_output=True, text=True, env=free, check=False)
+        warm_unit = _timed([*cli, "warm"], as_unit, unit_wx)
+        rounds = []
+        for _ in range(args.rounds):
+            rounds.append({"unrestricted": _timed(replay, free, False), "unit": _timed(replay, as_unit, unit_wx)})
+        free_s = statistics.median(float(r["unrestricted"]["cpu_s"]) for r in rounds)  # type: ignore[arg-type]
+        unit_s = statistics.median(float(r["unit"]["cpu_s"]) for r in rounds)  # type: ignore[arg-type]
+        out: dict[str, object] = {
+            "unit_environment": unit_env,
+            "unit_wx": unit_wx,
+            "warm_unrestricted": warm_free.stdout.strip(),
+            "warm_as_unit": warm_unit,
+            "rounds": rounds,
+            "median_cpu_s": {"unrestricted": free_s, "unit": unit_s},
+            "ratio_unit_to_unrestricted": round(unit_s / free_s, 3),
+            "loadavg_1min": os.getloadavg()[0],
+        }
+        if args.wx:
+            out["under_wx"] = _timed(replay, as_unit, True)
+    print(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,59 @@
+"""``ipt-receiver warm``: the kernels compiled into numba's cache once, then loaded, never compiled again;
+its stamp lets a later warm (the unit's ExecStartPre at every restart) return without importing numba."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from ipt.receiver.kernelcache import STAMP_NAME, stamp_text
+
+
+def _warm(cache: Path, *flags: str) -> subprocess.CompletedProcess[str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
+    env["NUMBA_CACHE_DIR"] = str(cache)
+    command = [sys.executable, "-X", "importtime", "-m", "ipt.receiver.cli", "warm", *flags]
+    return subprocess.run(command, capture_output=True, text=True, env=env, timeout=600, check=False)
+
+
+def _numba_imported(result: subprocess.CompletedProcess[str]) -> bool:
+    return any(line.rstrip().endswith("| numba") for line in result.stderr.splitlines())
+
+
+def test_warm_caches_every_kernel_then_returns_at_once(tmp_path: Path) -> None:
+    cache = tmp_path / "cache"
+    first = _warm(cache)
+    assert first.returncode == 0, first.stdout + first.stderr[-2000:]
+    assert "kernels: compiled, cache " + str(cache) in first.stdout, first.stdout
+    assert (cache / STAMP_NAME).read_text(encoding="utf-8") == stamp_text()
+
+    again = _warm(cache)
+    assert again.returncode == 0
+    assert "already cached" in again.stdout, again.stdout
+    assert not _numba_imported(again), "a warm with a matching stamp imported numba"
+
+    # A stamp for something else (another ipt, numba or Python): everything is loaded again, from the
+    # cache, and nothing compiles.
+    (cache / STAMP_NAME).write_text("sources 0\n", encoding="utf-8")
+    checked = _warm(cache)
+    assert checked.returncode == 0, checked.stdout
+    assert _numba_imported(checked)
+    assert " 0 compiled" in checked.stdout, checked.stdout
+    assert " 0 loaded" not in checked.stdout, checked.stdout
+    assert (cache / STAMP_NAME).read_text(encoding="utf-8") == stamp_text()
+
+    forced = _warm(cache, "--force")
+    assert " 0 compiled" in forced.stdout, forced.stdout
+
+
+def test_warm_fails_when_the_cache_is_not_where_numba_cache_dir_says(tmp_path: Path) -> None:
+    """An unusable $NUMBA_CACHE_DIR (here: below a file): numba caches elsewhere or not at all, which the
+    unit's read-only venv and missing home would not allow; warm says so and exits 1, without a traceback."""
+    blocked = tmp_path / "file"
+    blocked.write_text("not a folder", encoding="utf-8")
+    result = _warm(blocked / "cache")
+    assert result.returncode == 1, result.stdout + result.stderr[-2000:]
+    assert f"NUMBA_CACHE_DIR={blocked / 'cache'}" in result.stderr, result.stderr[-500:]
+    assert "Traceback" not in result.stderr
