@@ -39,9 +39,13 @@ class KernelStatus:
     """Kernel versions compiled in this process (none after ``ipt-receiver warm``)."""
     reason: str | None
     """Why the kernels are not compiled or not cached, or None when they are both."""
+    loaded: bool = True
+    """False: this process has not loaded its kernels yet (it stopped before its first frame pair)."""
 
     def line(self) -> str:
         """One line for a log or a terminal."""
+        if not self.loaded:
+            return "kernels: not loaded yet (the process stopped before its first frame pair)"
         if not self.compiled:
             return f"kernels: NOT compiled, running numpy/Python fallbacks (5x slower): {self.reason}"
         where = f"cache {self.cache_dir}" if self.cache_dir else f"NO disk cache ({self.reason})"
@@ -52,6 +56,8 @@ def status() -> KernelStatus:
     """The kernels' state in this process now (after :func:`ipt.receiver.core.kernels.ensure`)."""
     from ipt.receiver.core import kernels
 
+    if not kernels._ready.is_set():
+        return KernelStatus(False, None, 0, 0, None, loaded=False)
     if not kernels.COMPILED:
         return KernelStatus(False, None, 0, 0, kernels.NOT_COMPILED_BECAUSE or "numba is unavailable")
     hits = misses = 0
