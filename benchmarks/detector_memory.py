@@ -55,9 +55,9 @@ def collect_images(folder: Path, out: Path) -> int:
     seen: list[np.ndarray] = []
     detect = pipeline.detector.detect
 
-    def keep(gray: np.ndarray) -> Any:
+    def keep(gray: np.ndarray, decimate: float | None = None) -> Any:
         seen.append(gray.copy())
-        return detect(gray)
+        return detect(gray, decimate)
 
     pipeline.detector.detect = keep  # type: ignore[method-assign]
     with open_frames(folder / "frames.mkv") as frames:

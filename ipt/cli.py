@@ -91,7 +91,7 @@ def _cmd_map_check(args: argparse.Namespace) -> int:
     hit = wanted & set(found)
     worst = max((float(np.abs(found[i] - np.asarray(tm.by_id[i].corners_px)).max()) for i in hit), default=float("nan"))
     print(
-        f"ipt map check: {args.image}: pupil-apriltags found {len(hit)}/{len(wanted)} ids of the layout, "
+        f"ipt map check: {args.image}: AprilTag found {len(hit)}/{len(wanted)} ids of the layout, "
         f"largest corner difference {worst:.3f} px"
     )
     return 0 if hit == wanted else 1
@@ -229,7 +229,7 @@ def _add_map_parser(sub: argparse._SubParsersAction[Parser], cfg_help: str) -> N
     c = msub.add_parser(
         "check",
         help="validate a layout JSON (and detect its tags in a map image)",
-        description="Check a layout file; with --image, detect the tags with pupil-apriltags and compare "
+        description="Check a layout file; with --image, detect the tags with AprilTag 3 (dt-apriltags) and compare "
         "their corners with the layout. Exit 1 if any tag of the layout is not found.",
     )
     c.add_argument("--layout", required=True, metavar="LAYOUT.json")

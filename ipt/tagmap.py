@@ -13,7 +13,7 @@ Coordinates:
 
 Corner order, in both lists of a tag: bottom-left, bottom-right, top-right, top-left as the tag is seen
 in the projector image: counter-clockwise seen from above in the arena, and the order in which
-pupil-apriltags reports the corners of a tag it decodes.
+AprilTag 3 (dt-apriltags) reports the corners of a tag it decodes.
 """
 
 from __future__ import annotations
@@ -69,14 +69,15 @@ class _ApriltagFamily(ctypes.Structure):
 def _tag36h11_family() -> tuple[tuple[int, ...], tuple[int, ...], tuple[int, ...]]:
     """The codes and bit positions of tag36h11, read from the library the detector itself uses.
 
-    Taking them from pupil-apriltags' bundled ``libapriltag`` guarantees that the tags we draw are the
-    ones the detector decodes, in its canonical orientation.
+    Taking them from the ``libapriltag`` bundled with the detector's binding (dt-apriltags: in its package
+    folder; pupil-apriltags had it in ``lib*/``) guarantees that the tags we draw are the ones the detector
+    decodes, in its canonical orientation.
     """
-    import pupil_apriltags
+    import dt_apriltags
 
-    pkg = Path(pupil_apriltags.__file__).parent
-    candidates = sorted(pkg.glob("lib*/libapriltag.so*")) + sorted(pkg.glob("lib*/*apriltag*.dylib"))
-    candidates += sorted(pkg.glob("lib*/*apriltag*.dll"))
+    pkg = Path(dt_apriltags.__file__).parent
+    patterns = ("libapriltag.so*", "*apriltag*.dylib", "*apriltag*.dll", "lib*/libapriltag.so*")
+    candidates = [found for pattern in patterns for found in sorted(pkg.glob(pattern))]
     if not candidates:
         raise TagMapError(f"cannot find the AprilTag library inside {pkg}")
     lib = ctypes.CDLL(str(candidates[0]))

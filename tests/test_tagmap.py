@@ -7,9 +7,9 @@ from pathlib import Path
 from typing import Any
 
 import cv2
+import dt_apriltags
 import numpy as np
 import numpy.typing as npt
-import pupil_apriltags
 import pytest
 
 from ipt.config.models import ArenaConfig
@@ -41,8 +41,8 @@ def paper_image(paper_map: TagMap) -> npt.NDArray[np.uint8]:
 
 
 def _detect(img: npt.NDArray[np.uint8]) -> dict[int, Any]:
-    # Raw pupil-apriltags output (its own pixel convention), freed in the order its C library needs.
-    detector = pupil_apriltags.Detector(families="tag36h11")
+    # Raw dt-apriltags output (its own pixel convention), freed in the order its C library needs.
+    detector = dt_apriltags.Detector(families="tag36h11")
     try:
         dets = detector.detect(np.ascontiguousarray(img))
     finally:

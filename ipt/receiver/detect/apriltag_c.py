@@ -1,4 +1,11 @@
-"""AprilTag's C detector (pupil-apriltags), called directly: made, asked, freed.
+"""AprilTag's C detector (dt-apriltags), called directly: made, asked, freed.
+
+dt-apriltags is a fork of pupil-apriltags' ctypes bindings around the same AprilTag 3 C library, with
+wheels for aarch64 Linux (a Raspberry Pi) where pupil-apriltags has only a source archive; on the suite's
+images it gives pupil-apriltags 1.0.4's detections bit for bit (benchmarks/apriltag_binding.py,
+docs/raspberry-pi.md). Its ``Detector`` has pupil's attributes (``tag_detector_ptr``, ``libc``,
+``tag_families``) and its faults (the free order, ``int(decode_sharpening)``), handled here; the names
+below keep "pupil" for that layout.
 
 What both sides of the detector's process boundary need: :mod:`ipt.receiver.detect.detector` runs it inline,
 the helper process of :mod:`ipt.receiver.detect.tagworker` runs it there; neither imports the other for it.
@@ -13,9 +20,9 @@ from __future__ import annotations
 
 from typing import Any
 
+import dt_apriltags
 import numpy as np
 import numpy.typing as npt
-import pupil_apriltags
 
 from ipt.errors import IptError
 
@@ -28,9 +35,10 @@ class DetectorError(IptError):
 
 
 def free_pupil_detector(det: Any) -> None:
-    """Free a pupil-apriltags detector in the order the C library needs.
+    """Free a dt-apriltags (pupil-apriltags layout) detector in the order the C library needs.
 
-    pupil-apriltags 1.0.4's ``Detector.__del__`` frees the tag family first and then calls
+    dt-apriltags 3.1.7's ``Detector.__del__``, like pupil-apriltags 1.0.4's, frees the tag family first and
+    then calls
     ``apriltag_detector_destroy``, which writes into that freed family (``quick_decode_uninit``): an
     8-byte use-after-free that valgrind shows and that later aborts the process in an unrelated
     ``malloc``. We destroy the detector first, then the family, and disarm the library's ``__del__``.
@@ -38,7 +46,7 @@ def free_pupil_detector(det: Any) -> None:
     ptr = det.tag_detector_ptr
     if ptr is None:
         return
-    det.tag_detector_ptr = None  # makes pupil-apriltags' own __del__ a no-op
+    det.tag_detector_ptr = None  # makes the binding's own __del__ a no-op
     libc = det.libc
     libc.apriltag_detector_destroy.restype = None
     libc.apriltag_detector_destroy(ptr)
@@ -49,9 +57,9 @@ def free_pupil_detector(det: Any) -> None:
 
 
 def make_pupil_detector(settings: dict[str, float]) -> Any:
-    """A tag36h11 pupil-apriltags detector with ``settings`` (see :func:`ipt.receiver.detect.detector.c_settings`).
+    """A tag36h11 dt-apriltags detector with ``settings`` (see :func:`ipt.receiver.detect.detector.c_settings`).
     Free it with :func:`free_pupil_detector`."""
-    det = pupil_apriltags.Detector(
+    det = dt_apriltags.Detector(
         families="tag36h11",
         nthreads=int(settings["nthreads"]),
         quad_decimate=settings["quad_decimate"],
@@ -59,13 +67,13 @@ def make_pupil_detector(settings: dict[str, float]) -> Any:
         refine_edges=int(settings["refine_edges"]),
         decode_sharpening=settings["decode_sharpening"],
     )
-    # pupil-apriltags 1.0.4 stores int(decode_sharpening), so 0.25 would reach the C detector as 0.
+    # dt-apriltags 3.1.7 (as pupil-apriltags 1.0.4) stores int(decode_sharpening): 0.25 would reach C as 0.
     det.tag_detector_ptr.contents.decode_sharpening = settings["decode_sharpening"]
     return det
 
 
 def pupil_settings(det: Any) -> dict[str, float]:
-    """The settings as the C detector holds them (pupil-apriltags may coerce what it is given)."""
+    """The settings as the C detector holds them (the binding may coerce what it is given)."""
     c = det.tag_detector_ptr.contents
     return {
         "nthreads": int(c.nthreads),

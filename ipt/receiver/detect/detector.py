@@ -1,14 +1,15 @@
-"""AprilTag 3 detection (pupil-apriltags), wrapped behind a small interface of frozen dataclasses.
+"""AprilTag 3 detection (dt-apriltags), wrapped behind a small interface of frozen dataclasses.
 
 Corners are returned in OpenCV pixel coordinates (the centre of the top-left pixel is (0, 0)); AprilTag
 reports them with the origin at the top-left pixel's corner, so half a pixel is subtracted here, once.
 Corner order is AprilTag's (see :mod:`ipt.tagmap`), which the tag map uses for its own corners.
 
 The C detector runs either here (``isolation: inline``) or in a helper process that
-:mod:`ipt.receiver.detect.tagworker` manages (``isolation: process``, the default): pupil-apriltags 1.0.4's C
-code leaks memory on every call, and only ending the process gives it back. :class:`DetectorError` and
-:data:`RawDetection` come from :mod:`ipt.receiver.detect.apriltag_c` and are re-exported here. Both give the same
-detections; the filtering below (bit errors, ids, image border) is the same for both.
+:mod:`ipt.receiver.detect.tagworker` manages (``isolation: process``, the default): AprilTag's C code (as
+dt-apriltags 3.1.7 and pupil-apriltags 1.0.4 ship it) leaks memory on every call, and only ending the
+process gives it back. :class:`DetectorError` and :data:`RawDetection` come from
+:mod:`ipt.receiver.detect.apriltag_c` and are re-exported here. Both give the same detections; the
+filtering below (bit errors, ids, image border) is the same for both.
 
 The C library itself is called in :mod:`ipt.receiver.detect.apriltag_c`, which both this module and the helper
 process import (the helper does not import this module).
@@ -135,7 +136,7 @@ class TagDetector:
             self.backend.close()
 
     def effective_settings(self) -> dict[str, float]:
-        """The settings as the C detector holds them (pupil-apriltags may coerce what it is given)."""
+        """The settings as the C detector holds them (the binding may coerce what it is given)."""
         with self._lock:
             return self.backend.settings()
 

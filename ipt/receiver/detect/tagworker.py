@@ -1,6 +1,7 @@
 """AprilTag's C code in a helper process, replaced before its memory leak matters.
 
-pupil-apriltags 1.0.4 (the newest release) leaks 150-600 bytes per ``apriltag_detector_detect`` call:
+AprilTag's C code as pupil-apriltags 1.0.4 and dt-apriltags 3.1.7 ship it (the newest releases; the same
+code) leaks 150-600 bytes per ``apriltag_detector_detect`` call:
 ``quad_segment_maxima`` returns early without freeing two arrays when an outline has fewer than four
 corner candidates (found with valgrind; see docs/reliability.md). At 120 frames/s that is 70-260 MB an
 hour, and freeing the detector gives none of it back; only the end of the process does. So the receiver
@@ -167,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     os.dup2(2, 1)
     with contextlib.suppress(BrokenPipeError):  # the parent went away mid-reply
         serve(args.shm_fd, json.loads(args.settings), requests=0, replies=replies)
-    # No destructors: the detector's memory goes with the process (and pupil-apriltags' own __del__
+    # No destructors: the detector's memory goes with the process (and the binding's own __del__
     # frees in the wrong order; see free_pupil_detector).
     os._exit(0)
 
