@@ -7,7 +7,10 @@ here a temporary folder standing for /var/cache/ipt-receiver), no home (``HOME=/
 ``MemoryDenyWriteExecute=yes``. "Unrestricted": the developer's environment, numba's default cache, warmed
 first. Each replay runs pinned to one core, ``taskset -c 0 /usr/bin/time -f '%U %S' ipt-receiver replay``,
 rounds alternating so that a change in the machine's load hits both. ``--wx`` adds the same replay under
-W^X whatever the unit says (what the old unit cost). Prints one JSON object.
+W^X whatever the unit says (what the old unit cost). ``--read-only`` (root, Linux) runs the unit's
+commands in a mount namespace of their own where the whole file system is read-only but the cache folder,
+as ``ProtectSystem=strict`` with ``CacheDirectory=`` leaves it (numba cannot then fall back to a cache
+next to the sources). Prints one JSON object.
 
     ./dev run python benchmarks/unit_kernels.py --video DIR/bmp --camera DIR/camera.yaml --config DIR/arena.yaml
 """
@@ -48,9 +51,15 @@ def _unit_settings() -> tuple[dict[str, str], bool]:
     return env, wx
 
 
-def _timed(command: list[str], env: dict[str, str], wx: bool) -> dict[str, object]:
+READ_ONLY = 'mount --make-rprivate / && mount --bind "$0" "$0" && mount -o remount,bind,ro / && exec "$@"'
+"""sh: bind the cache folder ($0) onto itself, then make the root mount read-only, then run the command."""
+
+
+def _timed(command: list[str], env: dict[str, str], wx: bool, writable: str | None = None) -> dict[str, object]:
     if wx:
         command = [sys.executable, "-c", MDWE_EXEC, *command]
+    if writable is not None:
+        command = ["unshare", "-m", "sh", "-c", READ_ONLY, writable, *command]
     full = ["taskset", "-c", "0", "/usr/bin/time", "-f", "%U %S", *command]
     result = subprocess.run(full, capture_output=True, text=True, env=env, check=False, timeout=1800)
     lines = result.stderr.strip().splitlines()
@@ -67,6 +76,7 @@ def main() -> int:
     parser.add_argument("--config", required=True, help="the arena YAML")
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--wx", action="store_true", help="also one replay under W^X (the old unit's setting)")
+    parser.add_argument("--read-only", action="store_true", help="as the unit: all read-only but the cache (root)")
     args = parser.parse_args()
     unit_env, unit_wx = _unit_settings()
     with tempfile.TemporaryDirectory(prefix="ipt-unit-") as tmp:
@@ -79,15 +89,22 @@ def main() -> int:
         if "NUMBA_CACHE_DIR" in unit_env:
             as_unit["NUMBA_CACHE_DIR"] = str(Path(tmp) / "var-cache" / Path(unit_env["NUMBA_CACHE_DIR"]).name)
         warm_free = subprocess.run([*cli, "warm"], capture_output=True, text=True, env=free, check=False)
-        warm_unit = _timed([*cli, "warm"], as_unit, unit_wx)
+        writable = None
+        if args.read_only:
+            writable = as_unit.get("NUMBA_CACHE_DIR", tmp)
+            Path(writable).mkdir(parents=True, exist_ok=True)
+            replay[-1] = str(Path(writable) / "poses.tum")  # the only place it may write
+        warm_unit = _timed([*cli, "warm"], as_unit, unit_wx, writable)
         rounds = []
         for _ in range(args.rounds):
-            rounds.append({"unrestricted": _timed(replay, free, False), "unit": _timed(replay, as_unit, unit_wx)})
+            unit_run = _timed(replay, as_unit, unit_wx, writable)
+            rounds.append({"unrestricted": _timed(replay, free, False), "unit": unit_run})
         free_s = statistics.median(float(r["unrestricted"]["cpu_s"]) for r in rounds)  # type: ignore[arg-type]
         unit_s = statistics.median(float(r["unit"]["cpu_s"]) for r in rounds)  # type: ignore[arg-type]
         out: dict[str, object] = {
             "unit_environment": unit_env,
             "unit_wx": unit_wx,
+            "read_only_but_the_cache": args.read_only,
             "warm_unrestricted": warm_free.stdout.strip(),
             "warm_as_unit": warm_unit,
             "rounds": rounds,
