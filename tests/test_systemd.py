@@ -435,10 +435,10 @@ def test_kernels_run_compiled_from_the_units_cache(tmp_path: Path, short_flight:
          "--fps", "120", "--output", str(tmp_path / "poses.tum")],
         env, wx, tmp_path,
     )  # fmt: skip
-    print(replay.stderr[-2000:])
+    print(replay.stdout, replay.stderr[-2000:])
     assert replay.returncode == 0, replay.stderr
-    found = _KERNELS_LINE.search(replay.stderr)
-    assert found is not None, f"the replay's kernels are not compiled and cached:\n{replay.stderr[-1000:]}"
+    found = _KERNELS_LINE.search(replay.stdout)
+    assert found is not None, f"the replay's kernels are not compiled and cached:\n{replay.stdout}"
     cache, loaded, compiled = Path(found.group(1)), int(found.group(2)), int(found.group(3))
     assert cache.is_relative_to(here), f"kernels cached in {cache}, not in the unit's cache folder {here}"
     assert loaded > 0, "no kernel was loaded from the cache"

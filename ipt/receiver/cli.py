@@ -72,10 +72,11 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
 
 def _say_kernels() -> None:
-    """The kernels' line (compiled? from the cache? compiled in this process?) on stderr."""
+    """The kernels' line (compiled? from the cache? compiled in this process?) on stdout: stderr's last line
+    stays the run's final statistics (or the replay's summary)."""
     from ipt.receiver.kernelcache import status
 
-    print(f"ipt-receiver: {status().line()}", file=sys.stderr)
+    print(f"ipt-receiver: {status().line()}", flush=True)
 
 
 def _cmd_warm(args: argparse.Namespace) -> int:
