@@ -53,6 +53,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             raise ReplayError("replay --frames: the recording holds its arena, camera and rate; drop the other flags")
         summary = replay_frame_log(Path(args.frames), Path(args.output))
         print(f"ipt-receiver replay: {summary.poses} poses from {summary.frames} frames -> {args.output}")
+        _say_kernels()
         return 0
     if args.camera is None:
         raise ReplayError("replay --video: --camera CAMERA.yaml is needed")
