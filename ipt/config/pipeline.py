@@ -100,7 +100,7 @@ class DemodulationConfig(StrictModel):
 
 
 class DetectorConfig(StrictModel):
-    """AprilTag 3 (pupil-apriltags) settings."""
+    """AprilTag 3 (dt-apriltags: the C library pupil-apriltags ships, with aarch64 wheels) settings."""
 
     quad_decimate: float = Field(
         3.0,
@@ -123,7 +123,7 @@ class DetectorConfig(StrictModel):
     isolation: Literal["process", "inline"] = Field(
         "process",
         description="Where AprilTag's C code runs. 'process': in a helper process that is replaced, without "
-        "a gap in detection, once its memory grew by recycle_mb (pupil-apriltags 1.0.4 leaks a few hundred "
+        "a gap in detection, once its memory grew by recycle_mb (the C library leaks tens to hundreds of "
         "bytes per call; see docs/reliability.md), and restarted if it crashes. 'inline': in the calling "
         "thread, with memory growing by the leak, for short runs; on a 2-core test machine it had 1.3 ms "
         "less capture-to-send latency at the median and 3.8 ms at p99. Linux only; elsewhere 'process' "
