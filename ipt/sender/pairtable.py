@@ -16,8 +16,8 @@ import json
 import os
 import threading
 import time
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from pathlib import Path
 from typing import Any, Final
 
@@ -91,20 +91,37 @@ class PairTable:
         _fill_codes_c(codes, *self.args())
         return unpack(self.table[colour_index(codes)])
 
-    def fill(self, threads: int = 0, progress: Callable[[float], None] | None = None) -> None:
+    def fill(
+        self, threads: int = 0, progress: Callable[[float], None] | None = None, stop: threading.Event | None = None
+    ) -> bool:
         """Fill every entry not yet filled, in ``threads`` threads (0: one per core); ``progress`` is
-        called with the share done (0..1) as chunks finish."""
+        called with the share done (0..1) as chunks finish. Returns whether the table is complete.
+
+        ``stop`` set (a stop signal, from another thread) or an exception in the waiting thread (a stop
+        signal raised there) ends the fill within a chunk's time (tens of milliseconds): the chunks not
+        begun are dropped, the table stays incomplete (the chunks done are valid entries)."""
         threads = threads if threads > 0 else max(1, os.cpu_count() or 1)
         chunk = 1 << 16
         starts = range(0, COLOURS, chunk)
         args = self.args()
         with ThreadPoolExecutor(threads, thread_name_prefix="ipt-pairs") as pool:
             futures = [pool.submit(_fill_range_c, s, s + chunk, *args) for s in starts]
-            for done, fut in enumerate(futures, 1):
-                fut.result()
-                if progress is not None:
-                    progress(done / len(futures))
+            try:
+                for done, fut in enumerate(futures, 1):
+                    while not _finished(fut, stop):
+                        pass
+                    if stop is not None and stop.is_set():
+                        break
+                    fut.result()
+                    if progress is not None:
+                        progress(done / len(futures))
+            finally:
+                for fut in futures:  # nothing left when complete; else the chunks not begun
+                    fut.cancel()
+        if stop is not None and stop.is_set():
+            return False
         self.complete = True
+        return True
 
     def spot_check(self, entries: U64, count: int = 4096, seed: int = 0) -> int:
         """How many of ``count`` random colours (and the 8 corners of the cube) have another entry in
@@ -120,7 +137,9 @@ class PairTable:
     def complete_with_cache(self, cache_dir: os.PathLike[str] | None, log: Callable[[str], None]) -> str:
         """Make the table complete: from the cache file in ``cache_dir`` if it holds this table, else by
         computing it (progress through ``log``) and then writing the cache (``None``: no cache). Returns a
-        sentence saying which, and how long it took."""
+        sentence saying which, and how long it took. The stop flag of :func:`stoppable` set meanwhile (in
+        the thread that called this) ends the computing early (see :meth:`fill`): the table is then left
+        incomplete and nothing is cached."""
         with self.lock:
             if self.complete:
                 return "colour table: already complete"
@@ -143,7 +162,8 @@ class PairTable:
                     log(f"colour table: {share:.0%} ({time.perf_counter() - t0:.0f} s)")
                     next_report[0] += 0.1
 
-            self.fill(progress=progress)
+            if not self.fill(progress=progress, stop=getattr(_LOCAL, "stop", None)):
+                return f"colour table: stopped after {time.perf_counter() - t0:.1f} s, incomplete; nothing cached"
             took = time.perf_counter() - t0
             if path is None:
                 return f"colour table: computed in {took:.1f} s (no cache folder: computed at every start)"
@@ -155,6 +175,32 @@ class PairTable:
                     f"colour table: computed in {took:.1f} s; cannot keep it in {path} ({exc}): computed at every start"
                 )
             return f"colour table: computed in {took:.1f} s, kept in {path}"
+
+
+def _finished(fut: Future[Any], stop: threading.Event | None) -> bool:
+    """Wait a little for ``fut``: True once it is done or ``stop`` is set."""
+    if stop is None:
+        fut.exception()  # waits; the result is taken by the caller
+        return True
+    return wait([fut], timeout=STOP_POLL_S).done != set() or stop.is_set()
+
+
+STOP_POLL_S: Final = 0.02
+"""How often a fill that may be stopped looks at its stop flag (seconds)."""
+
+_LOCAL = threading.local()
+
+
+@contextlib.contextmanager
+def stoppable(stop: threading.Event) -> Iterator[None]:
+    """Within the block, :meth:`PairTable.complete_with_cache` called in this thread ends early once ``stop``
+    is set (the sender sets it on a stop signal, which the thread building the table cannot receive)."""
+    before = getattr(_LOCAL, "stop", None)
+    _LOCAL.stop = stop
+    try:
+        yield
+    finally:
+        _LOCAL.stop = before
 
 
 _TABLES: dict[tuple[float, float], PairTable] = {}

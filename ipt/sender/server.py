@@ -52,6 +52,7 @@ import math
 import signal
 import socket
 import sys
+import threading
 import time
 from collections import Counter, deque
 from collections.abc import Callable
@@ -73,7 +74,7 @@ from ipt.sender.display import Sink
 from ipt.sender.modulator import FrameTiming, Modulator, make_modulator
 from ipt.sender.options import DEFAULT_LISTEN, SenderOptions
 from ipt.sender.overlay import DEFAULT_MAX_VEHICLES, ArOverlay
-from ipt.sender.pairtable import default_cache_dir
+from ipt.sender.pairtable import default_cache_dir, stoppable
 from ipt.sender.render import EARLY_ROWS, Rendered, Renderer, Worker
 from ipt.sender.stats import SenderStats
 from ipt.tagmap import grid_tag_map
@@ -136,6 +137,9 @@ MAX_CONTENT_NOTES: Final = 20
 """Notes from the scene (frames of another size) logged in one run at most: a file that changes size at
 every frame does not fill the log."""
 
+
+TABLE_STOP_POLL_S: Final = 0.05
+"""While the colour table is built, how often the event loop looks whether a stop signal came (seconds)."""
 
 WARM_FRAMES: Final = 6
 """Frame-sized buffers each worker thread faults in before the clock starts (content frame, resized copy,
@@ -308,7 +312,7 @@ class Sender:
             def log(text: str) -> None:
                 self.log(f"ipt-sender: {text}")
 
-            said = await asyncio.wrap_future(self._render.submit(complete, self.pair_cache, log))
+            said = await self._complete_table(complete, log)
             log(said)
         # Before the clock starts, fault in the memory the first frames will use (see ipt.memory): without
         # this the first second at 1920x2160 missed up to 8 deadlines, each frame paying tens of
@@ -328,6 +332,24 @@ class Sender:
             if self.options.on_listening is not None:
                 self.options.on_listening(self.bound)
         self._started = True
+
+    async def _complete_table(self, complete: Callable[..., str], log: Callable[[str], None]) -> str:
+        """Build the colour table in the render thread; a stop signal meanwhile stops it within tens of
+        milliseconds (the table is left incomplete) instead of after the whole build."""
+        assert self._render is not None
+        stop = threading.Event()
+
+        def build() -> str:
+            with stoppable(stop):
+                return complete(self.pair_cache, log)
+
+        future = asyncio.wrap_future(self._render.submit(build))
+        while not future.done():
+            await asyncio.wait({future}, timeout=TABLE_STOP_POLL_S)
+            if self._stopping():
+                stop.set()
+        said: str = future.result()
+        return said
 
     async def _bind(
         self, loop: asyncio.AbstractEventLoop, host: str, port: int
