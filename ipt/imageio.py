@@ -6,10 +6,16 @@ ever handed to OpenCV: the file is read here (bounded and regular files only, :f
 and decoded with ``cv2.imdecode``; an image is encoded with ``cv2.imencode`` and written atomically
 (:func:`ipt.fileio.atomic_path`), so a full disk is one line naming the file, and libpng has no file of
 its own to complain about.
+
+Image bombs: a PNG of a few hundred kilobytes can hold 20000x20000 pixels (1.2 GB once decoded as RGB).
+Before anything is decoded, the size the file's header gives (read by Pillow, which parses only the
+header) is checked against a cap, :data:`MAX_IMAGE_PIXELS` unless the caller gives its own (a camera's
+frames: the camera's size); a file over it is refused with one line, undecoded.
 """
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import Literal
 
@@ -24,6 +30,11 @@ U8 = npt.NDArray[np.uint8]
 
 MAX_IMAGE_BYTES = 256 * 2**20
 """Largest image file read (a 16384x16384 PNG of noise is about 800 MB; real maps and photos are far smaller)."""
+
+MAX_IMAGE_PIXELS = 50_000_000
+"""Most pixels (width x height) an image may have, checked from its header before it is decoded: 50
+megapixels admits every camera photo up to full-frame 45-megapixel bodies and the 24-megapixel photos a
+lab projects, and keeps the decoded RGB image under 150 MB."""
 
 IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff"})
 """File name endings (compared case-insensitively) taken for images in a folder."""
@@ -54,17 +65,64 @@ def decode_image(data: bytes, mode: ImageMode = "rgb") -> npt.NDArray[np.generic
     return np.asarray(img)
 
 
-def read_image(path: str | Path, mode: ImageMode = "rgb", error: type[Exception] = ImageError) -> U8:
-    """The 8-bit image in ``path``: H×W×3 RGB (``"rgb"``, grey becomes RGB), H×W (``"grey"``) or as stored
-    (``"unchanged"``, 8-bit files only). Any problem is ``error`` with one line naming the file."""
-    p = Path(path)
-    data = read_bytes_file(p, error, "an image file", max_bytes=MAX_IMAGE_BYTES)
+def header_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) as the header of the image file ``data`` gives it, without decoding its pixels; None
+    when Pillow knows no such format (OpenCV may still decode it) or the header is damaged.
+
+    Pillow's format plugins are asked in turn, as ``PIL.Image.open`` does, but without its own bomb check
+    (which would refuse a large image before saying its size): only the header is parsed.
+    """
+    from PIL import Image  # Pillow comes with matplotlib; loaded only when an image is read
+
+    Image.init()
+    prefix = data[:16]
+    for fmt in list(Image.ID):
+        factory, accept = Image.OPEN[fmt]
+        try:
+            if accept is not None:
+                said = accept(prefix)
+                if not said or isinstance(said, str):  # a string: "this format, but Pillow cannot open it"
+                    continue
+            with factory(io.BytesIO(data), "") as img:
+                width, height = img.size
+        except Exception:
+            continue
+        return int(width), int(height)
+    return None
+
+
+def too_many_pixels(data: bytes, max_pixels: int = MAX_IMAGE_PIXELS, limit: str | None = None) -> str | None:
+    """Why the image file ``data`` is refused undecoded (its header gives more than ``max_pixels`` pixels;
+    ``limit`` names the cap in the sentence), or None."""
+    size = header_size(data)
+    if size is None or size[0] * size[1] <= max_pixels:
+        return None
+    w, h = size
+    limit = limit if limit is not None else f"the {max_pixels / 1e6:g} megapixels an image may have"
+    return f"{w}x{h} pixels ({w * h / 1e6:.1f} megapixels), more than {limit}; not decoded"
+
+
+def image_from_bytes(data: bytes, path: str | Path, mode: ImageMode = "rgb", error: type[Exception] = ImageError) -> U8:
+    """The bytes ``data`` of the image file ``path`` decoded as :func:`read_image` does (no pixel check)."""
     img = decode_image(data, mode)
     if img is None:
-        raise error(f"{p}: not an image OpenCV can read")
+        raise error(f"{path}: not an image OpenCV can read")
     if img.dtype != np.uint8:
-        raise error(f"{p}: a {img.dtype} image; 8-bit images only")
+        raise error(f"{path}: a {img.dtype} image; 8-bit images only")
     return np.ascontiguousarray(img, dtype=np.uint8)
+
+
+def read_image(
+    path: str | Path, mode: ImageMode = "rgb", error: type[Exception] = ImageError, max_pixels: int = MAX_IMAGE_PIXELS
+) -> U8:
+    """The 8-bit image in ``path``: H×W×3 RGB (``"rgb"``, grey becomes RGB), H×W (``"grey"``) or as stored
+    (``"unchanged"``, 8-bit files only). Any problem is ``error`` with one line naming the file; an image
+    whose header gives more than ``max_pixels`` pixels is refused before it is decoded."""
+    p = Path(path)
+    data = read_bytes_file(p, error, "an image file", max_bytes=MAX_IMAGE_BYTES)
+    if (why := too_many_pixels(data, max_pixels)) is not None:
+        raise error(f"{p}: {why}")
+    return image_from_bytes(data, p, mode, error)
 
 
 def encode_image(image: npt.NDArray[np.generic], suffix: str = ".png") -> bytes:

@@ -38,8 +38,8 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.errors import IptError
-from ipt.fileio import WriteError, atomic_path, disk_write_error
-from ipt.imageio import IMAGE_SUFFIXES, read_image
+from ipt.fileio import WriteError, atomic_path, disk_write_error, read_bytes_file
+from ipt.imageio import IMAGE_SUFFIXES, MAX_IMAGE_BYTES, MAX_IMAGE_PIXELS, image_from_bytes, too_many_pixels
 
 __all__ = ["FFV1_PIX_FMT", "IMAGE_SUFFIXES", "FfvWriter", "FrameSource", "VideoError", "open_frames"]
 
@@ -425,12 +425,28 @@ def _natural_key(name: str) -> tuple[tuple[int | str, ...], str]:
 
 
 class _ImageFolderSource(FrameSource):
-    """The images in a folder in natural name order, each read when it is needed."""
+    """The images in a folder in natural name order, each read when it is needed.
 
-    def __init__(self, path: Path, skip_bad: bool = False, grey: bool = False) -> None:
+    An image whose header gives more pixels than ``max_pixels`` (the first image) or than the first image
+    (the others; with ``skip_bad`` only, without it, more than ``max_pixels``) is skipped and counted, with
+    or without ``skip_bad``, before it is decoded: an image bomb costs neither memory nor time.
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        skip_bad: bool = False,
+        grey: bool = False,
+        max_pixels: int | None = None,
+        limit: str | None = None,
+    ) -> None:
         self.path = path
         self.skip_bad = skip_bad
         self._mode: Literal["rgb", "grey"] = "grey" if grey else "rgb"
+        self._max_pixels = MAX_IMAGE_PIXELS if max_pixels is None else max_pixels
+        self._limit = limit
+        self.oversized = 0
+        """Images skipped undecoded because their header gives too many pixels (counted in ``skipped`` too)."""
         try:
             entries = list(path.iterdir())
         except OSError as e:
@@ -445,19 +461,41 @@ class _ImageFolderSource(FrameSource):
         self.frame_count = len(self._files)
         self.fps = None
         self._next = 0
+        self._first_name = ""
+        self.height = self.width = 0
         first: npt.NDArray[np.uint8] | None = None
         while first is None:
             if self._next >= len(self._files):
                 raise VideoError(f"{path}: none of its {len(self._files)} images can be read")
-            try:
-                first = read_image(self._files[self._next], self._mode, VideoError)
-            except VideoError as e:
-                self._skip(str(e))
+            first = self._read(self._files[self._next])
             self._next += 1
         self._first_name = self._files[self._next - 1].name
         self.height, self.width = first.shape[:2]
         self._pending: npt.NDArray[np.uint8] | None = first
         self._closed = False
+
+    def _read(self, file: Path) -> npt.NDArray[np.uint8] | None:
+        """The image in ``file``, or None if it was skipped (see the class doc)."""
+        try:
+            data = read_bytes_file(file, VideoError, "an image file", max_bytes=MAX_IMAGE_BYTES)
+        except VideoError as e:
+            self._skip(str(e))
+            return None
+        first = self.width * self.height
+        if first and self.skip_bad and first < self._max_pixels:
+            why = too_many_pixels(data, first, f"the first image {self._first_name}'s {self.width}x{self.height}")
+        else:
+            why = too_many_pixels(data, self._max_pixels, self._limit)
+        if why is not None:  # skipped even without skip_bad: decoding it is the harm
+            self.skipped += 1
+            self.oversized += 1
+            self.last_skipped = f"{file}: {why}"
+            return None
+        try:
+            return image_from_bytes(data, file, self._mode, VideoError)
+        except VideoError as e:
+            self._skip(str(e))
+            return None
 
     def __next__(self) -> npt.NDArray[np.uint8]:
         if self._closed:
@@ -469,19 +507,17 @@ class _ImageFolderSource(FrameSource):
         while self._next < len(self._files):
             file = self._files[self._next]
             self._next += 1
-            try:
-                rgb = read_image(file, self._mode, VideoError)
-            except VideoError as e:
-                self._skip(str(e))
+            image = self._read(file)
+            if image is None:
                 continue
-            if rgb.shape[:2] != (self.height, self.width):
-                h, w = rgb.shape[:2]
+            if image.shape[:2] != (self.height, self.width):
+                h, w = image.shape[:2]
                 self._skip(
                     f"{file}: image is {w}x{h}, but the first image {self._first_name} is {self.width}x{self.height}"
                 )
                 continue
             self.index = self._next - 1
-            return rgb
+            return image
         raise StopIteration
 
     def close(self) -> None:
@@ -489,18 +525,28 @@ class _ImageFolderSource(FrameSource):
         self._pending = None
 
 
-def open_frames(path: str | Path, *, skip_bad: bool = False, grey: bool = False) -> FrameSource:
+def open_frames(
+    path: str | Path,
+    *,
+    skip_bad: bool = False,
+    grey: bool = False,
+    max_pixels: int | None = None,
+    limit: str | None = None,
+) -> FrameSource:
     """Open a video file (anything PyAV reads) or a folder of PNG/JPG/BMP/TIFF images as RGB frames (with
     ``grey``: as H×W luma frames, see the module docstring).
 
     Raises :class:`VideoError` with one line naming the file if it is missing, unreadable, has no
     video stream or no frames, or (for a folder) if an image differs in size from the first. With
     ``skip_bad`` a frame that cannot be decoded or read, or has another size, is skipped and counted
-    instead (see :class:`FrameSource`); only a file with no usable frame at all is an error.
+    instead (see :class:`FrameSource`); only a file with no usable frame at all is an error. An image in a
+    folder whose header gives more than ``max_pixels`` pixels (default
+    :data:`~ipt.imageio.MAX_IMAGE_PIXELS`; ``limit`` names the cap in the sentence) is skipped and counted
+    undecoded in any case.
     """
     p = Path(path)
     if p.is_dir():
-        return _ImageFolderSource(p, skip_bad, grey)
+        return _ImageFolderSource(p, skip_bad, grey, max_pixels, limit)
     if not p.exists():
         raise VideoError(f"{p}: no such file or folder")
     return _VideoSource(p, skip_bad, grey)

@@ -69,7 +69,13 @@ class VideoCapture:
         """Open the recording (bad frames are skipped and counted, see the class doc)."""
         if self.images_only and not self.path.is_dir():
             raise CaptureError(f"{self.path}: not a folder (images:DIR reads the images in a folder)")
-        source = open_frames(self.path, skip_bad=True, grey=self.grey)
+        # A frame larger than the camera's (an image bomb in a folder) is skipped undecoded.
+        cap, limit = (
+            (None, None)
+            if self.size is None
+            else (self.size[0] * self.size[1], "the camera's {}x{}".format(*self.size))
+        )
+        source = open_frames(self.path, skip_bad=True, grey=self.grey, max_pixels=cap, limit=limit)
         try:
             if self.size is not None and (source.width, source.height) != self.size:
                 w, h = self.size
