@@ -169,7 +169,8 @@ def _scene(args: argparse.Namespace, arena: ArenaConfig) -> tuple[Any, float]:
     """The content and its frame rate; notes on stderr where it is resized or re-timed."""
     from ipt.config.models import MAX_RATE_HZ, MIN_CONTENT_RATE_HZ
     from ipt.imageio import read_image
-    from ipt.sender.content import GeneratedScene, StillImageScene, VideoScene
+    from ipt.sender.content import GeneratedScene, StillImageScene
+    from ipt.sender.prefetch import PrefetchedVideo
     from ipt.videoio import open_frames
 
     w, h = arena.projector.width_px, arena.projector.height_px
@@ -177,6 +178,8 @@ def _scene(args: argparse.Namespace, arena: ArenaConfig) -> tuple[Any, float]:
     if args.video is not None:
         with open_frames(args.video) as source:
             size, fps = (source.width, source.height), source.fps
+            if source.skipped:  # an image bomb before the first frame: skipped undecoded
+                _note(f"{source.last_skipped}; skipped")
         if size != (w, h):
             _note(f"input video is {size[0]}x{size[1]}; frames are resized to {w}x{h}")
         if fps is not None and math.isfinite(fps) and fps > 0:
@@ -188,10 +191,9 @@ def _scene(args: argparse.Namespace, arena: ArenaConfig) -> tuple[Any, float]:
             if abs(fps - rate_hz) > 1e-3:
                 _note(f"input video is {fps:g} fps, not the arena's input_rate_hz {rate_hz:g}: played at its own rate")
             rate_hz = fps
-        # No cache of the first pass: each cached frame (12 MB at 1920x2160) is fresh memory, and faulting it
-        # in cost the content thread 40 ms a frame here, more than a frame's time; re-decoding each lap
-        # costs 6 ms a frame and a re-open at the loop.
-        return VideoScene(args.video, w, h, cache_bytes=0), rate_hz
+        # Decoded and resized ahead in a thread of its own (the next loop opened before it is due; a short
+        # loop, such as a few photos, kept in memory): see ipt.sender.prefetch.
+        return PrefetchedVideo(args.video, w, h), rate_hz
     if args.image is not None:
         image = read_image(args.image, "rgb", SenderCliError)
         if image.shape[:2] != (h, w):

@@ -158,12 +158,22 @@ class Renderer:
                 raise  # a file must not fill up with a frozen frame: the run ends, the file is not kept
             failed = f"{type(exc).__name__}: {exc}"
             rgb = self._last_good(w, h)
+        source_notes: Callable[[], list[str]] | None = getattr(self.source, "take_notes", None)
         with self._fault_lock:
+            if source_notes is not None:  # a prefetching source: it cannot keep up, images skipped
+                self.notes.extend(source_notes())
             self.content_failing = failed is not None
             if failed is not None:
                 self.content_errors += 1
                 self.last_content_error = failed
         return _Content(i, rgb, time.perf_counter() - t0, time.thread_time() - cpu0)
+
+    def prime_content(self, stop: threading.Event) -> None:
+        """Let a source that decodes ahead (:class:`~ipt.sender.prefetch.PrefetchedVideo`) fill its buffer before
+        the frame clock starts (``stop`` set: stop waiting)."""
+        prime: Callable[..., None] | None = getattr(self.source, "prime", None)
+        if prime is not None:
+            prime(stop)
 
     def content_state(self) -> tuple[bool, int, str | None]:
         """Whether the newest input frame asked for failed, how many have failed, and the last error."""

@@ -57,7 +57,7 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable
 from concurrent.futures import Future
-from typing import Any, Final
+from typing import Any, Final, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -139,7 +139,10 @@ every frame does not fill the log."""
 
 
 TABLE_STOP_POLL_S: Final = 0.05
-"""While the colour table is built, how often the event loop looks whether a stop signal came (seconds)."""
+"""While the colour table is built (or the content primed), how often the event loop looks whether a stop
+signal came (seconds)."""
+
+T = TypeVar("T")
 
 WARM_FRAMES: Final = 6
 """Frame-sized buffers each worker thread faults in before the clock starts (content frame, resized copy,
@@ -312,8 +315,11 @@ class Sender:
             def log(text: str) -> None:
                 self.log(f"ipt-sender: {text}")
 
-            said = await self._complete_table(complete, log)
-            log(said)
+            def build(stop: threading.Event) -> str:
+                with stoppable(stop):
+                    return complete(self.pair_cache, log)
+
+            log(await self._stoppable(self._render, build))
         # Before the clock starts, fault in the memory the first frames will use (see ipt.memory): without
         # this the first second at 1920x2160 missed up to 8 deadlines, each frame paying tens of
         # milliseconds for fresh pages.
@@ -323,6 +329,8 @@ class Sender:
         for worker in (self._render, self._content):
             await asyncio.wrap_future(worker.submit(warm, shape, WARM_FRAMES))
         self.renderer.allocate()
+        if self.paced:  # content decoded ahead (a video, photos): its buffer full before the first deadline
+            await self._stoppable(self._content, self.renderer.prime_content)
         if self.sink.threaded:
             self._display = Worker("ipt-display")
         if self.options.listen is not None:
@@ -333,23 +341,17 @@ class Sender:
                 self.options.on_listening(self.bound)
         self._started = True
 
-    async def _complete_table(self, complete: Callable[..., str], log: Callable[[str], None]) -> str:
-        """Build the colour table in the render thread; a stop signal meanwhile stops it within tens of
-        milliseconds (the table is left incomplete) instead of after the whole build."""
-        assert self._render is not None
+    async def _stoppable(self, worker: Worker, fn: Callable[[threading.Event], T]) -> T:
+        """``fn(stop)`` run in ``worker``; a stop signal meanwhile sets ``stop`` within tens of milliseconds
+        (the colour table's build, the content's priming), rather than being seen after ``fn`` returns."""
         stop = threading.Event()
-
-        def build() -> str:
-            with stoppable(stop):
-                return complete(self.pair_cache, log)
-
-        future = asyncio.wrap_future(self._render.submit(build))
+        future = asyncio.wrap_future(worker.submit(fn, stop))
         while not future.done():
             await asyncio.wait({future}, timeout=TABLE_STOP_POLL_S)
             if self._stopping():
                 stop.set()
-        said: str = future.result()
-        return said
+        result: T = future.result()
+        return result
 
     async def _bind(
         self, loop: asyncio.AbstractEventLoop, host: str, port: int
