@@ -131,3 +131,20 @@ def test_replay_over_a_folder_skips_a_bomb_and_says_why(tmp_path: Path) -> None:
     assert "Traceback" not in proc.stderr
     assert "1.png: 20000x20000 pixels (400.0 megapixels)" in proc.stderr, proc.stderr
     assert "1 unreadable frames skipped" in proc.stderr, proc.stderr
+
+
+def test_the_sender_skips_and_says_a_bomb_in_its_video_folder(tmp_path: Path) -> None:
+    arena = tmp_path / "arena.yaml"
+    arena.write_text(yaml.safe_dump(TINY_ARENA), encoding="utf-8")
+    _folder(tmp_path, 1, png_header(20000, 20000))
+    proc = _run(
+        "ipt.sender.cli", "--config", arena, "--video", "frames", "--sink", "file", "--frames", "8", "--output",
+        "out.mkv", cwd=tmp_path,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    said = [line for line in proc.stderr.splitlines() if "1.png: 20000x20000 pixels" in line]
+    assert len(said) == 1, proc.stderr
+    assert "skipped" in said[0]
+    with open_frames(tmp_path / "out.mkv") as out:
+        assert len(list(out)) == 8
