@@ -29,6 +29,8 @@ how busy the machine was.
     ./dev run python benchmarks/sender.py --content map --seconds 60
     ./dev run python benchmarks/sender.py --width 960 --height 1080 --seconds 30 --profile paper
     ./dev run python benchmarks/sender.py --threads 2      # the modulation pass split over two threads
+    ./dev run python benchmarks/sender.py --content loop5s --frames 1200   # the loop seam (issue 33 item 5)
+    ./dev run python benchmarks/sender.py --content photos24 --frames 600  # large photos (issue 33 item 3)
 """
 
 from __future__ import annotations
@@ -45,16 +47,20 @@ from pathlib import Path
 from typing import Any
 
 import av
+import cv2
+import numpy as np
 
 from ipt.config.models import MIN_TAG_SIZE_PX, ArenaConfig, load_arena_config, shipped_config_path
 from ipt.fileio import atomic_path
 from ipt.geometry import R_BODY_CAM_DOWNWARD, quat_wxyz_from_matrix, rot_z
+from ipt.imageio import write_image
 from ipt.protocol import PosePacket
 from ipt.sender.content import GeneratedScene, VideoScene
 from ipt.sender.display import NullSink
 from ipt.sender.modulator import make_modulator
 from ipt.sender.overlay import ArOverlay
 from ipt.sender.photos import PanningPhotoScene
+from ipt.sender.prefetch import PrefetchedVideo
 from ipt.sender.server import run_sender
 from ipt.tagmap import grid_tag_map
 from ipt.videoio import FfvWriter
@@ -104,6 +110,24 @@ def photo_video(
     return path
 
 
+def large_photos(count: int = 4, width: int = 6000, height: int = 4000) -> Path:
+    """A folder of ``count`` 24-megapixel JPEGs (made once, then kept): the photographic scene's frames, enlarged,
+    with grain (so that they cost what a camera's JPEG costs to decode)."""
+    folder = CACHE / f"photos24-seed{PHOTO_SEED}-{count}x{width}x{height}"
+    if folder.is_dir() and len(list(folder.glob("*.jpg"))) == count:
+        return folder
+    folder.mkdir(parents=True, exist_ok=True)
+    print(f"sender benchmark: making {folder.name} (once)", file=sys.stderr)
+    scene = PanningPhotoScene(1280, 720, seed=PHOTO_SEED)
+    rng = np.random.default_rng(PHOTO_SEED)
+    for k in range(count):
+        big = cv2.resize(scene.frame(k * 80, 30.0), (width, height), interpolation=cv2.INTER_CUBIC)
+        grain = rng.normal(0.0, 6.0, (height, width, 1)).astype(np.float32)
+        rgb = np.clip(big.astype(np.float32) + grain, 0, 255).astype(np.uint8)
+        write_image(folder / f"photo{k}.jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    return folder
+
+
 def arena_for(width: int, height: int, profile: str | None = None) -> ArenaConfig:
     """The shipped arena at another projector size, with the tags scaled by the same factor."""
     data: dict[str, Any] = load_arena_config(shipped_config_path("arena.yaml")).model_dump()
@@ -150,20 +174,28 @@ async def bench(
     threads: int,
     content: str,
     lookahead: int = 2,
+    player: str = "prefetch",
 ) -> dict[str, Any]:
     made = {"photos": "h264", "photos-ffv1": "ffv1"}
     t_video = time.monotonic()
-    path = photo_video(codec=made[content]) if content in made else content  # made once: not the sender's start
+    path: Path | str
+    if content == "loop5s":
+        path = photo_video(seconds=5.0, width=1920, height=2160, fps=30, codec="h264")
+    elif content == "photos24":
+        path = large_photos()
+    else:
+        path = photo_video(codec=made[content]) if content in made else content  # made once: not the sender's start
     video_s = time.monotonic() - t_video
     t0 = time.monotonic()
     arena = arena_for(width, height, profile)
     ar = ArOverlay(arena)
-    scene: GeneratedScene | VideoScene
+    scene: GeneratedScene | VideoScene | PrefetchedVideo
     if content == "map":
         scene = GeneratedScene(width, height)
-    else:
-        # As ipt-sender plays a video: no cache of the first pass (see ipt/sender/cli.py).
+    elif player == "videoscene":  # as ipt-sender played a video up to 5def445: decoded in the content thread
         scene = VideoScene(path, width, height, cache_bytes=0)
+    else:
+        scene = PrefetchedVideo(path, width, height)  # as ipt-sender plays a video: decoded ahead
     input_rate_hz = getattr(scene, "fps", None) or arena.modulation.input_rate_hz
     mod = arena.modulation
     modulator = make_modulator(
@@ -218,7 +250,12 @@ async def bench(
             "map": "generated map app",
             "photos": f"photographic video (seed {PHOTO_SEED}, H.264)",
             "photos-ffv1": f"photographic video (seed {PHOTO_SEED}, FFV1)",
+            "loop5s": f"5 s 1920x2160 30 fps H.264 photographic clip (seed {PHOTO_SEED}), looped",
+            "photos24": "four 24-megapixel (6000x4000) JPEG photos, a folder",
         }.get(content, content),
+        "player": player if content != "map" else None,
+        "content_waits": getattr(scene, "waits", None),
+        "content_notes": [line for line in lines if "cannot keep up" in line or "skipped" in line],
         "vehicles": vehicles,
         "vehicles_drawn": stats.vehicles,
         "poses_fed": fed,
@@ -251,7 +288,15 @@ def main() -> int:
         "--content",
         default="photos",
         help="photos (default: the photographic video, H.264, made once), photos-ffv1 (the same frames lossless: "
-        "slower to decode than real time here), map (the generated map app), or a video file",
+        "slower to decode than real time here), loop5s (a 5 s 1920x2160 H.264 clip: a seam every 5 s), photos24 "
+        "(four 24-megapixel JPEGs), map (the generated map app), or a video file or image folder",
+    )
+    p.add_argument(
+        "--player",
+        choices=("prefetch", "videoscene"),
+        default="prefetch",
+        help="prefetch (default: as ipt-sender plays a video, decoded ahead in a thread of its own) or videoscene "
+        "(decoded in the content thread, one input frame ahead, as up to 5def445)",
     )
     p.add_argument(
         "--warmup",
@@ -268,7 +313,7 @@ def main() -> int:
 
     async def runs() -> dict[str, Any]:
         warm: dict[str, Any] | None = None
-        common = (args.vehicles, args.profile, args.threads, args.content, args.lookahead)
+        common = (args.vehicles, args.profile, args.threads, args.content, args.lookahead, args.player)
         if args.warmup > 0:
             warm = await bench(args.width, args.height, args.warmup, None, *common)
         frames = None if args.seconds is not None else args.frames

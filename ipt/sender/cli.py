@@ -178,8 +178,6 @@ def _scene(args: argparse.Namespace, arena: ArenaConfig) -> tuple[Any, float]:
     if args.video is not None:
         with open_frames(args.video) as source:
             size, fps = (source.width, source.height), source.fps
-            if source.skipped:  # an image bomb before the first frame: skipped undecoded
-                _note(f"{source.last_skipped}; skipped")
         if size != (w, h):
             _note(f"input video is {size[0]}x{size[1]}; frames are resized to {w}x{h}")
         if fps is not None and math.isfinite(fps) and fps > 0:
