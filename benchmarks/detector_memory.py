@@ -43,6 +43,7 @@ def collect_images(folder: Path, out: Path) -> int:
     from ipt.config.camera_info import load_camera_info
     from ipt.config.models import ArenaConfig, PipelineConfig
     from ipt.receiver.core.pipeline import Pipeline
+    from ipt.receiver.detect.detector import pipeline_detector
     from ipt.tagmap import grid_tag_map
     from ipt.videoio import open_frames
 
@@ -51,7 +52,8 @@ def collect_images(folder: Path, out: Path) -> int:
     # AprilTag on every frame (the default profile runs it only to acquire and to check its track): the
     # images are the detector's load in the worst case.
     cfg = PipelineConfig.model_validate({"pose": {"method": "apriltag"}})
-    pipeline = Pipeline(grid_tag_map(arena), camera, cfg, arena.projector.rate_hz)
+    tag_map = grid_tag_map(arena)
+    pipeline = Pipeline(tag_map, camera, cfg, arena.projector.rate_hz, pipeline_detector(cfg.detector, tag_map.by_id))
     seen: list[np.ndarray] = []
     detect = pipeline.detector.detect
 

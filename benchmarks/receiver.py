@@ -27,6 +27,7 @@ from ipt.config.camera_info import load_camera_info
 from ipt.config.models import PROFILES, ArenaConfig, PipelineConfig
 from ipt.eval import evaluate
 from ipt.receiver.core.pipeline import Pipeline
+from ipt.receiver.detect.detector import pipeline_detector
 from ipt.tagmap import grid_tag_map
 from ipt.tum import Trajectory, read_tum
 from ipt.videoio import open_frames
@@ -48,7 +49,8 @@ def _flight(video: Path | None, seconds: float, tmp: Path) -> Path:
 def run_profile(folder: Path, frames: list[np.ndarray], profile: str, fps: float) -> dict[str, object]:
     arena = ArenaConfig()
     camera = load_camera_info(folder / "camera.yaml")
-    pipeline = Pipeline(grid_tag_map(arena), camera, PipelineConfig.profile(profile), arena.projector.rate_hz)
+    cfg, tag_map = PipelineConfig.profile(profile), grid_tag_map(arena)
+    pipeline = Pipeline(tag_map, camera, cfg, arena.projector.rate_hz, pipeline_detector(cfg.detector, tag_map.by_id))
     times, positions, quats, per_frame_s = [], [], [], []
     results = []
     for k, frame in enumerate(frames):

@@ -33,6 +33,7 @@ from ipt.config.camera_info import load_camera_info
 from ipt.config.models import PipelineConfig, load_arena_config
 from ipt.receiver.core.pipeline import Pipeline
 from ipt.receiver.daemon import LIVE_RUN_FRAMES
+from ipt.receiver.detect.detector import pipeline_detector
 from ipt.tagmap import grid_tag_map
 from ipt.tum import read_tum
 from ipt.videoio import open_frames
@@ -81,7 +82,9 @@ def main() -> int:
     for slowdown in args.slowdown:
         for policy in POLICIES:
             feed = taken(len(images), slowdown, policy)
-            pipeline = Pipeline(grid_tag_map(arena), camera, PipelineConfig.profile("ipt"), arena.projector.rate_hz)
+            cfg, tag_map = PipelineConfig.profile("ipt"), grid_tag_map(arena)
+            detector = pipeline_detector(cfg.detector, tag_map.by_id)
+            pipeline = Pipeline(tag_map, camera, cfg, arena.projector.rate_hz, detector)
             try:
                 results = [r for k in feed for r in pipeline.process(k, images[k], round(times_s[k] * 1e6))]
                 results += pipeline.flush()

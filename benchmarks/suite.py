@@ -56,6 +56,7 @@ from ipt.config.models import (
 )
 from ipt.eval import evaluate
 from ipt.receiver.core.pipeline import Pipeline
+from ipt.receiver.detect.detector import pipeline_detector
 from ipt.sim.arena import scene_for, true_arena
 from ipt.sim.config import SimConfig, apply_arena_changes, describe_flight
 from ipt.sim.run import simulate_to_folder
@@ -183,7 +184,9 @@ def score(
     times, positions, quats, busy_s = [], [], [], 0.0
     with one_core():
         cfg = receiver_config(profile, rolling_shutter)
-        pipeline = Pipeline(grid_tag_map(arena), camera, cfg, arena.projector.rate_hz)
+        tag_map = grid_tag_map(arena)
+        detector = pipeline_detector(cfg.detector, tag_map.by_id)
+        pipeline = Pipeline(tag_map, camera, cfg, arena.projector.rate_hz, detector)
         try:
             with open_frames(folder / "frames.mkv") as src:
                 results = []

@@ -389,3 +389,48 @@ def test_no_module_over_600_lines_and_no_function_over_80() -> None:
     assert {f: n for f, n in functions.items() if f not in ALLOWED_LONG_FUNCTIONS} == {}
     assert ALLOWED_LONG_MODULES - set(modules) == set(), "under the limit now: remove it from ALLOWED_LONG_MODULES"
     assert ALLOWED_LONG_FUNCTIONS - set(functions) == set(), "under the limit now: remove it from the allow-list"
+
+
+CORE_FORBIDDEN_STDLIB = ("asyncio", "socket", "subprocess", "multiprocessing", "selectors", "concurrent")
+
+
+def _stdlib_imports(path: Path) -> list[tuple[str, int]]:
+    """The top-level names of every ``import`` and ``from ... import`` of a file, at any depth, with lines."""
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            found += [(a.name.partition(".")[0], node.lineno) for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+            found.append((node.module.partition(".")[0], node.lineno))
+    return found
+
+
+def test_the_receiver_core_is_pure() -> None:
+    """``ipt/receiver/core`` (the per-frame stages) imports nothing of the detector, capture or outputs rooms
+    and no process, socket or event-loop machinery: the detector (and its helper process) is handed to the
+    pipeline by whoever builds it (issue 32)."""
+    edges = [e for e in all_imports() if _under(e.source, "ipt.receiver.core")]
+    assert any(e.target == "ipt.receiver.core.kernels" for e in edges)  # the scan sees the core's imports
+    bad = [
+        str(e)
+        for e in edges
+        if _under(e.target, "ipt.receiver.detect", "ipt.receiver.capture", "ipt.receiver.outputs")
+        or _under(e.target, "ipt.receiver.daemon", "ipt.receiver.replay", "ipt.receiver.cli")
+    ]
+    core = PACKAGE / "receiver" / "core"
+    bad += [
+        f"{path.relative_to(ROOT)}:{line} imports {name}"
+        for path in sorted(core.rglob("*.py"))
+        for name, line in _stdlib_imports(path)
+        if name in CORE_FORBIDDEN_STDLIB
+    ]
+    assert bad == []
+
+
+def test_the_stdlib_scan_sees_function_level_imports() -> None:
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "m.py"
+        path.write_text("import os\ndef f():\n    import subprocess\n    from asyncio import sleep\n", encoding="utf-8")
+        assert _stdlib_imports(path) == [("os", 1), ("subprocess", 3), ("asyncio", 4)]

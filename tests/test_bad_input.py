@@ -16,6 +16,7 @@ import pytest
 from ipt.config.camera_info import load_camera_info
 from ipt.config.models import PipelineConfig, load_arena_config
 from ipt.receiver.core.pipeline import FrameResult, Pipeline
+from ipt.receiver.detect.detector import pipeline_detector
 from ipt.tagmap import grid_tag_map
 from ipt.tum import read_tum
 from ipt.videoio import open_frames
@@ -53,7 +54,8 @@ def test_bad_frames_give_no_pose_a_counted_reason_and_the_flight_goes_on(
 ) -> None:
     bad = _spoiled(frames)
     camera = load_camera_info(short_flight / "camera.yaml")
-    p = Pipeline(grid_tag_map(load_arena_config(short_flight / "arena.yaml")), camera, PipelineConfig(), 60.0)
+    tag_map = grid_tag_map(load_arena_config(short_flight / "arena.yaml"))
+    p = Pipeline(tag_map, camera, PipelineConfig(), 60.0, pipeline_detector(PipelineConfig().detector, tag_map.by_id))
     out: list[FrameResult] = []
     try:
         for k, frame in enumerate(frames):
@@ -84,7 +86,8 @@ def test_bad_frames_give_no_pose_a_counted_reason_and_the_flight_goes_on(
 def test_a_gap_in_capture_times_is_named_and_pairing_starts_afresh(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]
     camera = load_camera_info(short_flight / "camera.yaml")
     cfg = PipelineConfig.model_validate({"demodulation": {"lookahead_frames": 0}})  # no later partners
-    p = Pipeline(grid_tag_map(load_arena_config(short_flight / "arena.yaml")), camera, cfg, 60.0)
+    tag_map = grid_tag_map(load_arena_config(short_flight / "arena.yaml"))
+    p = Pipeline(tag_map, camera, cfg, 60.0, pipeline_detector(cfg.detector, tag_map.by_id))
     out: list[FrameResult] = []
     try:
         for k in range(30):  # frames 10..19 lost, and the flight resumes 0.3 s later than its frame times

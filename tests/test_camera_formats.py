@@ -33,6 +33,7 @@ from ipt.receiver.capture import (
 from ipt.receiver.capture.pixelformats import raw_luma, yuyv_from_rgb
 from ipt.receiver.core.pipeline import FrameResult, Pipeline
 from ipt.receiver.daemon import make_source
+from ipt.receiver.detect.detector import pipeline_detector
 from ipt.tagmap import grid_tag_map
 from ipt.tum import read_tum
 from ipt.videoio import open_frames
@@ -120,7 +121,8 @@ def _captured(src: DeviceCapture, n: int) -> list[np.ndarray]:
 
 def _run(short_flight: Path, images: list[np.ndarray]) -> list[FrameResult]:
     camera = load_camera_info(short_flight / "camera.yaml")
-    p = Pipeline(grid_tag_map(load_arena_config(short_flight / "arena.yaml")), camera, PipelineConfig(), 60.0)
+    tag_map = grid_tag_map(load_arena_config(short_flight / "arena.yaml"))
+    p = Pipeline(tag_map, camera, PipelineConfig(), 60.0, pipeline_detector(PipelineConfig().detector, tag_map.by_id))
     try:
         out: list[FrameResult] = []
         for k, image in enumerate(images):

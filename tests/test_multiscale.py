@@ -28,7 +28,7 @@ from ipt.receiver.core.scales import (
     tag_cells_m,
 )
 from ipt.receiver.core.track import MapEdges
-from ipt.receiver.detect.detector import APRILTAG_TO_OPENCV_PX, TagDetector
+from ipt.receiver.detect.detector import APRILTAG_TO_OPENCV_PX, TagDetector, pipeline_detector
 from ipt.sim.arena import SimulatedArena, scene_for
 from ipt.sim.config import SimConfig
 from ipt.sim.render import camera_info_of
@@ -172,7 +172,9 @@ def test_track_leaves_out_tags_too_small_to_see(shipped_map: TagMap) -> None:
 def _pipeline_yield(arena: ArenaConfig, sim: SimConfig, frames: int, cfg: PipelineConfig) -> tuple[int, float]:
     world = SimulatedArena(arena, sim, scene_for(sim, arena))
     camera = camera_info_of(sim.camera)
-    pipeline = Pipeline(world.tag_map, camera, cfg, arena.projector.rate_hz)
+    pipeline = Pipeline(
+        world.tag_map, camera, cfg, arena.projector.rate_hz, pipeline_detector(cfg.detector, world.tag_map.by_id)
+    )
     results = []
     truth = {}
     try:

@@ -12,10 +12,11 @@ import pytest
 
 from ipt.config.camera_info import load_camera_info
 from ipt.config.models import ConfigError, DemodulationConfig, PipelineConfig, load_arena_config
+from ipt.receiver.core.detection import DetectorError
 from ipt.receiver.core.pipeline import FrameResult, Pipeline, _Frame
 from ipt.receiver.core.pose import PoseEstimate, rt_of
 from ipt.receiver.core.reasons import FrameReason
-from ipt.receiver.detect.detector import DetectorError
+from ipt.receiver.detect.detector import pipeline_detector
 from ipt.tagmap import grid_tag_map
 from ipt.tum import read_tum
 from ipt.videoio import open_frames
@@ -35,7 +36,9 @@ def frames(short_flight: Path) -> list[np.ndarray]:
 
 def _pipeline(short_flight: Path, cfg: PipelineConfig) -> Pipeline:
     arena = load_arena_config(short_flight / "arena.yaml")
-    return Pipeline(grid_tag_map(arena), load_camera_info(short_flight / "camera.yaml"), cfg, 60.0)
+    tag_map = grid_tag_map(arena)
+    camera = load_camera_info(short_flight / "camera.yaml")
+    return Pipeline(tag_map, camera, cfg, 60.0, pipeline_detector(cfg.detector, tag_map.by_id))
 
 
 def _run(p: Pipeline, frames: list[np.ndarray]) -> list[FrameResult]:

@@ -72,6 +72,7 @@ from ipt.receiver.capture import (
 )
 from ipt.receiver.core.pipeline import FrameResult, Pipeline
 from ipt.receiver.core.reasons import FrameReason
+from ipt.receiver.detect.detector import pipeline_detector
 from ipt.receiver.outputs.ros.output import RosOutputs
 from ipt.receiver.outputs.udp import PacketMaker, UdpPoseSender, new_stream_id
 from ipt.runtime import Histogram, run_loop, write_line
@@ -287,7 +288,8 @@ class _DaemonRun:
         self.camera = camera = load_camera_info(cfg.camera)
         self.key = key = read_auth_key(cfg.auth_key_file) if cfg.auth_key_file is not None else None
         self.map_hash = map_hash(tag_map := grid_tag_map(arena))  # the sender prints it too: a mismatch is seen
-        self.pipeline = Pipeline(tag_map, camera, cfg.pipeline, projector_hz=arena.projector.rate_hz)
+        detector = pipeline_detector(cfg.pipeline.detector, tag_map.by_id)
+        self.pipeline = Pipeline(tag_map, camera, cfg.pipeline, arena.projector.rate_hz, detector)
         if source is None:
             source = make_source(cfg, arena, camera, capture_stop)
         self.source = source

@@ -27,6 +27,7 @@ from ipt.maphash import map_hash
 from ipt.ratelimit import LogThrottle
 from ipt.receiver.capture.framelog import KIND_FINISH, KIND_LOST, FrameLog
 from ipt.receiver.core.pipeline import FrameResult, Pipeline
+from ipt.receiver.detect.detector import pipeline_detector
 from ipt.tagmap import TagMap, grid_tag_map
 from ipt.tum import TUM_HEADER, format_tum_line
 from ipt.videoio import open_frames
@@ -91,7 +92,13 @@ def replay(
                 f"{video_path}: its frame rate {rate:.3g} fps is not a camera's ({MIN_CAMERA_RATE_HZ:g} to "
                 f"{MAX_RATE_HZ:g}); give the rate with --fps"
             )
-        pipeline = Pipeline(tag_map, camera, pipeline_cfg, projector_hz=arena.projector.rate_hz)
+        pipeline = Pipeline(
+            tag_map,
+            camera,
+            pipeline_cfg,
+            arena.projector.rate_hz,
+            pipeline_detector(pipeline_cfg.detector, tag_map.by_id),
+        )
         total = source.frame_count
         frames = poses = 0
         start = last_report = time.monotonic()
@@ -169,7 +176,8 @@ def replay_frame_log(folder: Path, output_path: Path, progress: TextIO | None = 
     tag_map = grid_tag_map(arena)
     if map_hash(tag_map) != log.meta.get("map_hash"):
         raise ReplayError(f"{folder}: the arena's map hash is not the recorded one (another version of ipt?)")
-    pipeline = Pipeline(tag_map, load_camera_info(log.camera_file), pipeline_cfg, projector_hz=arena.projector.rate_hz)
+    detector = pipeline_detector(pipeline_cfg.detector, tag_map.by_id)
+    pipeline = Pipeline(tag_map, load_camera_info(log.camera_file), pipeline_cfg, arena.projector.rate_hz, detector)
     frames = poses = 0
     notes: list[str] = []
     start = time.monotonic()

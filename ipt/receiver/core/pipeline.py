@@ -49,6 +49,7 @@ from ipt.receiver.core.demodulator import (
     pair_difference,
     signal_mask,
 )
+from ipt.receiver.core.detection import Detector, DetectorError, TagDetection
 from ipt.receiver.core.framecheck import RESTARTS, frame_problem
 from ipt.receiver.core.frameresult import FrameResult, _Candidate, _Frame, _Pair
 from ipt.receiver.core.gates import PoseGates
@@ -69,7 +70,6 @@ from ipt.receiver.core.track import (
     slope_noise,
     track_pose,
 )
-from ipt.receiver.detect.detector import DetectorError, TagDetection, TagDetector
 from ipt.tagmap import TagMap, pixel_to_arena
 
 U8 = npt.NDArray[np.uint8]
@@ -103,13 +103,18 @@ MIN_COARSE_SCORE = 0.1
 class Pipeline(PoseGates, ContentBridge, SecondLook):
     """The receiver's per-frame processing, for either profile (see :meth:`PipelineConfig.profile`)."""
 
-    def __init__(self, tag_map: TagMap, camera: CameraInfo, cfg: PipelineConfig, projector_hz: float = 60.0) -> None:
+    def __init__(
+        self, tag_map: TagMap, camera: CameraInfo, cfg: PipelineConfig, projector_hz: float, detector: Detector
+    ) -> None:
+        """``detector``: AprilTag as configured (``cfg.detector``), made by the caller
+        (:func:`ipt.receiver.detect.detector.pipeline_detector`); it may still be starting (its helper process
+        imports while this sets up: a restarted daemon poses sooner), this waits for it last. The pipeline
+        owns it from here: :meth:`close` closes it."""
         self.tag_map, self.camera, self.cfg = tag_map, camera, cfg
         self.projector_hz = projector_hz
         self.pair_span_us = MAX_PAIR_PERIODS * 1e6 / projector_hz
         """Frames further apart than this are never paired (:data:`MAX_PAIR_PERIODS`)."""
-        # First: its helper process imports (0.2-0.4 s) while the rest is set up: a restarted daemon poses sooner.
-        self.detector = TagDetector(cfg.detector, known_ids=tag_map.by_id, wait=False)
+        self.detector = detector
         demod = cfg.demodulation
         self.ipt = demod.alignment == "gradient"
         self.tracking = self.ipt and cfg.pose.method == "track"
@@ -156,7 +161,7 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
     @property
     def detector_replacements(self) -> tuple[int, int]:
         """Helper processes of the detector replaced so far: (for their memory, after a failure)."""
-        backend = self.detector.backend
+        backend = getattr(self.detector, "backend", None)
         return (getattr(backend, "recycles", 0), getattr(backend, "restarts", 0))
 
     # -- the interface -------------------------------------------------------------------------------

@@ -19,7 +19,7 @@ import numpy.typing as npt
 from ipt.config.camera_info import CameraInfo
 from ipt.config.models import REFERENCE_WIDTH_PX, PoseConfig
 from ipt.geometry import quat_wxyz_from_matrix
-from ipt.receiver.detect.detector import TagDetection
+from ipt.receiver.core.detection import TagDetection
 from ipt.tagmap import TagMap
 
 F64 = npt.NDArray[np.float64]

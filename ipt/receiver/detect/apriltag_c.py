@@ -24,14 +24,10 @@ import dt_apriltags
 import numpy as np
 import numpy.typing as npt
 
-from ipt.errors import IptError
+from ipt.receiver.core.detection import DetectorError as DetectorError  # re-exported: both sides raise it
 
 #: One detection as the C library gives it: id, bits corrected, decision margin, 4x2 corners (AprilTag px).
 RawDetection = tuple[int, int, float, npt.NDArray[np.float64]]
-
-
-class DetectorError(IptError):
-    """The detector was given something it cannot work on, or its helper process failed."""
 
 
 def free_pupil_detector(det: Any) -> None:

@@ -20,12 +20,12 @@ from __future__ import annotations
 import threading
 import weakref
 from collections.abc import Iterable
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 import numpy.typing as npt
 
+from ipt.receiver.core.detection import TagDetection
 from ipt.receiver.detect.apriltag_c import (
     DetectorError,
     RawDetection,
@@ -40,19 +40,6 @@ if TYPE_CHECKING:
 
 #: AprilTag's pixel origin is the top-left corner of the top-left pixel; OpenCV's is its centre.
 APRILTAG_TO_OPENCV_PX = -0.5
-
-
-@dataclass(frozen=True)
-class TagDetection:
-    """One decoded tag."""
-
-    tag_id: int
-    hamming: int
-    """Bits corrected while decoding."""
-    decision_margin: float
-    """AprilTag's decoding confidence (larger is better)."""
-    corners_px: npt.NDArray[np.float64]
-    """4x2 corners in OpenCV pixel coordinates, in AprilTag's order."""
 
 
 def c_settings(cfg: DetectorConfig) -> dict[str, float]:
@@ -162,6 +149,13 @@ class TagDetector:
         return tuple(out)
 
 
+
+def pipeline_detector(cfg: DetectorConfig, known_ids: Iterable[int]) -> TagDetector:
+    """The detector a pipeline is handed (:class:`ipt.receiver.core.pipeline.Pipeline`), its helper process
+    still starting: it imports (0.2-0.4 s) while the pipeline sets up, and the pipeline waits for it last."""
+    return TagDetector(cfg, known_ids=known_ids, wait=False)
+
+
 __all__ = [
     "APRILTAG_TO_OPENCV_PX",
     "Backend",
@@ -172,4 +166,5 @@ __all__ = [
     "TagDetector",
     "c_settings",
     "free_pupil_detector",
+    "pipeline_detector",
 ]
