@@ -36,6 +36,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -55,7 +56,7 @@ from ipt.config.models import (
     shipped_config_path,
 )
 from ipt.eval import evaluate
-from ipt.receiver.core.pipeline import Pipeline
+from ipt.receiver.core.pipeline import FrameResult, Pipeline
 from ipt.receiver.detect.detector import pipeline_detector
 from ipt.sim.arena import scene_for, true_arena
 from ipt.sim.config import SimConfig, apply_arena_changes, describe_flight
@@ -189,12 +190,13 @@ def score(
         pipeline = Pipeline(tag_map, camera, cfg, arena.projector.rate_hz, detector)
         try:
             with open_frames(folder / "frames.mkv") as src:
-                results = []
+                results, frame_s = [], []
                 for k, frame in enumerate(src):
                     t_us = round(float(truth.times_s[k]) * 1e6) if k < len(truth) else round(k / rate * 1e6)
                     t0 = time.perf_counter()
                     results += pipeline.process(k, frame, t_us)
-                    busy_s += time.perf_counter() - t0
+                    frame_s.append(time.perf_counter() - t0)
+                    busy_s += frame_s[-1]
                 results += pipeline.flush()
             for result in results:
                 if result.pose is not None:
@@ -238,6 +240,92 @@ def score(
     out["frames_per_s"] = round(frames / busy_s, 1) if busy_s > 0 else None
     out["stage_ms_per_frame"] = {k: round(1e3 * v / frames, 3) for k, v in pipeline.stage_seconds.items()}
     out["reasons"] = dict(sorted(pipeline.reasons.items()))
+    out["ms_per_frame_by_outcome"] = by_outcome(results, frame_s)
+    return out
+
+
+#: Reasons of frames the pipeline turned away before any pairing (:mod:`ipt.receiver.core.framecheck`).
+DARK_REASONS = ("dark", "saturated", "bad_frame", "wrong_size")
+
+
+def outcome(result: FrameResult) -> str:
+    """posed (a pose from a pair: the track or AprilTag), bridged (from the bridge), dark (turned away: no
+    signal, or not an image of the camera), lost (no pose otherwise)."""
+    if result.pose is not None:
+        return "bridged" if result.method == "bridge" else "posed"
+    return "dark" if result.reason in DARK_REASONS else "lost"
+
+
+def by_outcome(results: list[FrameResult], frame_s: list[float]) -> dict[str, dict[str, float]]:
+    """Pipeline time per frame by its outcome: a call of ``process`` for frame k is charged to frame k (its
+    pairs with earlier frames, and the bridges and finishing of earlier frames it triggers)."""
+    spent: dict[str, list[float]] = {}
+    for r in results:
+        if r.index < len(frame_s):
+            spent.setdefault(outcome(r), []).append(frame_s[r.index])
+    return {
+        name: {
+            "frames": len(v),
+            "ms_mean": round(1e3 * float(np.mean(v)), 2),
+            "ms_p90": round(1e3 * float(np.percentile(v, 90)), 2),
+        }
+        for name, v in sorted(spent.items())
+    }
+
+
+def frames_folder(folder: Path) -> Path:
+    """The rendering's frames as a folder of BMP images (``bmp/`` beside ``frames.mkv``), written once: what the
+    whole-process replay reads, so that decoding costs it next to nothing."""
+    out, done = folder / "bmp", folder / "bmp" / ".complete"
+    if done.is_file():
+        return out
+    out.mkdir(exist_ok=True)
+    with open_frames(folder / "frames.mkv") as src:
+        for k, frame in enumerate(src):
+            image = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_RGB2BGR)
+            if not cv2.imwrite(str(out / f"{k:06d}.bmp"), image):
+                raise SystemExit(f"suite: cannot write {out / f'{k:06d}.bmp'}")
+    done.write_text("", encoding="utf-8")
+    return out
+
+
+def whole_process(folder: Path, arena_path: Path, profile: str, receiver: Path | None) -> dict[str, Any]:
+    """``ipt-receiver replay`` of the rendering's BMP frames as a process of its own pinned to core 0, its
+    processor time (user + sys, the AprilTag helper process included) by ``/usr/bin/time``, and the yield and
+    errors of the poses that run wrote. ``receiver``: another checkout's ``ipt`` to run instead (a baseline).
+    The replay is not told of a rolling shutter (it has no such option)."""
+    truth = read_tum(folder / "groundtruth.tum")
+    rate = 1.0 / float(np.median(np.diff(truth.times_s)))
+    frames_dir = frames_folder(folder)
+    entry = Path(sys.executable).with_name("ipt-receiver")
+    command = [str(entry)] if receiver is None and entry.is_file() else [sys.executable, "-m", "ipt.receiver.cli"]
+    env = dict(os.environ, PYTHONPATH=str(receiver)) if receiver is not None else None
+    with tempfile.TemporaryDirectory(prefix="ipt-suite-") as tmp:
+        poses, timing = Path(tmp) / "poses.tum", Path(tmp) / "time.txt"
+        cmd = ["taskset", "-c", "0", "/usr/bin/time", "-f", "%U %S", "-o", str(timing), *command, "replay",
+               "--config", str(arena_path), "--camera", str(folder / "camera.yaml"), "--video", str(frames_dir),
+               "--fps", f"{rate:.6f}", "--output", str(poses), "--profile", profile]  # fmt: skip
+        load = os.getloadavg()[0]
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=3600, check=False, env=env)
+        if done.returncode != 0:
+            raise SystemExit(f"suite: {' '.join(cmd)} failed: {done.stderr.strip()[-2000:]}")
+        user_s, sys_s = (float(v) for v in timing.read_text(encoding="utf-8").split()[-2:])
+        got = read_tum(poses)
+    frames = len(list(frames_dir.glob("*.bmp")))
+    out: dict[str, Any] = {
+        "frames_per_cpu_s": round(frames / (user_s + sys_s), 1),
+        "user_s": user_s,
+        "sys_s": sys_s,
+        "load_average": round(load, 2),
+        "yield_pct": round(100.0 * len(got) / frames, 2),
+    }
+    if len(got):
+        r = evaluate(truth, got)
+        out.update(
+            mae_mm=[round(1e3 * v, 2) for v in (r.mae_x_m, r.mae_y_m, r.mae_z_m)],
+            poses_over_10cm=r.n_outliers,
+            max_error_mm=round(1e3 * r.max_pos_err_m, 1),
+        )
     return out
 
 
@@ -264,11 +352,21 @@ def _seam(r: dict[str, Any]) -> str:
     return f"; across the seam ({r['seam_poses']} poses): MAE {mae} mm, worst {worst} mm"
 
 
+def _whole(r: dict[str, Any]) -> str:
+    w = r.get("whole_process")
+    if w is None:
+        return ""
+    return (
+        f"; whole process {w['frames_per_cpu_s']} frames/processor-s (load {w['load_average']}), "
+        f"yield {w['yield_pct']:.1f} %, MAE {_cell_mm(w.get('mae_mm'))} mm"
+    )
+
+
 def markdown(results: dict[str, Any]) -> str:
     lines = [
         "| flight | profile | yield | X / Y / Z MAE (mm) | tilt / yaw MAE | poses > 10 cm (worst) "
-        "| frames/s (1 core) |",
-        "| --- | --- | --- | --- | --- | --- | --- |",
+        "| frames/s (1 core) | whole process frames/processor-s |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for name, flight in results["flights"].items():
         for profile, r in flight["profiles"].items():
@@ -276,7 +374,8 @@ def markdown(results: dict[str, Any]) -> str:
             worst = "—" if r["max_error_mm"] is None else f"{r['max_error_mm']:.0f} mm"
             lines.append(
                 f"| {name} | `{profile}` | {r['yield_pct']:.1f} % | {_cell_mm(r['mae_mm'])} | {angles} | "
-                f"{r['poses_over_10cm']} ({worst}) | {r['frames_per_s']:.0f} |"
+                f"{r['poses_over_10cm']} ({worst}) | {r['frames_per_s']:.0f} | "
+                f"{r['whole_process']['frames_per_cpu_s'] if 'whole_process' in r else '—'} |"
             )
     banded = [
         f"- {name} / `{profile}` by true height: "
@@ -305,6 +404,16 @@ def main() -> int:
     )
     p.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="where renderings are kept")
     p.add_argument("--markdown", type=Path, help="also write the Markdown table here")
+    p.add_argument(
+        "--no-whole-process",
+        action="store_true",
+        help="skip the whole-process replay (ipt-receiver replay of BMP frames on core 0, timed by /usr/bin/time)",
+    )
+    p.add_argument(
+        "--receiver",
+        type=Path,
+        help="run the whole-process replay with the ipt package of this checkout (PYTHONPATH), e.g. a baseline",
+    )
     args = p.parse_args()
     if not 0 < args.seconds <= 600:
         print(f"suite: --seconds must be in (0, 600], got {args.seconds:g}", file=sys.stderr)
@@ -327,9 +436,11 @@ def main() -> int:
             start = time.monotonic()
             flight["profiles"][profile] = score(folder, arena, profile, seam, sim.camera.readout_ms > 0)
             r = flight["profiles"][profile]
+            if not args.no_whole_process:
+                r["whole_process"] = whole_process(folder, folder / "arena.yaml", profile, args.receiver)
             print(
                 f"suite: {path.stem} / {profile}: yield {r['yield_pct']:.1f} %, MAE {_cell_mm(r['mae_mm'])} mm, "
-                f"{r['frames_per_s']} frames/s ({time.monotonic() - start:.0f} s){_seam(r)}",
+                f"{r['frames_per_s']} frames/s{_whole(r)} ({time.monotonic() - start:.0f} s){_seam(r)}",
                 file=sys.stderr,
                 flush=True,
             )
@@ -356,6 +467,9 @@ def main() -> int:
                     entry["profiles"][profile] = r = score(
                         where, scored_arena, profile, seam, sim.camera.readout_ms > 0
                     )
+                    if not args.no_whole_process:
+                        arena_yaml = folder / "calibrated.yaml" if where is folder else where / "arena.yaml"
+                        r["whole_process"] = whole_process(where, arena_yaml, profile, args.receiver)
                     print(
                         f"suite: {name} / {profile}: yield {r['yield_pct']:.1f} %, MAE {_cell_mm(r['mae_mm'])} mm"
                         f"{_seam(r)}",

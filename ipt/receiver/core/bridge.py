@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import cv2
@@ -365,7 +365,7 @@ class ContentBridge:
         tracked = self._track_guessed(diff, (rt_of(*poses[1]), True), target.signal)
         self._lap("track", t0)
         if tracked is not None:
-            self._add_candidate(target, self._candidate(tracked, before.index))
+            self._add_candidate(target, replace(self._candidate(tracked, before.index), method="bridge"))
 
 
 def _found(frame: _Frame) -> Pose | None:

@@ -32,7 +32,8 @@ class FrameResult:
     reset: bool = False
     """The pose re-initialises the track (it disagreed with the previous ones, which were dropped)."""
     method: str = ""
-    """How the pose was found: "track" (the map's edges), "apriltag" (tag corners), or "" for none."""
+    """How the pose was found: "track" (the map's edges), "bridge" (the map's edges on the bridge's
+    difference of three frames, :mod:`ipt.receiver.core.bridge`), "apriltag" (tag corners), or "" for none."""
     partner: int | None = None
     """The frame it was paired with."""
     detector_failed: bool = False
