@@ -13,8 +13,14 @@ helper process too) with OpenCV on one thread, and scored against its ground tru
   the worst position error;
 - ``rolling_shutter``: true when the receiver was told the camera has one (a flight whose camera reads
   its rows out over time: ``pose.track.rolling_shutter``, as a lab sets it for such a camera);
-- ``frames_per_s``: frames over the pipeline's processor time on one core (decoding not counted), and the
-  per-stage times; ``reasons``: why frames gave no pose.
+- ``frames_per_s``: frames over the pipeline thread's processor time on one core (decoding and the AprilTag
+  helper's own time not counted: ``whole_process`` counts everything), and the
+  per-stage times; ``reasons``: why frames gave no pose; ``ms_per_frame_by_outcome``: that time per frame
+  for the frames posed, bridged, lost and dark;
+- ``whole_process`` (unless ``--no-whole-process``): ``ipt-receiver replay`` of the rendering's frames as BMP
+  images (written once into ``bmp/`` beside the rendering), a process pinned to core 0, its user + sys time by
+  ``/usr/bin/time`` (the AprilTag helper process included) as ``frames_per_cpu_s``, the load average when it
+  started, and the yield and errors of that run's own poses (issue 29's target 1).
 
 A flight with a keystoned projector (``keystone:``) is scored three ways: ``NAME (uncalibrated)`` with the
 arena file's uniform layout, ``NAME (calibrated)`` with the arena ``ipt calibrate arena --points`` makes
@@ -193,9 +199,9 @@ def score(
                 results, frame_s = [], []
                 for k, frame in enumerate(src):
                     t_us = round(float(truth.times_s[k]) * 1e6) if k < len(truth) else round(k / rate * 1e6)
-                    t0 = time.perf_counter()
+                    t0 = time.thread_time()
                     results += pipeline.process(k, frame, t_us)
-                    frame_s.append(time.perf_counter() - t0)
+                    frame_s.append(time.thread_time() - t0)
                     busy_s += frame_s[-1]
                 results += pipeline.flush()
             for result in results:

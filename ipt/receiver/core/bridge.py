@@ -338,7 +338,7 @@ class ContentBridge:
         bridges gave 1 pose in 128 tries (a third of the bridge's time there, in its dark scenes)."""
         if _found(before) is None and _found(after) is None:
             return
-        t0 = time.perf_counter()
+        t0 = time.thread_time()
         poses = (self._bridge_pose(before), self._bridge_pose(target), self._bridge_pose(after))
         if poses[0] is None or poses[1] is None or poses[2] is None:
             return

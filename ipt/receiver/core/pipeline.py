@@ -150,7 +150,8 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
         self._detector_failed = False
         self.reasons: Counter[str] = Counter()
         self.stage_seconds: dict[str, float] = defaultdict(float)
-        """Processor time spent per stage, for benchmarks."""
+        """Processor time of the pipeline's thread spent per stage (the AprilTag helper process's own time is not
+        in "detect"), for benchmarks and diagnostics."""
         self.detector_runs = 0
         self.detector.wait_ready()
 
@@ -172,7 +173,7 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
         that waited for it, or none yet). Never raises for a bad frame: its result says why
         (:mod:`ipt.receiver.core.framecheck`: "bad_frame", "wrong_size", "dark", "saturated"; "time_gap" for the
         first frame after a gap in capture times, which pairing starts afresh from)."""
-        t0 = time.perf_counter()
+        t0 = time.thread_time()
         problem = frame_problem(frame, self.camera.height_px, self.camera.width_px)
         if problem is not None:  # not an image of this camera, or one without signal: never a partner
             if problem in RESTARTS:
@@ -256,7 +257,7 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
         return out
 
     def _lap(self, stage: str, t0: float) -> float:
-        t1 = time.perf_counter()
+        t1 = time.thread_time()
         self.stage_seconds[stage] += t1 - t0
         return t1
 
@@ -295,7 +296,7 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
 
     def _paper(self, new: _Frame) -> FrameResult:
         result = new.failure or FrameResult(new.index, new.time_us, None, 0, FrameReason.FIRST_FRAME)
-        t0 = time.perf_counter()
+        t0 = time.thread_time()
         for prev in self._partners(new, earlier=True):
             new.tried.add(prev.index)
             demod = demodulate(prev.lum, new.lum, self.cfg.demodulation)
@@ -376,7 +377,7 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
         key = (a.index, b.index)
         if key in self._pairs:
             return self._pairs[key]
-        t0 = time.perf_counter()
+        t0 = time.thread_time()
         assert a.features is not None
         assert b.features is not None
         assert a.signal is not None
@@ -440,7 +441,7 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
             return
         diff = self._difference_in(pair, target is b)
         warp_other_to_target = pair.warp if target is b else np.asarray(np.linalg.inv(pair.warp), np.float64)
-        t0 = time.perf_counter()
+        t0 = time.thread_time()
         reason = FrameReason.NO_TAGS
         guess = self._initial_pose(target, other, warp_other_to_target)
         tracked: TrackResult | None = None
@@ -452,7 +453,7 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
             elif self.cfg.pose.track.verify_every and self._since_verify >= self.cfg.pose.track.verify_every:
                 if not self._verified(tracked, diff, t0):
                     tracked, reason = None, FrameReason.TRACK_DISAGREES
-                t0 = time.perf_counter()
+                t0 = time.thread_time()
         candidate: _Candidate | None = None
         if tracked is not None:
             self._since_verify += 1
