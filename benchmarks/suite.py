@@ -299,7 +299,9 @@ def whole_process(folder: Path, arena_path: Path, profile: str, receiver: Path |
     """``ipt-receiver replay`` of the rendering's BMP frames as a process of its own pinned to core 0, its
     processor time (user + sys, the AprilTag helper process included) by ``/usr/bin/time``, and the yield and
     errors of the poses that run wrote. ``receiver``: another checkout's ``ipt`` to run instead (a baseline).
-    The replay is not told of a rolling shutter (it has no such option)."""
+    The replay is not told of a rolling shutter (it has no such option); its frame k is at k/fps, with the rate
+    given as a user would (``--fps 120``, 119.88: the truth's times, whole microseconds, put it at 120.0048),
+    so its poses may differ a little from the in-process run's, which takes the truth's times."""
     truth = read_tum(folder / "groundtruth.tum")
     rate = 1.0 / float(np.median(np.diff(truth.times_s)))
     frames_dir = frames_folder(folder)
@@ -310,7 +312,7 @@ def whole_process(folder: Path, arena_path: Path, profile: str, receiver: Path |
         poses, timing = Path(tmp) / "poses.tum", Path(tmp) / "time.txt"
         cmd = ["taskset", "-c", "0", "/usr/bin/time", "-f", "%U %S", "-o", str(timing), *command, "replay",
                "--config", str(arena_path), "--camera", str(folder / "camera.yaml"), "--video", str(frames_dir),
-               "--fps", f"{rate:.6f}", "--output", str(poses), "--profile", profile]  # fmt: skip
+               "--fps", f"{rate:.2f}", "--output", str(poses), "--profile", profile]  # fmt: skip
         load = os.getloadavg()[0]
         done = subprocess.run(cmd, capture_output=True, text=True, timeout=3600, check=False, env=env)
         if done.returncode != 0:
