@@ -305,7 +305,8 @@ def test_every_reason_the_receiver_gives_is_a_frame_reason() -> None:
     from ipt.receiver.core.reasons import FrameReason
 
     receiver = PACKAGE / "receiver" / "core"
-    found = set().union(*(_reason_literals(receiver / n) for n in ("pipeline.py", "gates.py", "framecheck.py")))
+    files = ("pipeline.py", "paperway.py", "gates.py", "framecheck.py")
+    found = set().union(*(_reason_literals(receiver / n) for n in files))
     named = {f"FrameReason.{r.name}" for r in FrameReason}
     wanted = {"POSE", "FIRST_FRAME", "NO_TAGS", "TIME_GAP", "DARK", "MOTION_JUMP"}
     assert {f"FrameReason.{n}" for n in wanted} <= found  # the scan finds them

@@ -464,3 +464,27 @@ def test_finishing_before_a_later_frame_gives_what_processing_it_gives_only_soon
 
     assert said([r for r in with_18 if r.index != 18]) == said(finished)
     assert any(r.pose is not None for r in finished)  # not only failures: a pose came out sooner
+
+
+def test_frames_prepared_on_another_thread_give_the_same_poses(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]
+    """What the replay does with a second core: each frame's own work (:meth:`Pipeline.prepare`) on another
+    thread while the frame before it is processed. The poses are the same to the last bit, bad frames too."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    feed = [*frames[:20], np.zeros_like(frames[0]), *frames[20:40]]  # a black frame midway: "dark"
+    direct = _run(_pipeline(short_flight, PipelineConfig()), feed)
+    p = _pipeline(short_flight, PipelineConfig())
+    with ThreadPoolExecutor(max_workers=1) as ahead:
+        prepared = [ahead.submit(p.prepare, f) for f in feed]
+        ahead_results: list[FrameResult] = []
+        for k, job in enumerate(prepared):
+            ahead_results += p.process(k, job.result(), _t_us(k))
+    ahead_results += p.flush()
+    assert [(r.index, r.reason) for r in ahead_results] == [(r.index, r.reason) for r in direct]
+    assert any(r.reason == "dark" for r in direct)
+    assert sum(r.pose is not None for r in direct) >= 30
+    for a, b in zip(ahead_results, direct, strict=True):
+        assert (a.pose is None) == (b.pose is None)
+        if a.pose is not None and b.pose is not None:
+            assert np.array_equal(a.pose.position_m, b.pose.position_m)
+            assert np.array_equal(a.pose.quat_wxyz, b.pose.quat_wxyz)

@@ -12,12 +12,17 @@ A ``--record-frames`` recording (:mod:`ipt.receiver.capture.framelog`) is replay
 
 from __future__ import annotations
 
+import os
 import sys
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
+
+import numpy as np
+import numpy.typing as npt
 
 from ipt.config.camera_info import load_camera_info
 from ipt.config.models import MAX_RATE_HZ, MIN_CAMERA_RATE_HZ, ArenaConfig, PipelineConfig
@@ -26,11 +31,11 @@ from ipt.fileio import atomic_path
 from ipt.maphash import map_hash
 from ipt.ratelimit import LogThrottle
 from ipt.receiver.capture.framelog import KIND_FINISH, KIND_LOST, FrameLog
-from ipt.receiver.core.pipeline import FrameResult, Pipeline
+from ipt.receiver.core.pipeline import FrameResult, Pipeline, Prepared
 from ipt.receiver.detect.detector import pipeline_detector
 from ipt.tagmap import TagMap, grid_tag_map
 from ipt.tum import TUM_HEADER, format_tum_line
-from ipt.videoio import open_frames
+from ipt.videoio import FrameSource, open_frames
 
 
 class ReplayError(IptError):
@@ -64,6 +69,27 @@ class ReplaySummary:
             f"replay: {self.frames} frames, {self.poses} poses, yield {100 * self.yield_fraction:.1f} %, "
             f"{fps:.1f} frames/s{skipped} ({why})"
         )
+
+
+def _read_ahead(source: FrameSource, pipeline: Pipeline) -> Iterator[tuple[int, npt.NDArray[np.uint8] | Prepared]]:
+    """The source's frames with their numbers (skipped frames keep theirs: every frame keeps its time). With
+    more than one core to run on, each is read and prepared (:meth:`Pipeline.prepare`) on a second thread
+    while the one before it is processed: the same results, the pipeline's thread freed of that share."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    if cores < 2:
+        for frame in source:
+            yield source.index, frame
+        return
+
+    def read() -> tuple[int, Prepared] | None:
+        frame = next(source, None)
+        return None if frame is None else (source.index, pipeline.prepare(frame))
+
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="ipt-prepare") as ahead:
+        coming = ahead.submit(read)
+        while (item := coming.result()) is not None:
+            coming = ahead.submit(read)
+            yield item
 
 
 def replay(
@@ -123,8 +149,7 @@ def replay(
                         out.write(format_tum_line(t_s, result.pose.position_m, result.pose.quat_wxyz))
                 return sum(r.pose is not None for r in results)
 
-            for frame in source:
-                k = source.index  # skipped frames keep their numbers: every frame keeps its time
+            for k, frame in _read_ahead(source, pipeline):
                 say_skipped()
                 poses += write(pipeline.process(k, frame, round(k / rate * 1e6)))
                 frames += 1

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter, defaultdict, deque
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -43,18 +43,18 @@ from ipt.receiver.core.demodulator import (
     PairDifference,
     Undistorter,
     binarise_difference,
-    demodulate,
     ksize_for,
     luminance,
     pair_difference,
     signal_mask,
 )
-from ipt.receiver.core.detection import Detector, DetectorError, TagDetection
+from ipt.receiver.core.detection import Detector, DetectorError
 from ipt.receiver.core.framecheck import RESTARTS, frame_problem
 from ipt.receiver.core.frameresult import FrameResult, _Candidate, _Frame, _Pair
 from ipt.receiver.core.gates import PoseGates
 from ipt.receiver.core.imagealign import AlignTarget, alignment_features, floor_warp_between, warp_image
 from ipt.receiver.core.motion import MotionTrack, floor_warp
+from ipt.receiver.core.paperway import PaperWay
 from ipt.receiver.core.pose import Pose, PoseEstimate, pose_of, rt_of, solve_pose
 from ipt.receiver.core.reasons import FrameReason
 from ipt.receiver.core.scales import DetectScale, ScaleChooser
@@ -100,7 +100,21 @@ LOST_AFTER_US = 50_000
 MIN_COARSE_SCORE = 0.1
 
 
-class Pipeline(PoseGates, ContentBridge, SecondLook):
+@dataclass(frozen=True)
+class Prepared:
+    """A camera frame's own work, done before its turn (:meth:`Pipeline.prepare`)."""
+
+    problem: str | None
+    """Why it is not a frame to work on (:func:`~ipt.receiver.core.framecheck.frame_problem`), or None."""
+    lum: U8 | None
+    """Its lightness (undistorted in the ipt profile); None with a problem."""
+    signal: U8 | None
+    """Its signal mask (ipt profile)."""
+    features: F32 | None
+    """Its alignment features (ipt profile)."""
+
+
+class Pipeline(PoseGates, ContentBridge, SecondLook, PaperWay):
     """The receiver's per-frame processing, for either profile (see :meth:`PipelineConfig.profile`)."""
 
     def __init__(
@@ -167,14 +181,31 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
 
     # -- the interface -------------------------------------------------------------------------------
 
-    def process(self, index: int, frame: U8, capture_time_us: int) -> list[FrameResult]:
-        """Take camera frame ``index`` (H×W×3 RGB, or H×W grey: a mono camera's, or the luma plane of a YUV
-        or JPEG frame); return the results that became final, in frame order (this frame's, earlier ones'
-        that waited for it, or none yet). Never raises for a bad frame: its result says why
-        (:mod:`ipt.receiver.core.framecheck`: "bad_frame", "wrong_size", "dark", "saturated"; "time_gap" for the
-        first frame after a gap in capture times, which pairing starts afresh from)."""
-        t0 = time.thread_time()
+    def prepare(self, frame: U8) -> Prepared:
+        """The work on ``frame`` that needs no other frame (its check, lightness, undistortion, signal mask and
+        alignment features), for :meth:`process`. It reads no state that processing changes, so it may run
+        on another thread, one frame ahead of the pairing (a second core's share of the work)."""
         problem = frame_problem(frame, self.camera.height_px, self.camera.width_px)
+        if problem is not None:
+            return Prepared(problem, None, None, None)
+        lum = luminance(frame, self.cfg.demodulation.lightness)
+        if not self.ipt:
+            return Prepared(None, lum, None, None)
+        coverage = None
+        if self.undistort is not None:
+            lum = self.undistort(lum)
+            coverage = self.undistort.coverage
+        return Prepared(None, lum, signal_mask(lum, coverage), alignment_features(lum))
+
+    def process(self, index: int, frame: U8 | Prepared, capture_time_us: int) -> list[FrameResult]:
+        """Take camera frame ``index`` (H×W×3 RGB, or H×W grey: a mono camera's, or the luma plane of a YUV
+        or JPEG frame; or what :meth:`prepare` made of it); return the results that became final, in frame
+        order (this frame's, earlier ones' that waited for it, or none yet). Never raises for a bad frame: its
+        result says why (:mod:`ipt.receiver.core.framecheck`: "bad_frame", "wrong_size", "dark", "saturated";
+        "time_gap" for the first frame after a gap in capture times, which pairing starts afresh from)."""
+        t0 = time.thread_time()
+        ready = frame if isinstance(frame, Prepared) else self.prepare(frame)
+        problem = ready.problem
         if problem is not None:  # not an image of this camera, or one without signal: never a partner
             if problem in RESTARTS:
                 self._restart()
@@ -185,7 +216,8 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
         gap = bool(self._history) and not 0 < capture_time_us - self._history[-1].time_us <= MAX_GAP_US
         if gap:
             self._restart()  # a jump in the video, or time going backwards
-        new = self._frame(index, frame, capture_time_us)
+        assert ready.lum is not None
+        new = _Frame(index, capture_time_us, ready.lum, ready.signal, ready.features)
         if gap:  # its reason unless a later frame pairs with it
             new.failure = FrameResult(index, capture_time_us, None, 0, FrameReason.TIME_GAP)
         t0 = self._lap("lightness", t0)
@@ -219,16 +251,6 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
                 self._finish(f)
 
     # -- frames and results ---------------------------------------------------------------------------
-
-    def _frame(self, index: int, image: U8, time_us: int) -> _Frame:
-        if not self.ipt:
-            return _Frame(index, time_us, luminance(image, self.cfg.demodulation.lightness))
-        lum = luminance(image, self.cfg.demodulation.lightness)
-        coverage = None
-        if self.undistort is not None:
-            lum = self.undistort(lum)
-            coverage = self.undistort.coverage
-        return _Frame(index, time_us, lum, signal_mask(lum, coverage), alignment_features(lum))
 
     def _restart(self) -> None:
         """Start pairing afresh: earlier frames get no more partners, the motion is forgotten."""
@@ -291,52 +313,6 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
                 flips = round((frame.time_us - f.time_us) * 1e-6 * self.projector_hz)
                 return f.phase * (-1 if flips % 2 else 1)
         return None
-
-    # -- the paper's way -----------------------------------------------------------------------------
-
-    def _paper(self, new: _Frame) -> FrameResult:
-        result = new.failure or FrameResult(new.index, new.time_us, None, 0, FrameReason.FIRST_FRAME)
-        t0 = time.thread_time()
-        for prev in self._partners(new, earlier=True):
-            new.tried.add(prev.index)
-            demod = demodulate(prev.lum, new.lum, self.cfg.demodulation)
-            t0 = self._lap("demodulate", t0)
-            try:
-                dets, sign = self._detect(demod.binary, self._predicted_phase(new) or 1)
-            except DetectorError:
-                self._lap("detect", t0)
-                return FrameResult(new.index, new.time_us, None, 0, FrameReason.DETECTOR_FAILED, detector_failed=True)
-            t0 = self._lap("detect", t0)
-            if not dets:
-                result = FrameResult(new.index, new.time_us, None, 0, FrameReason.NO_TAGS, partner=prev.index)
-                continue
-            new.phase, prev.phase = sign, -sign
-            pose = solve_pose(dets, self.tag_map, self.camera, self.cfg.pose)
-            self._lap("pose", t0)
-            if pose is None:
-                return FrameResult(
-                    new.index, new.time_us, None, len(dets), FrameReason.POSE_REJECTED, partner=prev.index
-                )
-            return self._gated(new, pose, len(dets), "apriltag", prev.index)
-        return result
-
-    def _detect(self, binary: U8, first_sign: int) -> tuple[tuple[TagDetection, ...], int]:
-        """Detections and the sign they were found with (+1: dark borders as is)."""
-
-        def image(sign: int) -> U8:
-            return binary if sign == 1 else np.asarray(cv2.bitwise_not(binary), dtype=np.uint8)
-
-        if self.cfg.demodulation.polarity == "both":
-            self.detector_runs += 2
-            found = {s: self.detector.detect(image(s)) for s in (1, -1)}
-            best = max((1, -1), key=lambda s: len(found[s]))
-            return found[best], best
-        for sign in (first_sign, -first_sign):
-            self.detector_runs += 1
-            dets = self.detector.detect(image(sign))
-            if len(dets) >= self.cfg.pose.min_tags:
-                return dets, sign
-        return (), first_sign
 
     # -- the ipt way ----------------------------------------------------------------------------------
 
@@ -610,4 +586,4 @@ class Pipeline(PoseGates, ContentBridge, SecondLook):
         return float(np.linalg.norm(position - pose.position_m)) < 0.05
 
 
-__all__ = ["FrameResult", "Pipeline"]
+__all__ = ["FrameResult", "Pipeline", "Prepared"]
