@@ -193,7 +193,7 @@ def run_camera(folder: Path, fps: float, isolation: str = "process") -> dict[str
 
     from ipt.config.models import DetectorConfig, PipelineConfig, shipped_config_path
     from ipt.config.receiver import ReceiverConfig
-    from ipt.receiver.daemon import run_daemon
+    from ipt.receiver.daemon import load_setup, run_daemon
     from ipt.videoio import open_frames
 
     with open_frames(folder / "frames.mkv") as src:
@@ -208,7 +208,9 @@ def run_camera(folder: Path, fps: float, isolation: str = "process") -> dict[str
     )
     report = io.StringIO()
     t0 = time.monotonic()
-    stats = asyncio.run(run_daemon(cfg, stats_out=report, handle_signals=False, source=_MemoryCamera(frames, fps)))
+    stats = asyncio.run(
+        run_daemon(load_setup(cfg), stats_out=report, install_signal_handlers=False, source=_MemoryCamera(frames, fps))
+    )
     wall_s = time.monotonic() - t0
     datagrams = listener.stop()
     out: dict[str, Any] = {

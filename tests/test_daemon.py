@@ -9,6 +9,7 @@ import re
 import signal
 import socket
 import sys
+import threading
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -16,9 +17,10 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 import pytest
+from waiting import loop_turns, until
 
 from ipt.config.models import ConfigError, PipelineConfig, load_arena_config, shipped_config_path
-from ipt.config.receiver import load_receiver_config, read_auth_key, with_overrides
+from ipt.config.receiver import ReceiverConfig, load_receiver_config, read_auth_key, with_overrides
 from ipt.protocol import QualityFlags, decode_pose
 from ipt.receiver.capture import (
     CapturedFrame,
@@ -29,8 +31,10 @@ from ipt.receiver.capture import (
     VideoCapture,
 )
 from ipt.receiver.core.pose import PoseEstimate
+from ipt.receiver.daemon import ReceiverOptions, load_setup, run_daemon
 from ipt.receiver.outputs.udp import PacketMaker, UdpPoseSender
 from ipt.receiver.replay import replay
+from ipt.runtime import SteppedClock
 from ipt.sender.content import GeneratedScene
 from ipt.sim.config import SimConfig
 from ipt.sim.run import CAMERA_NAME, TRUTH_NAME, VIDEO_NAME, simulate_to_folder
@@ -140,9 +144,10 @@ async def test_video_poses_arrive_in_order_and_match_truth(sim_video: Path, tmp_
             "7",
             cwd=tmp_path,
         )
-        await asyncio.sleep(0.1)  # let the loop read what the kernel already holds
-    assert code == 0, stderr
-    final = _final_line(stderr)
+        assert code == 0, stderr
+        final = _final_line(stderr)
+        sent = _number(final, r"(\d+) poses,")
+        await until(lambda: len(listener.packets) >= sent, what="the datagrams the kernel already holds read")
     assert "send errors 0," in final
 
     packets = [decode_pose(p) for p in listener.packets]
@@ -245,9 +250,10 @@ async def test_send_errors_are_counted_not_fatal(sim_video: Path, tmp_path: Path
             f"127.0.0.1:{port}",
             cwd=tmp_path,
         )
-        await asyncio.sleep(0.1)
-    assert code == 0, stderr
-    final = _final_line(stderr)
+        assert code == 0, stderr
+        final = _final_line(stderr)
+        sent = _number(final, r"(\d+) poses,")
+        await until(lambda: len(listener.packets) >= sent, what="the datagrams the kernel already holds read")
     assert final.startswith("ipt-receiver: final: 12 frames (12 captured)"), final
     assert _number(final, r"send errors (\d+)") >= 1, final  # ECONNREFUSED from the dead port
     poses = _number(final, r"(\d+) poses,")
@@ -294,7 +300,7 @@ async def test_waiting_queue_blocks_the_reader_and_drops_nothing() -> None:
     q: FrameQueue[int] = FrameQueue(1)
     assert await q.put(1)
     blocked = asyncio.ensure_future(q.put(2))
-    await asyncio.sleep(0.01)
+    await loop_turns()
     assert not blocked.done()
     assert await q.get() == 1
     assert await asyncio.wait_for(blocked, 1.0)
@@ -302,7 +308,7 @@ async def test_waiting_queue_blocks_the_reader_and_drops_nothing() -> None:
     assert q.dropped == 0
     assert await q.put(3)
     late = asyncio.ensure_future(q.put(4))
-    await asyncio.sleep(0.01)
+    await loop_turns()
     q.finish()  # the end wakes a waiting reader thread, whose frame is then not taken
     assert await asyncio.wait_for(late, 1.0) is False
     assert await q.get() == 3
@@ -362,7 +368,6 @@ class _FlakySource:
         self.reads += 1
         if self.reads == 3:
             raise CaptureError("camera unplugged")
-        time.sleep(0.002)
         image: npt.NDArray[np.uint8] = np.zeros((2, 2, 3), np.uint8)
         return CapturedFrame(self.reads, self.reads, image)
 
@@ -416,10 +421,15 @@ async def test_sender_counts_refused_datagrams_and_keeps_sending() -> None:
     async with _udp_listener() as (port, listener):
         sender = UdpPoseSender([("127.0.0.1", _dead_port()), ("127.0.0.1", port)])
         async with sender:
-            for _ in range(5):
+            for k in range(1, 6):
                 sender.send(b"x" * 112)
-                await asyncio.sleep(0.01)  # the ICMP error comes back between sends
-        await asyncio.sleep(0.05)
+
+                def received(count: int = k) -> bool:
+                    return len(listener.packets) >= count
+
+                # The live target has it, and the dead port's ICMP error is back before the next send.
+                await until(received, what=f"datagram {k} received")
+        await until(lambda: len(listener.packets) == 5, what="every datagram received")
     assert sender.errors >= 1
     assert len(listener.packets) == 5
 
@@ -445,3 +455,76 @@ def test_receiver_config_resolves_paths_against_its_folder(tmp_path: Path) -> No
         read_auth_key(cfg.auth_key_file)
     with pytest.raises(ConfigError, match="source"):
         with_overrides(cfg, source="camera")
+
+
+# --- the daemon's clock is passed in: statistics on stepped time, no sleeping ------------------------
+
+
+class _Lines(io.StringIO):
+    """A report that tells the test each line as it is written (on the event loop's thread)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.lines: asyncio.Queue[str] = asyncio.Queue()
+
+    def write(self, text: str) -> int:
+        for line in text.splitlines():
+            self.lines.put_nowait(line)
+        return super().write(text)
+
+
+class _QuietCamera:
+    """A live camera that opens and then shows nothing until the capture thread is stopped."""
+
+    name = "quiet"
+    live = True
+    retry_open = False
+
+    def __init__(self, stop: threading.Event) -> None:
+        self.stop = stop
+
+    def open(self) -> None:
+        pass
+
+    def read(self) -> CapturedFrame | None:
+        self.stop.wait(10.0)  # ends at once when the daemon stops capture
+        return None
+
+    def close(self) -> None:
+        pass
+
+
+@pytest.mark.asyncio
+async def test_interval_lines_and_totals_follow_the_injected_clock() -> None:
+    """With a stepped clock the interval line comes when the clock says, and the totals count its seconds."""
+    cfg = ReceiverConfig(
+        arena=shipped_config_path("arena.yaml"),
+        camera=shipped_config_path("camera.yaml"),
+        send=["127.0.0.1:9"],
+        stats_interval_s=5.0,
+    )
+    clock, report, stop, capture_stop = SteppedClock(100.0), _Lines(), asyncio.Event(), threading.Event()
+    options = ReceiverOptions(
+        stop=stop,
+        install_signal_handlers=False,
+        source=_QuietCamera(capture_stop),
+        capture_stop=capture_stop,
+        stats_out=report,
+        clock=clock,
+    )
+    run = asyncio.ensure_future(run_daemon(load_setup(cfg), options))
+    running = await asyncio.wait_for(report.lines.get(), 60.0)
+    assert "running: quiet (live)" in running
+    await asyncio.wait_for(clock.wait_for_sleepers(1), 10.0)  # the statistics task waits for the clock
+    clock.advance(4.5)  # not yet an interval: its wait is still on
+    assert clock.sleepers == 1
+    clock.advance(0.5)
+    line = await asyncio.wait_for(report.lines.get(), 10.0)
+    assert line.startswith("ipt-receiver: 0.0 frames/s, 0.0 poses/s, yield 0.0 %"), line
+    assert report.lines.empty()
+    clock.advance(2.5)
+    stop.set()
+    stats = await asyncio.wait_for(run, 10.0)
+    assert stats.seconds == 7.5  # exactly: the clock's, not the wall's
+    assert " in 7.50 s: " in stats.line()
+    assert not stats.capture_running

@@ -23,7 +23,7 @@ from ipt.config.receiver import ReceiverConfig
 from ipt.receiver import daemon
 from ipt.receiver.capture import CapturedFrame, CaptureError
 from ipt.receiver.core.pipeline import FrameResult, Pipeline
-from ipt.receiver.daemon import DaemonStats, ResultHook, run_daemon
+from ipt.receiver.daemon import DaemonStats, ResultHook, load_setup, run_daemon
 from ipt.videoio import open_frames
 
 FPS = 120.0
@@ -102,7 +102,11 @@ async def _run_live(
     """The daemon in this process on ``camera``, sending to ``send``, its report in ``report`` (at most 30 s)."""
     return await asyncio.wait_for(
         run_daemon(
-            _config(short_flight, send), stats_out=report, handle_signals=False, source=camera, on_result=on_result
+            load_setup(_config(short_flight, send)),
+            stats_out=report,
+            install_signal_handlers=False,
+            source=camera,
+            on_result=on_result,
         ),
         30.0,
     )
@@ -384,7 +388,13 @@ async def test_a_receiver_slower_than_its_camera_gets_runs_of_consecutive_frames
         listener.bind(("127.0.0.1", 0))
         send = [f"127.0.0.1:{listener.getsockname()[1]}"]
         stats = await asyncio.wait_for(
-            run_daemon(_config(short_flight, send), stats_out=io.StringIO(), handle_signals=False, source=camera), 60.0
+            run_daemon(
+                load_setup(_config(short_flight, send)),
+                stats_out=io.StringIO(),
+                install_signal_handlers=False,
+                source=camera,
+            ),
+            60.0,
         )
     # The first frame alone, then the newest three of each burst, one run after the other: [6, 7, 8] come
     # after frame 0 is processed; 9-16 come while 6 is, 17-24 while 7 is, 25-32 while 8 is: [30, 31, 32].

@@ -30,7 +30,7 @@ from ipt.receiver.capture.framelog import (
     start_frame_log,
 )
 from ipt.receiver.core.pipeline import FrameResult
-from ipt.receiver.daemon import run_daemon
+from ipt.receiver.daemon import load_setup, run_daemon
 from ipt.receiver.replay import exact_tum_line, replay_frame_log
 from ipt.sim.run import CAMERA_NAME, VIDEO_NAME
 from ipt.videoio import open_frames
@@ -157,7 +157,12 @@ def test_replay_uses_recorded_numbers_and_times_not_k_over_fps(
     async def main() -> None:
         with open(os.devnull, "w") as quiet:
             stats = await run_daemon(
-                cfg, handle_signals=False, source=source, on_result=on_result, stats_out=quiet, frame_log=log
+                load_setup(cfg),
+                install_signal_handlers=False,
+                source=source,
+                on_result=on_result,
+                stats_out=quiet,
+                frame_log=log,
             )
         nonlocal drops
         drops = stats.drops

@@ -148,7 +148,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 def _run_daemon(args: argparse.Namespace) -> int:
     from ipt.config.models import shipped_config_path
     from ipt.config.receiver import load_receiver_config, with_overrides
-    from ipt.receiver.daemon import run
+    from ipt.receiver.daemon import ReceiverOptions, load_setup, run
     from ipt.receiver.outputs.udp import OutputError
 
     config = Path(args.config) if args.config else shipped_config_path("receiver.yaml")
@@ -172,11 +172,13 @@ def _run_daemon(args: argparse.Namespace) -> int:
         updates["record"] = {**cfg.record.model_dump(), "path": Path(args.record)}
     if updates:
         cfg = with_overrides(cfg, **updates)
+    setup = load_setup(cfg)
     capture_stop = threading.Event()
     source = _simulated_camera(cfg, capture_stop) if cfg.source_spec.kind == "sim" else None
     frame_log = _frame_log(cfg, args)
+    options = ReceiverOptions(max_frames=args.max_frames, source=source, capture_stop=capture_stop, frame_log=frame_log)
     try:
-        stats = run(cfg, max_frames=args.max_frames, source=source, capture_stop=capture_stop, frame_log=frame_log)
+        stats = run(setup, options)
     except OutputError as exc:
         # Say where the target came from, so that the fix is one look away.
         where = "--send" if args.send else f"{config} (send:)"

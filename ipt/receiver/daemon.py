@@ -24,8 +24,13 @@ Three stages, each on its own thread, joined by bounded queues::
   must see frames in capture order. It does: one coroutine submits them in the order the FIFO queue
   yields them, and one worker thread takes them from the executor's FIFO queue one after the other.
   Results are awaited in submission order too, so packets leave in capture order.
-- Latency is ``time.monotonic()`` right after the packet was sent minus the frame's grab (or read)
-  instant, so it includes the time a frame waited in the queues.
+- Latency is the daemon's clock right after the packet was sent minus the frame's grab (or read)
+  instant, so it includes the time a frame waited in the queues. The clock is passed in
+  (:attr:`ReceiverOptions.clock <ipt.receiver.options.ReceiverOptions.clock>`, ``time.monotonic`` by
+  default), as the rest of a run's setup: :func:`run_daemon` takes the files already loaded
+  (:class:`~ipt.receiver.options.ReceiverSetup`) and a :class:`~ipt.receiver.options.ReceiverOptions`, as the
+  sender takes its :class:`~ipt.sender.options.SenderOptions`; the task set, the ordered shutdown's budget and
+  the statistics interval are the sender's too (:mod:`ipt.runtime`).
 - The other outputs take each result on the event loop after the UDP packet: MAVLink
   (:mod:`ipt.receiver.outputs.mavlink.output`) there, ROS 2 over DDS and the MCAP recording through
   :class:`~ipt.receiver.outputs.ros.output.RosOutputs`, which only queues the result for its own thread. Each
@@ -45,20 +50,18 @@ on which the command line leaves with ``os._exit``.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import sys
 import threading
-import time
 from collections import Counter
-from collections.abc import Callable, Coroutine
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, TextIO
 
 from ipt import signals
-from ipt.config.camera_info import CameraInfo, load_camera_info
-from ipt.config.models import ArenaConfig, load_arena_config
-from ipt.config.receiver import ReceiverConfig, read_auth_key
-from ipt.maphash import map_hash
+from ipt.config.camera_info import CameraInfo
+from ipt.config.models import ArenaConfig
+from ipt.config.receiver import ReceiverConfig
 from ipt.protocol import ProtocolError
 from ipt.receiver.capture import (
     CapturedFrame,
@@ -73,10 +76,10 @@ from ipt.receiver.capture import (
 from ipt.receiver.core.pipeline import FrameResult, Pipeline
 from ipt.receiver.core.reasons import FrameReason
 from ipt.receiver.detect.detector import pipeline_detector
+from ipt.receiver.options import ProcessedHook, ReceiverOptions, ReceiverSetup, ResultHook, load_setup
 from ipt.receiver.outputs.ros.output import RosOutputs
 from ipt.receiver.outputs.udp import PacketMaker, UdpPoseSender, new_stream_id
-from ipt.runtime import Histogram, run_loop, write_line
-from ipt.tagmap import grid_tag_map
+from ipt.runtime import Clock, Histogram, Interval, ShutdownBudget, TaskSet, run_loop, write_line
 
 if TYPE_CHECKING:
     from ipt.receiver.capture.framelog import FrameLogWriter
@@ -98,11 +101,6 @@ MAX_ERROR_REPORTS = 5
 """Pipeline errors reported in full on stderr; later ones are only counted."""
 
 PROG = "ipt-receiver"
-
-ResultHook = Callable[[CapturedFrame, FrameResult | None, int], None]
-"""``on_result(frame, result, datagrams_sent)`` of :func:`run_daemon`."""
-ProcessedHook = Callable[[CapturedFrame, int], None]
-"""``on_processed(frame, datagrams_sent)`` of :func:`run_daemon`."""
 
 
 def _ms(value: float | None) -> str:
@@ -162,13 +160,13 @@ class DaemonStats:
 class _Meter:
     """Counts kept on the event loop's thread: per interval and for the whole run."""
 
-    def __init__(self) -> None:
+    def __init__(self, interval: Interval) -> None:
         self.frames = self.poses = 0
         self.reasons: Counter[str] = Counter()
         self.latency = Histogram(bin_ms=0.1, limit_ms=10_000.0)
+        self.interval = interval
         self.i_frames = self.i_poses = 0
         self.i_latency = Histogram(bin_ms=0.1, limit_ms=10_000.0)
-        self.i_start = time.monotonic()
 
     def frame(self, reason: str) -> None:
         self.frames += 1
@@ -181,9 +179,8 @@ class _Meter:
         self.latency.add(latency_s * 1e3)
         self.i_latency.add(latency_s * 1e3)
 
-    def interval_line(self, drops: int, send_errors: int) -> str:
-        now = time.monotonic()
-        span = max(now - self.i_start, 1e-9)
+    def interval_line(self, now_s: float, drops: int, send_errors: int) -> str:
+        span = self.interval.restart(now_s)
         yield_ = 100 * self.i_poses / self.i_frames if self.i_frames else 0.0
         line = (
             f"{PROG}: {self.i_frames / span:.1f} frames/s, {self.i_poses / span:.1f} poses/s, yield {yield_:.1f} %, "
@@ -192,7 +189,6 @@ class _Meter:
         )
         self.i_frames = self.i_poses = 0
         self.i_latency.clear()
-        self.i_start = now
         return line
 
 
@@ -215,42 +211,19 @@ def make_source(cfg: ReceiverConfig, arena: ArenaConfig, camera: CameraInfo, sto
     raise CaptureError(f"source {cfg.source}: the simulated camera is handed to the daemon by the command line")
 
 
-async def run_daemon(
-    cfg: ReceiverConfig,
-    *,
-    stop: asyncio.Event | None = None,
-    stats_out: TextIO | None = None,
-    max_frames: int | None = None,
-    handle_signals: bool = True,
-    source: CaptureSource | None = None,
-    on_result: ResultHook | None = None,
-    on_processed: ProcessedHook | None = None,
-    capture_stop: threading.Event | None = None,
-    frame_log: FrameLogWriter | None = None,
-) -> DaemonStats:
-    """Run the receiver until ``stop`` is set (or SIGTERM/SIGINT), the recording ends or ``max_frames``
-    frames were captured. Statistics go to ``stats_out`` (default: stderr). Configuration problems raise
-    :class:`~ipt.errors.IptError` before any frame is read.
-
-    ``source`` replaces the frame source ``cfg.source`` describes (the closed-loop demo feeds its
-    simulation in this way); ``cfg.camera`` must still describe its frames. ``on_result`` is called on
-    the event loop for every frame's result, in capture order, once its packet (if any) was handed to the
-    kernel: with the frame, its :class:`FrameResult` (``None`` if processing raised) and the number of
-    datagrams sent for it. A result may come a few frames after its frame was processed (the pipeline's
-    ``lookahead_frames``); ``on_processed`` is called once each frame was processed and the results that
-    became final with it were delivered, with the datagrams sent for them. ``capture_stop`` is the event
-    that stops the capture thread (default: a new one): a source handed in paces its sleeps on it (as
-    :func:`make_source` does), so that they end at once at shutdown. ``frame_log`` keeps every frame handed to
-    the pipeline (``--record-frames``; :mod:`ipt.receiver.capture.framelog`); the caller closes it."""
+async def run_daemon(setup: ReceiverSetup, options: ReceiverOptions | None = None, **changes: Any) -> DaemonStats:
+    """Run the receiver until ``options.stop`` is set (or SIGTERM/SIGINT), the recording ends or
+    ``options.max_frames`` frames were captured; ``changes`` are fields of ``options`` to set, by name
+    (``max_frames=90, install_signal_handlers=False``). Statistics go to ``options.stats_out`` (default:
+    stderr). A problem with the outputs raises :class:`~ipt.errors.IptError` before any frame is read (the
+    files were read by :func:`~ipt.receiver.options.load_setup`)."""
+    options = dataclasses.replace(options if options is not None else ReceiverOptions(), **changes)
     loop = asyncio.get_running_loop()
-    stop_event = stop if stop is not None else asyncio.Event()
-    unroute = signals.route_to_loop(loop, lambda _sig: stop_event.set()) if handle_signals else None
+    stop_event = options.stop if options.stop is not None else asyncio.Event()
+    routed = options.install_signal_handlers
+    unroute = signals.route_to_loop(loop, lambda _sig: stop_event.set()) if routed else None
     try:
-        run = _DaemonRun(
-            cfg, stop_event, stats_out, max_frames, source, on_result, on_processed, capture_stop or threading.Event()
-        )
-        run.frame_log = frame_log  # typed and None in _DaemonRun.__init__
-        return await run.run()
+        return await _DaemonRun(setup, options, stop_event).run()
     finally:
         if unroute is not None:
             unroute()
@@ -267,41 +240,33 @@ class _DaemonRun:
     pipeline worker to the outputs, :meth:`report` prints the interval statistics, :meth:`shutdown` stops
     it all in order; :meth:`run` is the whole life, :meth:`stats` its totals."""
 
-    def __init__(
-        self,
-        cfg: ReceiverConfig,
-        stop: asyncio.Event,
-        stats_out: TextIO | None,
-        max_frames: int | None,
-        source: CaptureSource | None,
-        on_result: ResultHook | None,
-        on_processed: ProcessedHook | None,
-        capture_stop: threading.Event,
-    ) -> None:
-        """Load the arena, the camera and the key, and make the pipeline, the source and the outputs
-        (:class:`~ipt.errors.IptError` on a configuration problem, before any frame is read)."""
-        self.cfg, self.stop, self.on_result, self.on_processed = cfg, stop, on_result, on_processed
-        self.out = out = stats_out if stats_out is not None else sys.stderr
+    def __init__(self, setup: ReceiverSetup, options: ReceiverOptions, stop: asyncio.Event) -> None:
+        """Make the pipeline, the source and the outputs (:class:`~ipt.errors.IptError` on a configuration
+        problem, before any frame is read)."""
+        self.cfg = cfg = setup.cfg
+        self.stop, self.on_result, self.on_processed = stop, options.on_result, options.on_processed
+        self.clock: Clock = options.clock
+        self.out = out = options.stats_out if options.stats_out is not None else sys.stderr
         self.loop = loop = asyncio.get_running_loop()
-
-        arena = load_arena_config(cfg.arena)
-        self.camera = camera = load_camera_info(cfg.camera)
-        self.key = key = read_auth_key(cfg.auth_key_file) if cfg.auth_key_file is not None else None
-        self.map_hash = map_hash(tag_map := grid_tag_map(arena))  # the sender prints it too: a mismatch is seen
-        detector = pipeline_detector(cfg.pipeline.detector, tag_map.by_id)
-        self.pipeline = Pipeline(tag_map, camera, cfg.pipeline, arena.projector.rate_hz, detector)
+        self.camera, self.key, self.map_hash = setup.camera, setup.key, setup.map_hash
+        projector_hz = setup.arena.projector.rate_hz
+        detector = pipeline_detector(cfg.pipeline.detector, setup.tag_map.by_id)
+        self.pipeline = Pipeline(setup.tag_map, setup.camera, cfg.pipeline, projector_hz, detector)
+        capture_stop = options.capture_stop if options.capture_stop is not None else threading.Event()
+        source = options.source
         if source is None:
-            source = make_source(cfg, arena, camera, capture_stop)
+            source = make_source(cfg, setup.arena, setup.camera, capture_stop)
         self.source = source
 
         self.frames: FrameQueue[CapturedFrame] = FrameQueue(LIVE_RUN_FRAMES if source.live else cfg.queue_size)
+        max_frames = options.max_frames
         self.capture = CaptureThread(source, self.frames, loop, stop=capture_stop, max_frames=max_frames, report=out)
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ipt-pipeline")
         self.sender = UdpPoseSender(cfg.send_targets)
-        self.maker = PacketMaker(cfg.vehicle_id, key, stream_id=new_stream_id())  # each run a newer stream
+        self.maker = PacketMaker(cfg.vehicle_id, self.key, stream_id=new_stream_id())  # each run a newer stream
         self.mavlink = _mavlink_output(cfg, out)
-        self.ros = RosOutputs.create(cfg, arena.projector.rate_hz, lambda line: write_line(out, f"{PROG}: {line}"))
-        self.meter = _Meter()
+        self.ros = RosOutputs.create(cfg, projector_hz, lambda line: write_line(out, f"{PROG}: {line}"))
+        self.meter = _Meter(Interval(cfg.stats_interval_s, self.clock.now()))
         self.errors_reported = 0
 
         # A live source: one run at a time, so that the worker always takes the newest frames (a frame waiting
@@ -315,22 +280,22 @@ class _DaemonRun:
         """Index of the last frame taken from a live source (a jump after it: frames were dropped)."""
         self.waiting: dict[int, CapturedFrame] = {}
         """Frames processed whose result has not come out yet (the pipeline's look-ahead), by index."""
-        self.tasks: set[asyncio.Task[None]] = set()
+        self.tasks = TaskSet()
         self.deliver_task: asyncio.Task[None] | None = None
         self.running = False
         """The source opened and frames began to flow (else the ROS recording is aborted, not closed)."""
-        self.start_s = time.monotonic()
-        self.frame_log: FrameLogWriter | None = None
+        self.start_s = self.clock.now()
+        self.frame_log: FrameLogWriter | None = options.frame_log
 
     async def run(self) -> DaemonStats:
         """Start, run until stopped or the source ends, shut down, and print and return the totals."""
-        stop_wait = self.spawn(_wait_event(self.stop), "ipt-stop")
-        self.start_s = time.monotonic()
+        stop_wait = self.tasks.spawn(_wait_event(self.stop), "ipt-stop")
+        self.start_s = self.clock.now()
         try:
             if await self.start(stop_wait):
-                self.spawn(self.submit(), "ipt-submit")
-                self.deliver_task = self.spawn(self.deliver(), "ipt-deliver")
-                self.spawn(self.report(), "ipt-stats")
+                self.tasks.spawn(self.submit(), "ipt-submit")
+                self.deliver_task = self.tasks.spawn(self.deliver(), "ipt-deliver")
+                self.tasks.spawn(self.report(), "ipt-stats")
                 await asyncio.wait({self.deliver_task, stop_wait}, return_when=asyncio.FIRST_COMPLETED)
         finally:
             await self.shutdown()
@@ -358,7 +323,7 @@ class _DaemonRun:
             return False
         ready.result()  # raises the error of a first open that is not retried (bad video file, ...)
         self.running = True
-        self.start_s = self.meter.i_start = time.monotonic()
+        self.start_s = self.meter.interval.start_s = self.clock.now()
         auth = ", authenticated" if self.key is not None else ""
         source, camera, cfg = self.source, self.camera, self.cfg
         write_line(
@@ -368,13 +333,6 @@ class _DaemonRun:
             f"map hash sha256:{self.map_hash}",
         )
         return True
-
-    def spawn(self, coro: Coroutine[Any, Any, None], name: str) -> asyncio.Task[None]:
-        """A task that :meth:`shutdown` cancels if it is still running."""
-        task = self.loop.create_task(coro, name=name)
-        self.tasks.add(task)
-        task.add_done_callback(self.tasks.discard)
-        return task
 
     def finish_before(self, capture_time_us: int) -> Batch:
         """On the worker thread: the results no frame captured from ``capture_time_us`` on can change
@@ -493,19 +451,25 @@ class _DaemonRun:
             return 0
         self.meter.frame(result.reason)
         sent = self.sender.send(data)
-        self.meter.pose(time.monotonic() - frame.grabbed_s)
+        self.meter.pose(self.clock.now() - frame.grabbed_s)
         return sent
 
     async def report(self) -> None:
         """The interval statistics line, every ``stats_interval_s``."""
         while True:
-            await asyncio.sleep(self.cfg.stats_interval_s)
-            write_line(self.out, self.meter.interval_line(self.frames.dropped, self.sender.errors))
+            await self.clock.sleep(self.cfg.stats_interval_s)
+            write_line(self.out, self.meter.interval_line(self.clock.now(), self.frames.dropped, self.sender.errors))
 
     async def shutdown(self) -> None:
         """Stop everything in order within :data:`SHUTDOWN_BUDGET_S` (see the module's doc)."""
-        deadline = time.monotonic() + SHUTDOWN_BUDGET_S
-        await _shutdown(self.capture, self.frames, self.deliver_task, self.tasks, self.sender, deadline)
+        budget = ShutdownBudget(SHUTDOWN_BUDGET_S)
+        # Ordered: stop capture, drop queued frames, let submitted ones finish (bounded), close sockets.
+        self.capture.stop()
+        self.frames.finish(discard=True)
+        if self.deliver_task is not None and not self.deliver_task.done():
+            await budget.wait({self.deliver_task}, cap_s=DRAIN_TIMEOUT_S)
+        await self.tasks.cancel_all()
+        await self.sender.close()
         if self.mavlink is not None:
             await self.mavlink.close()
         if self.ros is not None:
@@ -515,7 +479,7 @@ class _DaemonRun:
         self.worker.shutdown(wait=False, cancel_futures=True)
         # The read in progress (a render, a decode, a camera grab) ends by itself; wait for it within the
         # budget. If it does not end, the thread is a daemon thread and `capture_running` tells the caller.
-        self.capture.join(max(0.0, deadline - time.monotonic()))
+        self.capture.join(budget.left())
 
     def stats(self) -> DaemonStats:
         """The totals of the run (after :meth:`shutdown`)."""
@@ -528,7 +492,7 @@ class _DaemonRun:
             send_errors=sender.errors,
             drops=self.frames.dropped,
             capture_failures=capture.failures,
-            seconds=time.monotonic() - self.start_s,
+            seconds=self.clock.now() - self.start_s,
             latency_p50_ms=meter.latency.quantile_ms(0.5),
             latency_p99_ms=meter.latency.quantile_ms(0.99),
             reasons=dict(meter.reasons),
@@ -563,39 +527,19 @@ async def _wait_event(event: asyncio.Event) -> None:
     await event.wait()
 
 
-async def _shutdown(
-    capture: CaptureThread,
-    frames: FrameQueue[CapturedFrame],
-    deliver_task: asyncio.Task[None] | None,
-    tasks: set[asyncio.Task[None]],
-    sender: UdpPoseSender,
-    deadline: float,
-) -> None:
-    """Ordered: stop capture, drop queued frames, let submitted ones finish (bounded), close sockets."""
-    capture.stop()
-    frames.finish(discard=True)
-    if deliver_task is not None and not deliver_task.done():
-        await asyncio.wait({deliver_task}, timeout=max(0.0, min(DRAIN_TIMEOUT_S, deadline - time.monotonic())))
-    for task in list(tasks):
-        task.cancel()
-    if tasks:
-        await asyncio.gather(*tasks, return_exceptions=True)
-    await sender.close()
+def run(setup: ReceiverSetup, options: ReceiverOptions | None = None, **changes: Any) -> DaemonStats:
+    """Run the daemon on a fresh event loop (uvloop when installed) until it stops (as :func:`run_daemon`)."""
+    return run_loop(run_daemon(setup, options, **changes))
 
 
-def run(
-    cfg: ReceiverConfig,
-    *,
-    max_frames: int | None = None,
-    source: CaptureSource | None = None,
-    capture_stop: threading.Event | None = None,
-    frame_log: FrameLogWriter | None = None,
-) -> DaemonStats:
-    """Run the daemon on a fresh event loop (uvloop when installed) until it stops (``source``,
-    ``capture_stop`` and ``frame_log`` as for :func:`run_daemon`)."""
-    return run_loop(
-        run_daemon(cfg, max_frames=max_frames, source=source, capture_stop=capture_stop, frame_log=frame_log)
-    )
-
-
-__all__ = ["DaemonStats", "make_source", "run", "run_daemon"]
+__all__ = [
+    "DaemonStats",
+    "ProcessedHook",
+    "ReceiverOptions",
+    "ReceiverSetup",
+    "ResultHook",
+    "load_setup",
+    "make_source",
+    "run",
+    "run_daemon",
+]

@@ -67,7 +67,7 @@ from ipt.config.models import ArenaConfig
 from ipt.errors import IptError
 from ipt.memory import keep_freed_memory, warm
 from ipt.protocol import PacketFilter
-from ipt.runtime import Histogram
+from ipt.runtime import Histogram, Interval, ShutdownBudget
 from ipt.sender.clock import FrameClock, Verdict
 from ipt.sender.content import ContentSource, GeneratedScene
 from ipt.sender.display import Sink
@@ -449,8 +449,7 @@ class Sender:
         clock = FrameClock(self.rate_hz)
         first = 0.0  # when frame 0 was shown
         stats = self.stats
-        report_at = time.monotonic() + self.options.stats_every_s
-        interval_start, interval_frames = time.monotonic(), 0
+        interval, interval_frames = Interval(self.options.stats_every_s, time.monotonic()), 0
         j = 0
         self._fill()
         while not self._stopping() and (self.frames is None or j < self.frames):
@@ -495,14 +494,13 @@ class Sender:
                 self.log("ipt-sender: the window was closed; stopping")
                 self.should_exit = True
             now = time.monotonic()
-            if now >= report_at:
+            if interval.due(now):
                 self._collect()
-                self.log(f"ipt-sender: t={stats.elapsed_s:.1f}s " + stats.line(
-                    interval_frames, now - interval_start, self._interval_work
-                ))  # fmt: skip
+                span = interval.restart(now)
+                line = stats.line(interval_frames, span, self._interval_work)
+                self.log(f"ipt-sender: t={stats.elapsed_s:.1f}s {line}")
                 self._interval_work.clear()
-                interval_start, interval_frames = now, 0
-                report_at = now + self.options.stats_every_s
+                interval_frames = 0
 
     def _collect(self) -> None:
         """Copy the counters kept elsewhere (filter, listener, renderer, overlay) into the stats."""
@@ -522,7 +520,7 @@ class Sender:
 
     async def _shutdown(self, ok: bool) -> None:
         """Ordered, each wait bounded: socket, render thread, content thread, sink, final statistics."""
-        t_end = time.monotonic() + (0.1 if self.force_exit else self.options.shutdown_timeout_s)
+        budget = ShutdownBudget(0.1 if self.force_exit else self.options.shutdown_timeout_s)
         running = [fut for _, fut in self._pending if not fut.cancel()]  # cancel the frames not started
         self._pending.clear()
         if self._transport is not None:
@@ -530,14 +528,14 @@ class Sender:
         if self._render is not None:
             self._render.stop()
             if running:
-                await asyncio.wait([_wrap(f) for f in running], timeout=max(0.0, t_end - time.monotonic()))
+                await budget.wait([_wrap(f) for f in running])
         if self._content is not None:
             # The input frame made ahead: not needed any more; if it is being made, let it finish (the
             # caller may close the scene next).
             ahead = self.renderer.cancel_ahead()
             self._content.stop()
             if ahead is not None:
-                await asyncio.wait([_wrap(ahead)], timeout=max(0.0, t_end - time.monotonic()))
+                await budget.wait([_wrap(ahead)])
         short = self.frames is not None and self.stats.frames < self.frames
         if ok and short and not getattr(self.sink, "retries", False):
             ok = False  # a file stopped short of the frames asked for would look finished: not kept

@@ -54,7 +54,7 @@ from ipt.fileio import write_text_atomic
 from ipt.geometry import quat_wxyz_from_matrix
 from ipt.receiver.capture import CapturedFrame
 from ipt.receiver.core.pipeline import FrameResult
-from ipt.receiver.daemon import DaemonStats, run_daemon
+from ipt.receiver.daemon import DaemonStats, load_setup, run_daemon
 from ipt.runtime import line_writer, run_loop
 from ipt.sender.modulator import frames_per_input
 from ipt.sender.overlay import ArOverlay
@@ -362,10 +362,10 @@ class _ClosedLoop:
         self.loop_start = time.monotonic()
         daemon_task = loop.create_task(
             run_daemon(
-                cfg,
+                load_setup(cfg),
                 stop=self.daemon_stop,
                 stats_out=receiver_log,
-                handle_signals=False,
+                install_signal_handlers=False,
                 source=self.source,
                 on_result=self.flight.on_result,
                 on_processed=self.flight.on_processed,
