@@ -434,3 +434,65 @@ def test_the_stdlib_scan_sees_function_level_imports() -> None:
         path = Path(tmp) / "m.py"
         path.write_text("import os\ndef f():\n    import subprocess\n    from asyncio import sleep\n", encoding="utf-8")
         assert _stdlib_imports(path) == [("os", 1), ("subprocess", 3), ("asyncio", 4)]
+
+
+# --- tests step time instead of sleeping (issue 32, target 3) -----------------------------------------
+
+MAX_TEST_SLEEPS = 10
+TESTS = Path(__file__).resolve().parent
+SLEEPS = {("time", "sleep"), ("asyncio", "sleep")}
+
+
+def sleep_calls(source: str) -> list[tuple[int, str]]:
+    """(line, text) of every call of ``time.sleep`` or ``asyncio.sleep`` in a module, however it was imported:
+    ``time.sleep``, ``import time as t; t.sleep``, ``from asyncio import sleep as nap; nap``. Text inside strings
+    (a script a test hands to a subprocess) is not code of the tests and is not counted."""
+    tree = ast.parse(source)
+    modules: dict[str, str] = {}  # local name -> "time" / "asyncio"
+    functions: set[str] = set()  # local names bound to a sleep itself
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name in ("time", "asyncio"):
+                    modules[alias.asname or alias.name] = alias.name
+        elif isinstance(node, ast.ImportFrom) and node.module in ("time", "asyncio"):
+            for alias in node.names:
+                if (node.module, alias.name) in SLEEPS:
+                    functions.add(alias.asname or alias.name)
+    lines = source.splitlines()
+    found: list[tuple[int, str]] = []
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.Call):
+            continue
+        func = node.func
+        hit = isinstance(func, ast.Name) and func.id in functions
+        if isinstance(func, ast.Attribute) and isinstance(func.value, ast.Name):
+            hit = hit or (modules.get(func.value.id), func.attr) in SLEEPS
+        if hit:
+            found.append((node.lineno, lines[node.lineno - 1].strip()))
+    return sorted(found)
+
+
+def test_the_sleep_scan_sees_aliases_and_skips_strings() -> None:
+    text = (
+        "import time\nimport asyncio as aio\nfrom time import sleep as nap\nfrom asyncio import sleep\n"
+        "time.sleep(1)\naio.sleep(0)\nnap(2)\nsleep(3)\nx = 'time.sleep(4)'\nobj.sleep(5)\nt = time\n"
+    )
+    assert [n for n, _ in sleep_calls(text)] == [5, 6, 7, 8]
+
+
+def test_at_most_ten_sleeps_in_the_tests_each_saying_why() -> None:
+    """Daemon tests step an injected clock (:class:`ipt.runtime.SteppedClock`) or wait for a condition; the
+    few sleeps left are real (another process, the kernel, a thread's pace) and say so in a comment."""
+    calls: list[str] = []
+    silent: list[str] = []
+    for path in sorted(TESTS.rglob("*.py")):
+        source = path.read_text(encoding="utf-8")
+        lines = source.splitlines()
+        for n, text in sleep_calls(source):
+            where = f"{path.relative_to(TESTS).as_posix()}:{n}: {text}"
+            calls.append(where)
+            if "#" not in lines[n - 1] and not lines[n - 2].strip().startswith("#"):
+                silent.append(where)
+    assert len(calls) <= MAX_TEST_SLEEPS, "\n".join(calls)
+    assert silent == [], "a sleep without a comment saying why it must be real:\n" + "\n".join(silent)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import re
 import selectors
@@ -15,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from waiting import until
 
 from ipt.config.models import ArenaConfig, load_arena_config, shipped_config_path
 from ipt.protocol import PosePacket, encode_pose
@@ -140,7 +142,7 @@ async def test_the_camera_sees_the_senders_output_with_the_drone_on_it(arena: Ar
         address = await asyncio.wait_for(listening, 30)
         before = await asyncio.to_thread(projector.frame, 0)
         await asyncio.to_thread(projector.frame, 1)  # the same input frame: nothing more is let through
-        await asyncio.sleep(0.3)
+        await until(lambda: projector.held_for == 1, what="the sender held at the gate for input frame 1")
         assert projector.newest == 1  # the frames of input 1 are made only when asked for
 
         x, y = 0.3, -0.2  # a drone there, heard at simulated time 0.01 s
@@ -148,10 +150,8 @@ async def test_the_camera_sees_the_senders_output_with_the_drone_on_it(arena: Ar
         packet = PosePacket(vehicle_id=0, seq=0, capture_time_us=10_000, position_m=(x, y, 0.8), quat_wxyz=(0, 1, 0, 0))
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
             sock.sendto(encode_pose(packet), address)
-        for _ in range(200):
-            if ar.vehicle_ids():
-                break
-            await asyncio.sleep(0.01)
+        with contextlib.suppress(AssertionError):  # the track is checked below
+            await until(ar.vehicle_ids, 2.0)
         track = ar.track(0)
         assert track is not None
         assert track.last_heard_s == 0.01

@@ -25,6 +25,7 @@ the module costs about as long as its slowest few cases. Network traffic stays o
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import resource
@@ -42,6 +43,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from waiting import until, wait_until
 
 from ipt import signals
 from ipt.config.camera_info import CameraInfo, save_camera_info
@@ -193,13 +195,13 @@ def run_and_signal(
             _cmd(prog, *args), cwd=cwd, stdout=subprocess.PIPE, stderr=err, env=_env(), stdin=subprocess.DEVNULL
         )
         try:
-            deadline = t0 + 60
-            while not _catches(proc.pid, signal.SIGHUP) and proc.poll() is None and time.monotonic() < deadline:
-                time.sleep(0.001)
+            with contextlib.suppress(AssertionError):  # the run's outcome says what went wrong
+                wait_until(lambda: _catches(proc.pid, signal.SIGHUP) or proc.poll() is not None, 60.0)
             install_s = time.monotonic() - t0
-            while when is not None and not when() and proc.poll() is None and time.monotonic() < deadline:
-                time.sleep(0.002)
-            time.sleep(after_s)
+            if when is not None:
+                with contextlib.suppress(AssertionError):
+                    wait_until(lambda: when() or proc.poll() is not None, max(0.0, t0 + 60 - time.monotonic()))
+            time.sleep(after_s)  # real: the moment of the signal, after the condition, is what the test varies
             proc.send_signal(sig)
             out, _ = proc.communicate(timeout=60)
         finally:
@@ -780,6 +782,13 @@ def test_an_output_group_puts_all_in_place_or_none(tmp_path: Path) -> None:
     assert long.is_file()
 
 
+def _work(seconds: float) -> None:
+    """Python bytecode for up to ``seconds`` (a signal handler runs between two of them): work, not a sleep."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        pass
+
+
 def test_signals_raise_while_working_and_are_routed_to_a_loop() -> None:
     before = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGHUP)
     restore = signals.install()
@@ -787,7 +796,7 @@ def test_signals_raise_while_working_and_are_routed_to_a_loop() -> None:
 
         def signalled() -> None:
             os.kill(os.getpid(), signal.SIGTERM)
-            time.sleep(1)  # the handler runs at the next bytecode, in the main thread
+            _work(1.0)  # the handler runs at the next bytecode, in the main thread
 
         with pytest.raises(signals.Interrupted) as caught:
             signalled()
@@ -846,7 +855,7 @@ def test_a_signal_during_an_import_interrupts_once_the_import_is_over(
 
         def import_then_work() -> None:
             importlib.import_module(name)
-            time.sleep(2)  # the signal comes again within milliseconds, at the next bytecode
+            _work(2.0)  # the signal comes again within milliseconds, at the next bytecode
 
         with pytest.raises(signals.Interrupted) as caught:
             import_then_work()
@@ -946,9 +955,8 @@ async def test_a_peer_cycling_its_system_id_gets_a_few_lines_not_one_each() -> N
         for system in range(1, 201):  # an autopilot that says it is another system every time
             peer.mav.srcSystem = system
             peer.mav.heartbeat_send(2, 12, 0, 0, 0)  # MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4
-        deadline = time.monotonic() + 10
-        while (out.stats.autopilot or "").split(" component")[0] != "system 200" and time.monotonic() < deadline:
-            await asyncio.sleep(0.02)
+        with contextlib.suppress(AssertionError):  # checked below
+            await until(lambda: (out.stats.autopilot or "").split(" component")[0] == "system 200", 10.0)
         assert (out.stats.autopilot or "").startswith("system 200")
     finally:
         await out.close()

@@ -13,6 +13,7 @@ import fcntl
 import itertools
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -30,6 +31,7 @@ import numpy as np
 import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink2
+from waiting import until, wait_until
 
 from ipt.config.camera_info import CameraInfo
 from ipt.config.models import ArenaConfig, ConfigError, PoseConfig
@@ -371,13 +373,13 @@ class Listener:
             return [h for h in self.heard if h.msg.get_type() == kind]
 
     def wait_for(self, kind: str, count: int = 1, timeout_s: float = 30.0) -> list[Heard]:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            got = self.of(kind)
-            if len(got) >= count:
-                return got
-            time.sleep(0.02)
-        raise AssertionError(f"fewer than {count} {kind} in {timeout_s} s; heard {len(self.heard)} messages")
+        try:
+            wait_until(lambda: len(self.of(kind)) >= count, timeout_s, f"{count} {kind}")
+        except AssertionError:
+            raise AssertionError(
+                f"fewer than {count} {kind} in {timeout_s} s; heard {len(self.heard)} messages"
+            ) from None
+        return self.of(kind)
 
 
 @contextlib.contextmanager
@@ -458,13 +460,15 @@ async def test_serial_link_over_a_pseudo_terminal_and_busy_port_is_retried() -> 
         out.on_result(_frame(0, 0), FrameResult(0, 0, _pose(), 3, "pose"))
         parser = mavlink2.MAVLink(None)
         kinds: list[str] = []
-        deadline = time.monotonic() + 5.0
-        while "ODOMETRY" not in kinds and time.monotonic() < deadline:
-            await asyncio.sleep(0.05)
+        os.set_blocking(master, False)
+
+        def odometry_read() -> bool:
             with contextlib.suppress(BlockingIOError):
-                os.set_blocking(master, False)
-                data = os.read(master, 4096)
-                kinds += [m.get_type() for m in parser.parse_buffer(data) or []]
+                kinds.extend(m.get_type() for m in parser.parse_buffer(os.read(master, 4096)) or [])
+            return "ODOMETRY" in kinds
+
+        with contextlib.suppress(AssertionError):  # the assertions below say what was missing
+            await until(odometry_read, 5.0)
         assert "HEARTBEAT" in kinds
         assert "ODOMETRY" in kinds
     finally:
@@ -487,11 +491,7 @@ class _Lines:
 
 
 async def _until(check: Any, timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not check():
-        if time.monotonic() > deadline:
-            raise AssertionError("timed out")
-        await asyncio.sleep(0.02)
+    await until(check, timeout_s)
 
 
 # --- the daemon, end to end -----------------------------------------------------------------------
@@ -550,8 +550,11 @@ def test_replayed_flight_odometry_matches_the_arena_poses(short_flight: Path, tm
             cwd=tmp_path,
         )
         _, err = proc.communicate(timeout=RUN_TIMEOUT_S)
-        time.sleep(0.2)  # what the kernel already holds
-    assert proc.returncode == 0, err
+        assert proc.returncode == 0, err
+        sent = int(re.findall(r"(\d+) poses,", err)[-1])
+        odometry_sent = int(re.findall(r"(\d+) ODOMETRY", err)[-1])
+        wait_until(lambda: len(packets) >= sent, what="the pose datagrams the kernel already holds read")
+        mav.wait_for("ODOMETRY", odometry_sent, 10.0)
     poses = [decode_pose(p) for p in packets]
     odometry = [h.msg for h in mav.of("ODOMETRY")]
     assert poses, err
@@ -615,7 +618,11 @@ def test_live_daemon_heartbeats_at_1_hz_answers_timesync_and_says_start_and_stop
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
-        time.sleep(0.1)
+        wait_until(
+            lambda: any(h.msg.text == "IPT: localisation stopped" for h in mav.of("STATUSTEXT")),
+            10.0,
+            "the last STATUSTEXT read",
+        )
     assert proc.returncode == 0, err
     intervals = np.diff([b.t_s for b in beats[:5]])
     print(f"HEARTBEAT intervals {np.round(intervals, 3).tolist()} s")

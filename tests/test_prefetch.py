@@ -92,7 +92,7 @@ class _Slow(FrameSource):
 
     def __next__(self) -> U8:
         frame = next(self._inner)
-        time.sleep(self._frame_s)
+        time.sleep(self._frame_s)  # real: it stands for decoding, which the prefetch thread must overlap
         return frame
 
     def close(self) -> None:
@@ -101,7 +101,7 @@ class _Slow(FrameSource):
 
 def _slow_decoder(monkeypatch: pytest.MonkeyPatch, open_s: float, frame_s: float) -> None:
     def slow_open(path: Any, **kwargs: Any) -> FrameSource:
-        time.sleep(open_s)
+        time.sleep(open_s)  # real: it stands for opening a file, which must happen ahead of its lap
         return _Slow(open_frames(path, **kwargs), frame_s)
 
     for module in ("ipt.videoio", "ipt.sender.content", "ipt.sender.prefetch"):

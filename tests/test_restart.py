@@ -16,6 +16,7 @@ packet without a stream), so they can be run against the code before the change,
 
 from __future__ import annotations
 
+import contextlib
 import re
 import signal
 import socket
@@ -28,6 +29,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
+from waiting import wait_until
 
 from ipt.protocol import PosePacket, encode_pose
 
@@ -74,17 +76,17 @@ class Tap:
 
     def wait_for(self, count: int, t0: float, proc: subprocess.Popen[bytes], log: Path, sources: int = 1) -> None:
         """Until ``count`` datagrams arrived since ``t0`` from each of ``sources`` addresses."""
-        end = time.monotonic() + START_TIMEOUT_S
-        while time.monotonic() < end:
+
+        def arrived() -> bool:
             by_source: dict[tuple[str, int], int] = {}
             for _, addr, _ in self.since(t0):
                 by_source[addr] = by_source.get(addr, 0) + 1
-            if len(by_source) >= sources and sorted(by_source.values())[-sources] >= count:
-                return
-            if proc.poll() is not None:
-                break
-            time.sleep(0.05)
-        raise AssertionError(f"{count} packets not seen (exit {proc.poll()}):\n{log.read_text(errors='replace')}")
+            return len(by_source) >= sources and sorted(by_source.values())[-sources] >= count
+
+        with contextlib.suppress(AssertionError):  # said below, with the log
+            wait_until(lambda: arrived() or proc.poll() is not None, START_TIMEOUT_S)
+        if not arrived():
+            raise AssertionError(f"{count} packets not seen (exit {proc.poll()}):\n{log.read_text(errors='replace')}")
 
     def close(self) -> None:
         self._stop.set()
@@ -125,24 +127,28 @@ class Relay(Tap):
 
     def wait_forwarded(self, count: int, t0: float, proc: subprocess.Popen[bytes], log: Path) -> float:
         """Until ``count`` datagrams were forwarded after ``t0``; when the first one was."""
-        end = time.monotonic() + START_TIMEOUT_S
-        while time.monotonic() < end and proc.poll() is None:
+
+        def times() -> list[float]:
             with self._lock:
-                times = [t for t, _, _ in self.forwarded if t > t0]
-            if len(times) >= count:
-                return times[0]
-            time.sleep(0.02)
+                return [t for t, _, _ in self.forwarded if t > t0]
+
+        with contextlib.suppress(AssertionError):  # said below, with the log
+            wait_until(lambda: len(times()) >= count or proc.poll() is not None, START_TIMEOUT_S)
+        if len(got := times()) >= count:
+            return got[0]
         raise AssertionError(f"{count} packets not forwarded (exit {proc.poll()}):\n{log.read_text(errors='replace')}")
 
     def wait_for_another(self, t0: float, proc: subprocess.Popen[bytes], log: Path) -> tuple[str, int]:
         """Until a source other than ``current`` is heard after ``t0``; its address."""
-        end = time.monotonic() + START_TIMEOUT_S
-        while time.monotonic() < end and proc.poll() is None:
+
+        def others() -> list[tuple[str, int]]:
             with self._lock:
-                others = [addr for t, addr, _ in self.datagrams if t > t0 and addr != self.current]
-            if others:
-                return others[0]
-            time.sleep(0.02)
+                return [addr for t, addr, _ in self.datagrams if t > t0 and addr != self.current]
+
+        with contextlib.suppress(AssertionError):  # said below, with the log
+            wait_until(lambda: others() or proc.poll() is not None, START_TIMEOUT_S)
+        if got := others():
+            return got[0]
         raise AssertionError(f"no packet (exit {proc.poll()}):\n{log.read_text(errors='replace')}")
 
     def close(self) -> None:
@@ -196,14 +202,31 @@ def _processes() -> Iterator[list[subprocess.Popen[bytes]]]:
 
 
 def _wait_for_line(log: Path, pattern: str, proc: subprocess.Popen[bytes]) -> re.Match[str]:
-    end = time.monotonic() + START_TIMEOUT_S
-    while time.monotonic() < end:
-        if m := re.search(pattern, log.read_text(encoding="utf-8", errors="replace")):
-            return m
-        if proc.poll() is not None:
-            break
-        time.sleep(0.05)
-    raise AssertionError(f"{pattern!r} not seen (exit {proc.poll()}):\n{log.read_text(errors='replace')}")
+    def found() -> re.Match[str] | None:
+        return re.search(pattern, log.read_text(encoding="utf-8", errors="replace"))
+
+    with contextlib.suppress(AssertionError):  # said below, with the log
+        wait_until(lambda: found() or proc.poll() is not None, START_TIMEOUT_S)
+    if (m := found()) is None:
+        raise AssertionError(f"{pattern!r} not seen (exit {proc.poll()}):\n{log.read_text(errors='replace')}")
+    return m
+
+
+def _sender_heard(log: Path, count: int) -> None:
+    """Until one of the sender's periodic lines counts ``count`` datagrams (accepted and rejected) or more."""
+
+    def heard() -> int:
+        text = log.read_text(encoding="utf-8", errors="replace")
+        return max((int(a) + int(r) for a, r in re.findall(r"t=\S+ .*accepted=(\d+) rejected=(\d+)", text)), default=0)
+
+    with contextlib.suppress(AssertionError):  # the final counts are checked by the test
+        wait_until(lambda: heard() >= count, 10.0)
+
+
+def _sent_by(log: Path) -> int:
+    """The datagrams a stopped receiver sent (its final line's packets; 0 if it has none)."""
+    found = re.findall(r"final: .* (\d+) packets in", log.read_text(encoding="utf-8", errors="replace"))
+    return int(found[-1]) if found else 0
 
 
 def _sender(tmp_path: Path, procs: list[subprocess.Popen[bytes]], key_file: Path | None) -> tuple[int, Path]:
@@ -211,7 +234,7 @@ def _sender(tmp_path: Path, procs: list[subprocess.Popen[bytes]], key_file: Path
     arena = tmp_path / "arena.yaml"
     arena.write_text(TINY_ARENA, encoding="utf-8")
     cmd = [sys.executable, "-m", "ipt.sender.cli", "--config", str(arena), "--sink", "null", "--frames", "1000000",
-           "--listen", "127.0.0.1:0", "--stats-every", "3600"]  # fmt: skip
+           "--listen", "127.0.0.1:0", "--stats-every", "0.1"]  # fmt: skip
     if key_file is not None:
         cmd += ["--auth-key-file", str(key_file)]
     log = tmp_path / "sender.log"
@@ -261,7 +284,6 @@ def _replay(packets: list[bytes], port: int) -> int:
         for data in packets:
             attacker.sendto(data, ("127.0.0.1", port))
         attacker_port: int = attacker.getsockname()[1]
-    time.sleep(0.2)
     return attacker_port
 
 
@@ -302,8 +324,11 @@ def test_a_restarted_receiver_is_accepted_from_its_first_packet(tmp_path: Path, 
             replays = [earlier[0], earlier[-1]] if keyed else []
             attacker_port = _replay(replays, port)
             _stop(receiver)
-            time.sleep(0.2)
+            sent = _sent_by(log)  # all of them reached the relay, then the sender heard all it was given
+            with contextlib.suppress(AssertionError):  # the counts are checked below
+                wait_until(lambda: sum(1 for _, a, _ in relay.since(0.0) if a == relay.current) >= sent, 10.0)
             genuine = len(relay.forwarded)
+            _sender_heard(sender_log, genuine + len(replays))
         counts, text = _sender_final(sender, sender_log)
     assert max(gaps) < 8.0, gaps  # the sender heard each new run well within the old 10 s
     # Every genuine packet of the three runs accepted, the first of each restarted run included; nothing
@@ -375,11 +400,13 @@ def test_version_1_packets_are_accepted_next_to_a_version_2_receiver(tmp_path: P
             for packet in [*old, old[0]]:
                 data = encode_pose(packet)
                 assert (len(data), data[4]) == (112, 1)
-                old_receiver.sendto(data, ("127.0.0.1", port))
-                time.sleep(0.01)
-        time.sleep(0.2)
+                old_receiver.sendto(data, ("127.0.0.1", port))  # in order: loopback keeps it
         _stop(receiver)
+        sent = _sent_by(receiver_log) // 2  # to the sender and to the tap
+        with contextlib.suppress(AssertionError):  # the counts are checked below
+            wait_until(lambda: len(tap.since(0.0)) >= sent, 10.0)
         genuine = len(tap.since(0.0))
+        _sender_heard(sender_log, genuine + len(old) + 1)
         counts, text = _sender_final(sender, sender_log)
     assert genuine + 10 <= counts["accepted"] <= genuine + 11, (counts, genuine, text)
     assert counts["rejected"] == 1, (counts, text)

@@ -14,7 +14,6 @@ import socket
 import subprocess
 import sys
 import threading
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -25,6 +24,7 @@ from cyclonedds.core import Policy, Qos
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
+from waiting import wait_until
 
 from ipt.config.receiver import Ros2Config
 from ipt.geometry import rot_z
@@ -84,11 +84,7 @@ def _samples(reader: DataReader[Any], struct: type[Any]) -> list[Any]:
 
 
 def _wait(check: Any, timeout_s: float = MATCH_TIMEOUT_S) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not check():
-        if time.monotonic() > deadline:
-            raise AssertionError("timed out")
-        time.sleep(0.02)
+    wait_until(check, timeout_s)
 
 
 def _pose(k: int) -> PoseEstimate:
@@ -167,8 +163,9 @@ def test_a_reliable_reader_gets_nothing_from_sensor_data_and_everything_from_rel
                 assert readers  # held: the binding deletes an entity nothing refers to
                 if expected:
                     _wait(lambda out=out: out.matched("/ipt/pose") == 1)  # type: ignore[misc]
-                else:
-                    time.sleep(1.0)
+                else:  # the reader has seen the writer and refused it: they can never match
+                    reader = readers["rt/ipt/pose"]
+                    _wait(lambda r=reader: r.get_requested_incompatible_qos_status().total_count >= 1)
                 assert out.matched("/ipt/pose") == expected
         finally:
             out.close()
@@ -282,15 +279,20 @@ def test_daemon_publishes_every_pose_over_loopback_dds(short_flight: Path, tmp_p
         proc = subprocess.Popen(cmd, cwd=tmp_path, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                 stderr=subprocess.PIPE, text=True)  # fmt: skip
         sockets: list[tuple[str, int, str, int]] = []
-        deadline = time.monotonic() + RUN_TIMEOUT_S
-        while proc.poll() is None and time.monotonic() < deadline:
+
+        def publishing() -> bool:  # the daemon's sockets, seen while it runs
+            nonlocal sockets
             with contextlib.suppress(OSError):
                 sockets = _udp_sockets(proc.pid) or sockets
-            if any(got.values()):
-                break
-            time.sleep(0.05)
+            return proc.poll() is not None or any(got.values())
+
+        with contextlib.suppress(AssertionError):  # the sockets are checked below
+            wait_until(publishing, RUN_TIMEOUT_S)
         _, err = proc.communicate(timeout=RUN_TIMEOUT_S)
-        time.sleep(0.3)  # what the kernel and DDS still hold
+        if proc.returncode == 0:  # what the kernel and DDS still hold: every recorded pose, sent and on /tf
+            n = len(read_mcap_trajectory(record))
+            with contextlib.suppress(AssertionError):  # the counts are checked below
+                wait_until(lambda: len(packets) >= n and len(got["rt/tf"]) >= n, 10.0)
         stop.set()
         thread.join(2.0)
     assert proc.returncode == 0, err

@@ -8,6 +8,7 @@ The socket checks look at what the kernel says a real subprocess holds (``/proc/
 from __future__ import annotations
 
 import ast
+import contextlib
 import dataclasses
 import os
 import re
@@ -16,7 +17,6 @@ import socket
 import struct
 import subprocess
 import sys
-import time
 import typing
 import zlib
 from collections.abc import Iterator
@@ -26,6 +26,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from waiting import wait_until
 
 from ipt.config.models import shipped_config_path
 from ipt.config.receiver import DEFAULT_SEND_TARGET, load_receiver_config, parse_host_port
@@ -88,15 +89,14 @@ def inet_sockets(pid: int) -> list[InetSocket]:
 
 
 def _wait_for_line(log: Path, pattern: str, proc: subprocess.Popen[bytes], timeout_s: float) -> re.Match[str]:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        text = log.read_text(encoding="utf-8", errors="replace")
-        if m := re.search(pattern, text):
-            return m
-        if proc.poll() is not None:
-            break
-        time.sleep(0.05)
-    raise AssertionError(f"{pattern!r} not seen (exit {proc.poll()}):\n{log.read_text(errors='replace')}")
+    def found() -> re.Match[str] | None:
+        return re.search(pattern, log.read_text(encoding="utf-8", errors="replace"))
+
+    with contextlib.suppress(AssertionError):  # said below, with the log
+        wait_until(lambda: found() or proc.poll() is not None, timeout_s)
+    if (m := found()) is None:
+        raise AssertionError(f"{pattern!r} not seen (exit {proc.poll()}):\n{log.read_text(errors='replace')}")
+    return m
 
 
 @contextmanager
@@ -237,8 +237,7 @@ def test_authenticated_sender_refuses_and_counts_forged_and_replayed_packets(tmp
         )
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
             for data, _ in datagrams:
-                sock.sendto(data, ("127.0.0.1", port))
-                time.sleep(0.01)  # in order, and never near the receive buffer
+                sock.sendto(data, ("127.0.0.1", port))  # in order (loopback keeps it), 12 far below the buffer
         total = len(datagrams)
         _wait_for_line(log, rf"t=\S+ .*accepted={expected['accepted']} rejected={total - expected['accepted']}\b",
                        proc, 30)  # fmt: skip

@@ -3,6 +3,7 @@ bombs (2), content that stalls the sender (3) and the loop seam of a video (5)."
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -10,6 +11,8 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
+from waiting import wait_until
 
 TINY_ARENA = """\
 projector: {width_px: 320, height_px: 288, rate_hz: 60}
@@ -24,13 +27,14 @@ def _cli(*args: str) -> list[str]:
 
 
 def _wait_for(log: Path, pattern: str, timeout_s: float) -> re.Match[str]:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        m = re.search(pattern, log.read_text(encoding="utf-8", errors="replace"))
-        if m:
-            return m
-        time.sleep(0.05)
-    raise AssertionError(f"{pattern!r} not seen in {timeout_s} s:\n{log.read_text(errors='replace')}")
+    def found() -> re.Match[str] | None:
+        return re.search(pattern, log.read_text(encoding="utf-8", errors="replace"))
+
+    with contextlib.suppress(AssertionError):  # said below, with the log
+        wait_until(found, timeout_s)
+    if (m := found()) is None:
+        raise AssertionError(f"{pattern!r} not seen in {timeout_s} s:\n{log.read_text(errors='replace')}")
+    return m
 
 
 # --- item 10: a stop signal while the colour table is computed -------------------------------------
@@ -46,8 +50,7 @@ def _stop_while_building(tmp_path: Path, sig: signal.Signals) -> tuple[int, floa
             _cli("--config", str(arena), "--sink", "null"), stdout=subprocess.DEVNULL, stderr=err, env=env
         )
     try:
-        _wait_for(log, r"colour table: computing", 60)
-        time.sleep(0.3)  # well inside the build (several seconds on two cores)
+        _wait_for(log, r"colour table: computing", 60)  # said once the build began (several seconds on two cores)
         t0 = time.monotonic()
         proc.send_signal(sig)
         rc = proc.wait(timeout=30)

@@ -9,6 +9,7 @@ import time
 
 import numpy as np
 import pytest
+from waiting import until
 
 from ipt.protocol import PACKET_SIZE_V2, PosePacket, decode_pose, encode_pose
 from ipt.receiver.core.pose import PoseEstimate
@@ -60,11 +61,8 @@ async def test_the_listener_says_a_shared_vehicle_id_once_naming_both_sockets() 
             for seq in range(20):
                 a.sendto(_packet(seq, 1_000), ("127.0.0.1", port))
                 b.sendto(_packet(seq, 2_000), ("127.0.0.1", port))
-                await asyncio.sleep(0.005)
+                await until(lambda n=2 * (seq + 1): sum(gate.counts.values()) >= n, 5.0)  # type: ignore[misc]
             a_port, b_port = a.getsockname()[1], b.getsockname()[1]
-        deadline = time.monotonic() + 5.0
-        while sum(gate.counts.values()) < 40 and time.monotonic() < deadline:
-            await asyncio.sleep(0.01)
     finally:
         transport.close()
     assert len(lines) == 1, lines

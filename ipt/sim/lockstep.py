@@ -90,6 +90,7 @@ class LockstepProjector:
         self._frames: OrderedDict[int, U8] = OrderedDict()
         self._newest = -1
         self._allowed_input = -1
+        self._held_for: int | None = None
         self._stopped = False
         self._cond = threading.Condition()
 
@@ -122,7 +123,15 @@ class LockstepProjector:
         """Block (the sender's render thread) until input frame ``input_index`` may be made."""
         with self._cond:
             while not self._stopped and self._allowed_input < input_index:
+                self._held_for = input_index
                 self._cond.wait()
+            self._held_for = None
+
+    @property
+    def held_for(self) -> int | None:
+        """The input frame the sender waits at the gate for (``None``: it is not waiting there)."""
+        with self._cond:
+            return self._held_for
 
     # -- the camera's side --
 
