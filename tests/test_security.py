@@ -17,6 +17,7 @@ import socket
 import struct
 import subprocess
 import sys
+import types
 import typing
 import zlib
 from collections.abc import Iterator
@@ -358,11 +359,13 @@ def test_the_network_path_touches_no_files_and_names_nothing(module: str) -> Non
 
 
 def test_a_datagram_can_only_carry_numbers() -> None:
-    # What leaves decode_pose is all the network can say: integers, floats and flags. No string, no
-    # bytes, no path: nothing that could name a file, a module or a command.
+    # What leaves decode_pose is all the network can say: integers, floats and flags (or nothing: a
+    # version-1 packet has no stream id). No string, no bytes, no path: nothing that could name a file, a
+    # module or a command.
     hints = typing.get_type_hints(PosePacket)
-    allowed = {int, float, QualityFlags}
+    allowed = {int, float, QualityFlags, type(None)}
     for f in dataclasses.fields(PosePacket):
         hint = hints[f.name]
-        leaves = set(typing.get_args(hint)) if typing.get_origin(hint) is tuple else {hint}
+        composite = typing.get_origin(hint) in (tuple, types.UnionType, typing.Union)
+        leaves = set(typing.get_args(hint)) if composite else {hint}
         assert leaves <= allowed, (f.name, hint)

@@ -92,6 +92,18 @@ def _read_ahead(source: FrameSource, pipeline: Pipeline) -> Iterator[tuple[int, 
             yield item
 
 
+def _camera_rate(video_path: Path, rate: float | None) -> float:
+    """``rate`` (``--fps``, else the video's own), if it is a camera's; else one :class:`ReplayError` line."""
+    if rate is None or rate <= 0:
+        raise ReplayError(f"{video_path}: the frame rate is unknown; give it with --fps")
+    if not MIN_CAMERA_RATE_HZ <= rate <= MAX_RATE_HZ:
+        raise ReplayError(
+            f"{video_path}: its frame rate {rate:.3g} fps is not a camera's ({MIN_CAMERA_RATE_HZ:g} to "
+            f"{MAX_RATE_HZ:g}); give the rate with --fps"
+        )
+    return rate
+
+
 def replay(
     arena: ArenaConfig,
     tag_map: TagMap,
@@ -110,14 +122,7 @@ def replay(
                 f"{camera_path}: the camera is {camera.width_px}x{camera.height_px} but {video_path} has "
                 f"{source.width}x{source.height} frames"
             )
-        rate = fps if fps is not None else source.fps
-        if rate is None or rate <= 0:
-            raise ReplayError(f"{video_path}: the frame rate is unknown; give it with --fps")
-        if not MIN_CAMERA_RATE_HZ <= rate <= MAX_RATE_HZ:
-            raise ReplayError(
-                f"{video_path}: its frame rate {rate:.3g} fps is not a camera's ({MIN_CAMERA_RATE_HZ:g} to "
-                f"{MAX_RATE_HZ:g}); give the rate with --fps"
-            )
+        rate = _camera_rate(video_path, fps if fps is not None else source.fps)
         pipeline = Pipeline(
             tag_map,
             camera,

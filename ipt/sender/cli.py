@@ -115,6 +115,28 @@ def build_parser() -> argparse.ArgumentParser:
         help="threads sharing each modulation pass of the ipt profile (default 1; 2 shortens each frame's work "
         "on an otherwise idle 2-core machine)",
     )
+    _add_network_options(p)
+    p.add_argument(
+        "--gpu",
+        action="store_true",
+        help="--sink window, ipt profile: make the phases on the GPU (OpenGL 3.3; needs moderngl: pip install "
+        "'ipt[gpu]'), leaving the CPU only the content and the overlay. If the GPU path cannot start, one line "
+        "says why and the CPU makes the phases",
+    )
+    p.add_argument("--display", type=int, default=0, metavar="N", help="display index of --sink window (default 0)")
+    p.add_argument("--windowed", action="store_true", help="--sink window in a window rather than full screen")
+    p.add_argument(
+        "--stats-every",
+        type=float,
+        default=5.0,
+        metavar="S",
+        help=f"statistics interval ({MIN_STATS_EVERY_S:g} to {MAX_STATS_EVERY_S:g} s; default 5 s)",
+    )
+    return p
+
+
+def _add_network_options(p: argparse.ArgumentParser) -> None:
+    """Where the pose packets come from and which are taken."""
     p.add_argument(
         "--listen",
         metavar="HOST:PORT",
@@ -123,13 +145,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--auth-key-file", metavar="F", help="accept only packets authenticated with this key")
     p.add_argument(
         "--vehicles", type=_vehicle_id, nargs="+", metavar="ID", help="accept packets from these vehicle ids only"
-    )
-    p.add_argument(
-        "--gpu",
-        action="store_true",
-        help="--sink window, ipt profile: make the phases on the GPU (OpenGL 3.3; needs moderngl: pip install "
-        "'ipt[gpu]'), leaving the CPU only the content and the overlay. If the GPU path cannot start, one line "
-        "says why and the CPU makes the phases",
     )
     p.add_argument(
         "--max-vehicles",
@@ -145,16 +160,6 @@ def build_parser() -> argparse.ArgumentParser:
         help="datagrams a second taken from one source address (default 1000; 0: no limit); the rest are "
         "refused and counted (rate_limited) before they are decoded",
     )
-    p.add_argument("--display", type=int, default=0, metavar="N", help="display index of --sink window (default 0)")
-    p.add_argument("--windowed", action="store_true", help="--sink window in a window rather than full screen")
-    p.add_argument(
-        "--stats-every",
-        type=float,
-        default=5.0,
-        metavar="S",
-        help=f"statistics interval ({MIN_STATS_EVERY_S:g} to {MAX_STATS_EVERY_S:g} s; default 5 s)",
-    )
-    return p
 
 
 def _read_key(path: str) -> bytes:
