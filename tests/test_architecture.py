@@ -270,7 +270,7 @@ def test_no_import_cycle_in_the_receiver_counting_function_level_imports() -> No
 def _reason_literals(path: Path) -> set[str]:
     """The reasons a module gives a frame (``FrameReason.X`` as that text, a bare string as itself): the
     fifth argument of ``FrameResult(...)``, what is assigned to ``reason`` (or unpacked into it), and what a
-    ``..._problem`` or ``_doubtful`` function returns."""
+    ``..._problem`` function or the gates' ``doubt`` returns."""
     found: set[str] = set()
     tree = ast.parse(path.read_text(encoding="utf-8"))
 
@@ -294,7 +294,7 @@ def _reason_literals(path: Path) -> set[str]:
                     for t, v in zip(target.elts, node.value.elts, strict=False):
                         if isinstance(t, ast.Name) and t.id == "reason":
                             text(v)
-        elif isinstance(node, ast.FunctionDef) and (node.name.endswith("_problem") or node.name == "_doubtful"):
+        elif isinstance(node, ast.FunctionDef) and (node.name.endswith("_problem") or node.name == "doubt"):
             for ret in ast.walk(node):
                 if isinstance(ret, ast.Return) and ret.value is not None:
                     text(ret.value)
@@ -492,3 +492,53 @@ def test_at_most_ten_sleeps_in_the_tests_each_saying_why() -> None:
                 silent.append(where)
     assert len(calls) <= MAX_TEST_SLEEPS, "\n".join(calls)
     assert silent == [], "a sleep without a comment saying why it must be real:\n" + "\n".join(silent)
+
+
+def _core_parts_problems(path: Path) -> list[str]:
+    """What in one module of ``ipt/receiver/core`` goes behind another module's back: a private name imported
+    from another ``ipt`` module, or a class built on a class of another core module (a mix-in reaching into
+    the state its host sets up) rather than holding it and calling it."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    found = []
+    imported_core_names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("ipt"):
+            for alias in node.names:
+                if alias.name.startswith("_"):
+                    found.append(f"{path.name}:{node.lineno} imports {node.module}.{alias.name}")
+                if node.module.startswith("ipt.receiver.core"):
+                    imported_core_names.add(alias.asname or alias.name)
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ClassDef):
+            found += [
+                f"{path.name}:{node.lineno} {node.name} is built on {base.id}"
+                for base in node.bases
+                if isinstance(base, ast.Name) and base.id in imported_core_names
+            ]
+    return found
+
+
+def test_the_pipeline_is_made_of_parts_it_calls() -> None:
+    """Issue 32, target 2: the pipeline holds its gates, bridge, second look and the paper's way and calls
+    them; no core module imports another's private name (the frame, pair and candidate records are public,
+    in ``history``)."""
+    core = PACKAGE / "receiver" / "core"
+    assert (core / "pipeline.py").exists()  # the scan reads the core
+    problems = [p for path in sorted(core.rglob("*.py")) for p in _core_parts_problems(path)]
+    assert problems == []
+
+
+def test_the_parts_scan_sees_a_mix_in_and_a_private_import() -> None:
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "m.py"
+        path.write_text(
+            "from ipt.receiver.core.gates import PoseGates\nfrom ipt.receiver.core.frameresult import _Frame\n"
+            "class Pipeline(PoseGates):\n    pass\n",
+            encoding="utf-8",
+        )
+        assert _core_parts_problems(path) == [
+            "m.py:2 imports ipt.receiver.core.frameresult._Frame",
+            "m.py:3 Pipeline is built on PoseGates",
+        ]

@@ -12,10 +12,14 @@ import pytest
 
 from ipt.config.camera_info import load_camera_info
 from ipt.config.models import ConfigError, DemodulationConfig, PipelineConfig, load_arena_config
+from ipt.receiver.core.bridge import ContentBridge
 from ipt.receiver.core.detection import DetectorError
-from ipt.receiver.core.pipeline import FrameResult, Pipeline, _Frame
+from ipt.receiver.core.history import Frame, FrameHistory
+from ipt.receiver.core.motion import MotionTrack
+from ipt.receiver.core.pipeline import FrameResult, Pipeline
 from ipt.receiver.core.pose import PoseEstimate, rt_of
 from ipt.receiver.core.reasons import FrameReason
+from ipt.receiver.core.secondlook import SecondLook
 from ipt.receiver.detect.detector import pipeline_detector
 from ipt.tagmap import grid_tag_map
 from ipt.tum import read_tum
@@ -52,10 +56,10 @@ def _run(p: Pipeline, frames: list[np.ndarray]) -> list[FrameResult]:
 def test_opposite_phase_pairing_prefers_one_projector_period(short_flight: Path) -> None:
     p = _pipeline(short_flight, PipelineConfig())
     # (capture times are whole microseconds, hence the tolerance)
-    assert p._phase_error(_t_us(2)) == pytest.approx(0.0, abs=1e-4)  # lag 2 at 120 FPS: one 60 Hz period
-    assert p._phase_error(_t_us(1)) == pytest.approx(0.5, abs=1e-4)
-    assert p._phase_error(_t_us(4)) == pytest.approx(1.0, abs=1e-4)  # two periods: the same phase
-    assert p._phase_error(round(3 / 180 * 1e6)) == pytest.approx(0.0, abs=1e-4)  # lag 3 at 180 FPS
+    assert p.history.phase_error(_t_us(2)) == pytest.approx(0.0, abs=1e-4)  # lag 2 at 120 FPS: one 60 Hz period
+    assert p.history.phase_error(_t_us(1)) == pytest.approx(0.5, abs=1e-4)
+    assert p.history.phase_error(_t_us(4)) == pytest.approx(1.0, abs=1e-4)  # two periods: the same phase
+    assert p.history.phase_error(round(3 / 180 * 1e6)) == pytest.approx(0.0, abs=1e-4)  # lag 3 at 180 FPS
 
 
 START_UP_FRAMES = 6
@@ -170,7 +174,7 @@ def _gate(p: Pipeline, xs: list[float], stds: list[float] | None = None) -> list
     for k, x in enumerate(xs):
         cov = np.eye(3) * (stds[k] ** 2 / 3 if stds is not None else 1e-6)
         pose = PoseEstimate(np.array([x, 0.0, 0.8]), np.eye(3), (1, 2), 0.5, position_cov_m2=cov)
-        out.append(p._gated(_Frame(k, _t_us(k), np.zeros((2, 2), np.uint8)), pose, 2, "track", k - 2))
+        out.append(p.gates.judge(k, _t_us(k), pose, 2, "track", k - 2))
     return out
 
 
@@ -276,7 +280,7 @@ def test_a_frame_the_motion_doubts_is_tracked_again_from_where_the_motion_puts_i
     truth = read_tum(short_flight / "groundtruth.tum")
     solve = Pipeline._solve
 
-    def spoiled_solve(self: Pipeline, a: _Frame, b: _Frame, target: _Frame) -> None:
+    def spoiled_solve(self: Pipeline, a: Frame, b: Frame, target: Frame) -> None:
         solve(self, a, b, target)
         if target.index == SPOILED:
             shift_m = np.array([0.05, 0.0, 0.0])
@@ -290,7 +294,7 @@ def test_a_frame_the_motion_doubts_is_tracked_again_from_where_the_motion_puts_i
     looked = _run(_pipeline(short_flight, PipelineConfig()), frames)[SPOILED]
     assert looked.pose is not None
     assert np.linalg.norm(looked.pose.position_m - truth.positions_m[SPOILED]) < 0.005
-    monkeypatch.setattr(Pipeline, "_second_look", lambda self, f: None)
+    monkeypatch.setattr(SecondLook, "look", lambda self, f: None)
     unlooked = _run(_pipeline(short_flight, PipelineConfig()), frames)[SPOILED]
     assert unlooked.pose is None
     assert unlooked.reason == ("inconsistent" if spoil == "wrong" else "lost")
@@ -319,12 +323,12 @@ def test_a_detector_failure_is_flagged_on_exactly_one_result(
     assert sum(r.pose is not None for r in results) >= 20  # and it went on
 
 
-def _pairs_lost_for(frame: int, but_with: int | None = None) -> Callable[[Pipeline, _Frame, _Frame, _Frame], None]:
+def _pairs_lost_for(frame: int, but_with: int | None = None) -> Callable[[Pipeline, Frame, Frame, Frame], None]:
     """``Pipeline._solve`` for which every pair of ``frame`` is lost (its partner tried, no candidate), but the
     one with frame ``but_with``."""
     solve = Pipeline._solve
 
-    def solve_or_lose(self: Pipeline, a: _Frame, b: _Frame, target: _Frame) -> None:
+    def solve_or_lose(self: Pipeline, a: Frame, b: Frame, target: Frame) -> None:
         other = b if target is a else a
         if target.index == frame and other.index != but_with:
             target.tried.add(other.index)
@@ -345,7 +349,7 @@ def test_a_frame_whose_only_good_pair_is_with_a_later_frame_that_has_its_pose_st
     # which would otherwise try frame 20 with the frames around it.)
     only, truth = 20, read_tum(short_flight / "groundtruth.tum")
     monkeypatch.setattr(Pipeline, "_solve", _pairs_lost_for(only, but_with=only + 1))
-    monkeypatch.setattr(Pipeline, "_bridge", lambda self, before, target, after: None)
+    monkeypatch.setattr(ContentBridge, "bridge", lambda self, before, target, after: None)
     results = _run(_pipeline(short_flight, PipelineConfig()), frames)
     assert results[only + 1].pose is not None
     assert results[only + 1].partner == only - 1
@@ -363,16 +367,16 @@ def test_a_frame_no_pair_solved_waits_for_the_bridge_with_the_frame_three_on(
     # than the others (when frame 23 arrives, not 22), after the bridges with its partners and the last one,
     # with frame 19 and frame 23 (the same phase, two projector periods apart), whose pose it takes.
     failing, truth = 20, read_tum(short_flight / "groundtruth.tum")
-    bridge = Pipeline._bridge
+    bridge = ContentBridge.bridge
     bridged: list[tuple[int, int, int]] = []
 
-    def last_bridge_only(self: Pipeline, before: _Frame, target: _Frame, after: _Frame) -> None:
+    def last_bridge_only(self: ContentBridge, before: Frame, target: Frame, after: Frame) -> None:
         bridged.append((before.index, target.index, after.index))
         if after.index - target.index == 3:
             bridge(self, before, target, after)
 
     monkeypatch.setattr(Pipeline, "_solve", _pairs_lost_for(failing))
-    monkeypatch.setattr(Pipeline, "_bridge", last_bridge_only)
+    monkeypatch.setattr(ContentBridge, "bridge", last_bridge_only)
     p = _pipeline(short_flight, PipelineConfig())
     came_out_with: dict[int, int] = {}
     results: dict[int, FrameResult] = {}
@@ -387,8 +391,17 @@ def test_a_frame_no_pair_solved_waits_for_the_bridge_with_the_frame_three_on(
     assert np.linalg.norm(results[failing].pose.position_m - truth.positions_m[failing]) < 0.005
 
 
-def test_the_bridge_puts_a_frame_without_a_pose_between_its_neighbours(short_flight: Path) -> None:
-    p = _pipeline(short_flight, PipelineConfig())
+class _NoStages:
+    """Stages for a part of the pipeline that must not need them."""
+
+    def __getattr__(self, name: str) -> None:
+        raise AssertionError(f"the part called the pipeline's {name}")
+
+
+def test_the_bridge_puts_a_frame_without_a_pose_between_its_neighbours() -> None:
+    # The bridge alone, on a history of its own: no pipeline, no detector.
+    history = FrameHistory(60.0, "opposite_phase")
+    bridge = ContentBridge(history, MotionTrack(), _NoStages(), None, 2)  # type: ignore[arg-type]
     lum = np.zeros((4, 4), np.uint8)
     turn = cv2.Rodrigues(np.array([0.0, 0.0, 0.3]))[0]  # 0.3 rad about the optical axis over 3 frames
     poses = {
@@ -396,17 +409,17 @@ def test_the_bridge_puts_a_frame_without_a_pose_between_its_neighbours(short_fli
         12: (np.array([0.3, -0.6, 1.3]), np.diag([1.0, -1.0, -1.0]) @ turn),
     }
     for k in range(8, 14):
-        f = _Frame(k, _t_us(k), lum)
+        f = Frame(k, _t_us(k), lum)
         if k in poses:
             f.rt = rt_of(*poses[k])
-        p._history.append(f)
-    middle = p._history[2]  # frame 10: a third of the way from frame 9 to frame 12 (whole microseconds)
+        history.append(f)
+    middle = history[2]  # frame 10: a third of the way from frame 9 to frame 12 (whole microseconds)
     s = (_t_us(10) - _t_us(9)) / (_t_us(12) - _t_us(9))
-    position_m, r_arena_cam = p._bridge_pose(middle)  # type: ignore[misc]
+    position_m, r_arena_cam = bridge.frame_pose(middle)  # type: ignore[misc]
     np.testing.assert_allclose(position_m, s * np.array([0.3, -0.6, 0.3]) + [0, 0, 1], atol=1e-9)
     third = cv2.Rodrigues(np.array([0.0, 0.0, 0.3 * s]))[0]
     np.testing.assert_allclose(r_arena_cam, np.diag([1.0, -1.0, -1.0]) @ third, atol=1e-9)
-    own = p._bridge_pose(p._history[1])  # frame 9 has its own pose
+    own = bridge.frame_pose(history[1])  # frame 9 has its own pose
     assert own is not None
     np.testing.assert_allclose(own[0], poses[9][0], atol=1e-9)
 
@@ -420,16 +433,16 @@ def test_the_bridge_is_not_tried_when_neither_neighbour_has_a_pose(
     p = _pipeline(short_flight, PipelineConfig())
     lum, down = np.zeros((360, 640), np.uint8), np.diag([1.0, -1.0, -1.0])
     for k in range(9, 14):  # frames 9 and 13 have poses, 10-12 none (each could be put between 9 and 13)
-        p._history.append(_Frame(k, _t_us(k), lum, lum))
-    p._history[0].rt = rt_of(np.array([0.0, 0.0, 1.0]), down)
-    p._history[4].rt = rt_of(np.array([0.004, 0.0, 1.0]), down)
-    before, target, after = p._history[1], p._history[2], p._history[3]
+        p.history.append(Frame(k, _t_us(k), lum, lum))
+    p.history[0].rt = rt_of(np.array([0.0, 0.0, 1.0]), down)
+    p.history[4].rt = rt_of(np.array([0.004, 0.0, 1.0]), down)
+    before, target, after = p.history[1], p.history[2], p.history[3]
     tried: list[int] = []
     monkeypatch.setattr(bridge_module, "bridge_difference", lambda *a, **k: tried.append(1))
-    p._bridge(before, target, after)
+    p.bridge.bridge(before, target, after)
     assert tried == []
     after.rt = rt_of(np.array([0.003, 0.0, 1.0]), down)
-    p._bridge(before, target, after)
+    p.bridge.bridge(before, target, after)
     assert tried == [1]
 
 

@@ -1,6 +1,7 @@
 """The frames no pair can solve because their exposure spans a content change: a pose from the frame
-before and the frame after together (:func:`bridge_difference`). A mix-in of
-:class:`ipt.receiver.core.pipeline.Pipeline`, whose state and stages it uses.
+before and the frame after together (:func:`bridge_difference`), offered as a candidate by
+:class:`ContentBridge`, which the pipeline holds and tells of each new frame; it tracks through the pipeline's
+own stages (:class:`BridgeTracker`).
 
 Why. The sender shows each video frame for two projector frames, so the video changes at every other
 projector flip. A 120 FPS camera whose exposure spans such a flip sees part of the old picture and part of
@@ -46,22 +47,19 @@ three on alone, without the other two bridges, cost a third of the difference st
 from __future__ import annotations
 
 import time
-from collections import deque
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ipt.receiver.core.demodulator import DIFF_SIGMA_PX, PairDifference, Undistorter, valid_difference, warp_masks
-from ipt.receiver.core.frameresult import _Candidate, _Frame
+from ipt.receiver.core.demodulator import DIFF_SIGMA_PX, PairDifference, valid_difference, warp_masks
+from ipt.receiver.core.history import Candidate, Frame, FrameHistory
 from ipt.receiver.core.imagealign import translation
+from ipt.receiver.core.motion import MotionTrack
 from ipt.receiver.core.pose import Pose, pose_of, rt_of
-
-if TYPE_CHECKING:
-    from ipt.receiver.core.motion import MotionTrack
-    from ipt.receiver.core.track import TrackResult
+from ipt.receiver.core.track import TrackResult
 
 F64 = npt.NDArray[np.float64]
 F32 = npt.NDArray[np.float32]
@@ -257,94 +255,106 @@ def bridge_difference(
     return valid_difference(diff, seen, lit[::4, ::4] > 0, sigma_px)
 
 
+class BridgeTracker(Protocol):
+    """The pipeline's stages the bridge uses."""
+
+    def lap(self, stage: str, t0: float) -> float:
+        """Count the processor time since ``t0`` to ``stage``; the time now."""
+
+    def predicted_warp(self, a: Frame, b: Frame, poses: tuple[Pose, Pose] | None = None) -> F64 | None:
+        """The floor homography from ``a`` to ``b`` from their ``poses``, if trusted."""
+
+    def track_guessed(
+        self, diff: PairDifference, guess: tuple[tuple[F64, F64], bool], lit: U8 | None
+    ) -> TrackResult | None:
+        """The pose tracked on ``diff`` from ``guess`` (OpenCV's rvec, tvec; and whether it is close)."""
+
+    def candidate(self, tracked: TrackResult, partner: int) -> Candidate:
+        """A candidate of the track's pose, paired with frame ``partner``."""
+
+    def add_candidate(self, target: Frame, candidate: Candidate) -> None:
+        """``candidate`` joins ``target``'s candidates."""
+
+
 class ContentBridge:
-    """The bridge, as methods of :class:`~ipt.receiver.core.pipeline.Pipeline` (which sets the state below)."""
+    """The bridge over the frames of ``history`` that no pair solved, through ``stages``; ``motion``: the
+    recent motion (the last resort for a frame's pose), ``coverage``: where the undistorted image has pixels
+    of the sensor (None: everywhere), ``lookahead``: the pipeline's (:meth:`wait`)."""
 
-    tracking: bool
-    undistort: Undistorter | None
-    _history: deque[_Frame]
-    _bridged: dict[int, int]
-    """How many times the bridge has been tried on each frame with a later partner."""
-    _track: MotionTrack
-    projector_hz: float
-    lookahead: int
+    def __init__(
+        self,
+        history: FrameHistory,
+        motion: MotionTrack,
+        stages: BridgeTracker,
+        coverage: U8 | None,
+        lookahead: int,
+    ) -> None:
+        self.history, self.motion, self.stages = history, motion, stages
+        self.coverage, self.lookahead = coverage, lookahead
+        self._bridged: dict[int, int] = {}
+        """How many times the bridge has been tried on each frame with a later partner."""
 
-    if TYPE_CHECKING:  # the pipeline's own stages
+    def keep_only(self, live: set[int]) -> None:
+        """Forget the frames not in ``live`` (indices of the frames still kept)."""
+        self._bridged = {k: n for k, n in self._bridged.items() if k in live}
 
-        def _lap(self, stage: str, t0: float) -> float: ...
-        def _phase_error(self, dt_us: int) -> float: ...
-        def _track_guessed(
-            self, diff: PairDifference, guess: tuple[tuple[F64, F64], bool], lit: U8 | None
-        ) -> TrackResult | None: ...
-        def _candidate(self, tracked: TrackResult, partner: int) -> _Candidate: ...
-        def _add_candidate(self, target: _Frame, candidate: _Candidate) -> None: ...
-        def _predicted_warp(self, a: _Frame, b: _Frame, poses: tuple[Pose, Pose] | None = None) -> F64 | None: ...
-
-    def _bridge_pending(self, new: _Frame) -> None:
+    def offer(self, new: Frame) -> None:
         """Try the bridge on each frame that ``new`` has just been paired with, that no pair gave a pose and
         that was paired with an earlier frame too: its earliest partner, it and ``new``; once with each of its
         first :data:`MAX_BRIDGES` later partners; and on the frame :data:`WIDE_AFTER` before ``new``, with the
         frame before it and ``new`` when those two show the same phase (see the module's note on which
         neighbours keep the tags)."""
-        if not self.tracking:
-            return
-        for target in self._history:
+        for target in self.history:
             if target.final or target.best is not None:
                 continue
             if new.index - target.index == WIDE_AFTER:
-                before = next((f for f in self._history if f.index == target.index - 1), None)
-                if before is not None and self._same_phase(before, new):
-                    self._bridge(before, target, new)
+                before = next((f for f in self.history if f.index == target.index - 1), None)
+                if before is not None and self.history.same_phase(before, new):
+                    self.bridge(before, target, new)
                 continue
-            befores = [f for f in self._history if f.index < target.index and f.index in target.tried]
+            befores = [f for f in self.history if f.index < target.index and f.index in target.tried]
             if self._bridged.get(target.index, 0) >= MAX_BRIDGES or new.index not in target.tried or not befores:
                 continue
             self._bridged[target.index] = self._bridged.get(target.index, 0) + 1
-            self._bridge(min(befores, key=lambda f: f.index), target, new)
+            self.bridge(min(befores, key=lambda f: f.index), target, new)
 
-    def _bridge_wait(self, frame: _Frame) -> int:
+    def wait(self, frame: Frame) -> int:
         """How many frames longer than the pipeline's lookahead ``frame`` waits: one for a frame no pair gave a
         pose, which may still be bridged with the frame :data:`WIDE_AFTER` after it, when the lookahead is the
         default two frames (a shorter one was chosen for its latency; a longer one waits long enough)."""
-        return int(self.lookahead == WIDE_AFTER - 1 and self.tracking and frame.best is None and bool(frame.tried))
+        return int(self.lookahead == WIDE_AFTER - 1 and frame.best is None and bool(frame.tried))
 
-    def _same_phase(self, a: _Frame, b: _Frame) -> bool:
-        """Whether ``a`` and ``b`` are a whole even number of projector periods apart (within a quarter): as far
-        from an odd number as can be (the pairing's phase error, which is 0 for opposite phases)."""
-        dt_us = b.time_us - a.time_us
-        return abs(dt_us) * 1e-6 * self.projector_hz > 1 and self._phase_error(dt_us) > 0.75
-
-    def _bridge_pose(self, frame: _Frame) -> Pose | None:
+    def frame_pose(self, frame: Frame) -> Pose | None:
         """``frame``'s pose for the bridge's warps: found (or its best candidate yet); else between the nearest
         frames within :data:`WIDE_AFTER` before and after it that have one, in proportion to time (on a vibrating
         camera far closer than the recent motion's prediction, which is the last resort)."""
         own = _found(frame)
         if own is not None:
             return own
-        known = [(f, p) for f in self._history if abs(f.index - frame.index) <= WIDE_AFTER and (p := _found(f))]
+        known = [(f, p) for f in self.history if abs(f.index - frame.index) <= WIDE_AFTER and (p := _found(f))]
         before = [(f, p) for f, p in known if f.index < frame.index]
         after = [(f, p) for f, p in known if f.index > frame.index]
         if not before or not after:
-            return self._track.pose_at(frame.time_us)
+            return self.motion.pose_at(frame.time_us)
         (f0, (p0, r0)), (f1, (p1, r1)) = before[-1], after[0]
         s = (frame.time_us - f0.time_us) / (f1.time_us - f0.time_us)
         turn, _ = cv2.Rodrigues(r0.T @ r1)
         partial, _ = cv2.Rodrigues(s * turn)
         return p0 + s * (p1 - p0), np.asarray(r0 @ partial, np.float64)
 
-    def _bridge(self, before: _Frame, target: _Frame, after: _Frame) -> None:
+    def bridge(self, before: Frame, target: Frame, after: Frame) -> None:
         """A candidate pose of ``target`` from the bridge with ``before`` and ``after``, unless neither of those
         has a pose: the warps would all come from the recent motion, and on the suite's fast flight such
         bridges gave 1 pose in 128 tries (a third of the bridge's time there, in its dark scenes)."""
         if _found(before) is None and _found(after) is None:
             return
         t0 = time.thread_time()
-        poses = (self._bridge_pose(before), self._bridge_pose(target), self._bridge_pose(after))
+        poses = (self.frame_pose(before), self.frame_pose(target), self.frame_pose(after))
         if poses[0] is None or poses[1] is None or poses[2] is None:
             return
         to_target = (
-            self._predicted_warp(before, target, (poses[0], poses[1])),
-            self._predicted_warp(after, target, (poses[2], poses[1])),
+            self.stages.predicted_warp(before, target, (poses[0], poses[1])),
+            self.stages.predicted_warp(after, target, (poses[2], poses[1])),
         )
         if to_target[0] is None or to_target[1] is None:
             return
@@ -357,18 +367,18 @@ class ContentBridge:
             after.lum,
             (to_target[0], to_target[1]),
             (before.signal, target.signal, after.signal),
-            self.undistort.coverage if self.undistort is not None else None,
+            self.coverage,
         )
-        t0 = self._lap("difference", t0)
+        t0 = self.stages.lap("difference", t0)
         if diff is None:
             return
-        tracked = self._track_guessed(diff, (rt_of(*poses[1]), True), target.signal)
-        self._lap("track", t0)
+        tracked = self.stages.track_guessed(diff, (rt_of(*poses[1]), True), target.signal)
+        self.stages.lap("track", t0)
         if tracked is not None:
-            self._add_candidate(target, replace(self._candidate(tracked, before.index), method="bridge"))
+            self.stages.add_candidate(target, replace(self.stages.candidate(tracked, before.index), method="bridge"))
 
 
-def _found(frame: _Frame) -> Pose | None:
+def _found(frame: Frame) -> Pose | None:
     """``frame``'s pose; for a frame whose best fit the gates held back, that fit's (still a close guess)."""
     rt = frame.rt if frame.rt is not None else frame.best.rt if frame.best is not None else None
     return None if rt is None else pose_of(*rt)

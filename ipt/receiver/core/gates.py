@@ -1,7 +1,7 @@
 """The pipeline's gates on its poses: a pose far from where the recent motion puts the camera is held back
 (``inconsistent``); before that motion is known, only a certain pose goes out (``unconfirmed``); a jump
-faster than a drone flies is held back (``motion_jump``) until it repeats. A mix-in of
-:class:`ipt.receiver.core.pipeline.Pipeline`, whose state it reads and keeps."""
+faster than a drone flies is held back (``motion_jump``) until it repeats (:class:`PoseGates`, which the
+pipeline asks about each frame's pose, in frame order)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from collections import deque
 
 import numpy as np
 
-from ipt.config.models import PipelineConfig
-from ipt.receiver.core.frameresult import FrameResult, _Frame
+from ipt.config.models import PoseConfig
+from ipt.receiver.core.frameresult import FrameResult
 from ipt.receiver.core.motion import MotionTrack
 from ipt.receiver.core.pose import PoseEstimate
 from ipt.receiver.core.reasons import FrameReason
@@ -27,23 +27,24 @@ ROLLING_GATE_SIGMAS = 3.0
 
 
 class PoseGates:
-    """The gates, as methods of :class:`~ipt.receiver.core.pipeline.Pipeline` (which sets the state below)."""
+    """The gates, and the motion they judge by: every pose they were asked about."""
 
-    cfg: PipelineConfig
-    _track: MotionTrack
-    """The camera's recent motion, from every solved pose."""
-    _accepted: deque[tuple[int, PoseEstimate]]
-    """The poses let through lately, with their capture times."""
-    _gated_in_a_row: int
+    def __init__(self, cfg: PoseConfig) -> None:
+        self.cfg = cfg
+        self.motion = MotionTrack()
+        """The motion of the poses that went out (or were held back), in frame order: the gates' reference."""
+        self._accepted: deque[tuple[int, PoseEstimate]] = deque(maxlen=16)
+        """The poses let through lately, with their capture times."""
+        self._gated_in_a_row = 0
 
-    def _doubtful(self, t_us: int, pose: PoseEstimate) -> str | None:
+    def doubt(self, t_us: int, pose: PoseEstimate) -> str | None:
         """Why ``pose`` disagrees with the recent motion (the reason counted), or None if it does not."""
-        cfg = self.cfg.pose
+        cfg = self.cfg
         if cfg.max_prediction_error_m is not None:
             bound_m = cfg.max_prediction_error_m * gate_growth(float(pose.position_m[2]))
             if cfg.track.rolling_shutter:
                 bound_m = max(bound_m, ROLLING_GATE_SIGMAS * float(np.linalg.norm(pose.position_std_m)))
-            predicted = self._track.pose_at(t_us)
+            predicted = self.motion.pose_at(t_us)
             if predicted is None:
                 # Nothing to check it against yet (the start, or after a gap): only a pose whose own
                 # uncertainty is within the same bound goes out; the rest only feed the track.
@@ -60,21 +61,22 @@ class PoseGates:
                     return FrameReason.MOTION_JUMP
         return None
 
-    def _gated(self, frame: _Frame, pose: PoseEstimate, tags: int, method: str, partner: int) -> FrameResult:
-        t_us = frame.time_us
-        doubt = self._doubtful(t_us, pose)
+    def judge(self, index: int, t_us: int, pose: PoseEstimate, tags: int, method: str, partner: int) -> FrameResult:
+        """The result of frame ``index`` (captured at ``t_us``) whose pose is ``pose``: the pose, or why the gates
+        hold it back; the pose joins the motion either way."""
+        doubt = self.doubt(t_us, pose)
         # Every solved pose goes into the track, gated or not: its fit is robust, and a gate that fed only
         # on what it let through could lock onto a wrong track and reject every good pose after it.
-        self._track.add(t_us, pose.position_m, pose.r_arena_cam, float(np.linalg.norm(pose.position_std_m)))
+        self.motion.add(t_us, pose.position_m, pose.r_arena_cam, float(np.linalg.norm(pose.position_std_m)))
         reset = False
         if doubt in (FrameReason.INCONSISTENT, FrameReason.UNCONFIRMED):
-            return FrameResult(frame.index, t_us, None, tags, doubt, method=method, partner=partner)
+            return FrameResult(index, t_us, None, tags, doubt, method=method, partner=partner)
         if doubt == FrameReason.MOTION_JUMP:
             self._gated_in_a_row += 1
             if self._gated_in_a_row < GATE_RESET_AFTER:
-                return FrameResult(frame.index, t_us, None, tags, doubt, method=method, partner=partner)
+                return FrameResult(index, t_us, None, tags, doubt, method=method, partner=partner)
             reset = True
             self._accepted.clear()
         self._gated_in_a_row = 0
         self._accepted.append((t_us, pose))
-        return FrameResult(frame.index, t_us, pose, tags, FrameReason.POSE, reset, method, partner)
+        return FrameResult(index, t_us, pose, tags, FrameReason.POSE, reset, method, partner)

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ipt.receiver.core.track import _median
+from ipt.receiver.core.track import fast_median
 
 F64 = npt.NDArray[np.float64]
 
@@ -118,7 +118,7 @@ class MotionTrack:
             coef_p, *_ = np.linalg.lstsq((design * root_w)[inliers], (positions * root_w)[inliers], rcond=None)
             residual = np.linalg.norm(positions - design @ coef_p, axis=1)
             z = residual / std_m
-            scale = max(1.4826 * _median(z[inliers]), 1.0)
+            scale = max(1.4826 * fast_median(z[inliers]), 1.0)
             keep = (residual <= MIN_OUTLIER_M) | (z <= 3.0 * scale)
             if keep.sum() < MIN_POSES or np.array_equal(keep, inliers):
                 break

@@ -50,12 +50,13 @@ from ipt.receiver.core.demodulator import (
 )
 from ipt.receiver.core.detection import Detector, DetectorError
 from ipt.receiver.core.framecheck import RESTARTS, frame_problem
-from ipt.receiver.core.frameresult import FrameResult, _Candidate, _Frame, _Pair
+from ipt.receiver.core.frameresult import FrameResult
 from ipt.receiver.core.gates import PoseGates
+from ipt.receiver.core.history import Candidate, Frame, FrameHistory, Pair
 from ipt.receiver.core.imagealign import AlignTarget, alignment_features, floor_warp_between, warp_image
 from ipt.receiver.core.motion import MotionTrack, floor_warp
 from ipt.receiver.core.paperway import PaperWay
-from ipt.receiver.core.pose import Pose, PoseEstimate, pose_of, rt_of, solve_pose
+from ipt.receiver.core.pose import Pose, pose_of, rt_of, solve_pose
 from ipt.receiver.core.reasons import FrameReason
 from ipt.receiver.core.scales import DetectScale, ScaleChooser
 from ipt.receiver.core.secondlook import SecondLook
@@ -78,20 +79,10 @@ F64 = npt.NDArray[np.float64]
 Guess = tuple[tuple[F64, F64], bool]
 """A first guess of a frame's pose, OpenCV's (rvec, tvec), and whether it is close (:meth:`Pipeline._initial_pose`)."""
 
-#: Frames kept for pairing.
-HISTORY = 6
-#: A pairing whose time step is this far (in projector periods) from an odd number is not tried. Half a
-#: period is still tried as a fallback: when an exposure straddles a flip, its lag-2 partner straddles the
-#: same way and the signal cancels, while the neighbour on the other side of the flip keeps half of it.
-MAX_PHASE_ERROR = 0.55
 #: A gap in capture times longer than this (or time going backwards) starts pairing afresh.
 MAX_GAP_US = 100_000
 #: A predicted warp that moves the image centre further than this fraction of the width is not trusted.
 MAX_PREDICTED_MOVE = 0.25
-#: Partners tried for a frame from each side, best phase first.
-MAX_PARTNERS = 2
-#: Pairs further apart than this many projector periods are not tried (the content changes in between).
-MAX_PAIR_PERIODS = 2.6
 #: A candidate fitting this share of the map's visible edges is taken without trying more partners.
 GOOD_QUALITY = 0.3
 #: Without a pose for this long the track is lost, and AprilTag looks for tags again.
@@ -114,7 +105,7 @@ class Prepared:
     """Its alignment features (ipt profile)."""
 
 
-class Pipeline(PoseGates, ContentBridge, SecondLook, PaperWay):
+class Pipeline:
     """The receiver's per-frame processing, for either profile (see :meth:`PipelineConfig.profile`)."""
 
     def __init__(
@@ -126,8 +117,10 @@ class Pipeline(PoseGates, ContentBridge, SecondLook, PaperWay):
         owns it from here: :meth:`close` closes it."""
         self.tag_map, self.camera, self.cfg = tag_map, camera, cfg
         self.projector_hz = projector_hz
-        self.pair_span_us = MAX_PAIR_PERIODS * 1e6 / projector_hz
-        """Frames further apart than this are never paired (:data:`MAX_PAIR_PERIODS`)."""
+        self.history = FrameHistory(projector_hz, cfg.demodulation.pairing)
+        """The frames kept for pairing, and the rules that pair them."""
+        self.pair_span_us = self.history.pair_span_us
+        """Frames further apart than this are never paired (:data:`~ipt.receiver.core.history.MAX_PAIR_PERIODS`)."""
         self.detector = detector
         demod = cfg.demodulation
         self.ipt = demod.alignment == "gradient"
@@ -150,28 +143,36 @@ class Pipeline(PoseGates, ContentBridge, SecondLook, PaperWay):
         self.scales = ScaleChooser(tag_map, camera.fx_px, min(size), base)
         """Filter and decimation sizes for AprilTag, from the height the camera was last seen at."""
         self.lookahead = demod.lookahead_frames if self.ipt else 0
-        self._history: deque[_Frame] = deque(maxlen=HISTORY)
-        self._pending: deque[_Frame] = deque()
-        self._pairs: dict[tuple[int, int], _Pair | None] = {}
-        self._bridged: dict[int, int] = {}
-        self._track = MotionTrack()
-        """The motion of the poses that went out (or were held back), in frame order: the gates' reference."""
+        self._pending: deque[Frame] = deque()
+        self._pairs: dict[tuple[int, int], Pair | None] = {}
+        self.gates = PoseGates(cfg.pose)
+        """The gates on the poses, and the motion of the poses they judged (the first guesses' last resort)."""
+        coverage = self.undistort.coverage if self.undistort is not None else None
+        self.bridge = ContentBridge(self.history, self.gates.motion, self, coverage, self.lookahead)
+        """The bridge over frames whose exposure spans a content change (tracking only)."""
+        self.second_look = SecondLook(self.history, self.gates, self)
+        """The second look at frames whose fits the recent motion doubts (tracking only)."""
         self._guide = MotionTrack()
         """The motion of every frame's best candidate as soon as it is found: the first guesses' source."""
-        self._accepted: deque[tuple[int, PoseEstimate]] = deque(maxlen=16)
-        self._gated_in_a_row = 0
         self._since_verify = 0
         self._detector_failed = False
         self.reasons: Counter[str] = Counter()
         self.stage_seconds: dict[str, float] = defaultdict(float)
         """Processor time of the pipeline's thread spent per stage (the AprilTag helper process's own time is not
         in "detect"), for benchmarks and diagnostics."""
-        self.detector_runs = 0
+        self._detector_runs = 0
+        self.paper = PaperWay(cfg, camera, tag_map, detector, self.history, self.gates, self.lap)
+        """The paper's way through (the paper profile)."""
         self.detector.wait_ready()
 
     def close(self) -> None:
         """End the detector (and its helper process) now rather than when this object is collected."""
         self.detector.close()
+
+    @property
+    def detector_runs(self) -> int:
+        """AprilTag runs so far (either profile)."""
+        return self._detector_runs + self.paper.detector_runs
 
     @property
     def detector_replacements(self) -> tuple[int, int]:
@@ -209,22 +210,22 @@ class Pipeline(PoseGates, ContentBridge, SecondLook, PaperWay):
         if problem is not None:  # not an image of this camera, or one without signal: never a partner
             if problem in RESTARTS:
                 self._restart()
-            bad = _Frame(index, capture_time_us, np.zeros((0, 0), np.uint8), final=True)
+            bad = Frame(index, capture_time_us, np.zeros((0, 0), np.uint8), final=True)
             bad.result = FrameResult(index, capture_time_us, None, 0, problem)
             self._pending.append(bad)
             return self._emit()
-        gap = bool(self._history) and not 0 < capture_time_us - self._history[-1].time_us <= MAX_GAP_US
+        gap = bool(self.history) and not 0 < capture_time_us - self.history[-1].time_us <= MAX_GAP_US
         if gap:
             self._restart()  # a jump in the video, or time going backwards
         assert ready.lum is not None
-        new = _Frame(index, capture_time_us, ready.lum, ready.signal, ready.features)
+        new = Frame(index, capture_time_us, ready.lum, ready.signal, ready.features)
         if gap:  # its reason unless a later frame pairs with it
             new.failure = FrameResult(index, capture_time_us, None, 0, FrameReason.TIME_GAP)
-        t0 = self._lap("lightness", t0)
-        self._history.append(new)
+        t0 = self.lap("lightness", t0)
+        self.history.append(new)
         self._pending.append(new)
         if not self.ipt:
-            new.result = self._paper(new)
+            new.result = self.paper.solve(new)
             new.final = True
         else:
             self._ipt(new)
@@ -237,9 +238,10 @@ class Pipeline(PoseGates, ContentBridge, SecondLook, PaperWay):
 
     def finish_before(self, time_us: int) -> list[FrameResult]:
         """The results, in frame order, of the frames waiting for later partners that no frame captured at
-        ``time_us`` or later can be (it is more than :data:`MAX_PAIR_PERIODS` projector periods after them).
-        Processing that frame would give the same results, only after it: a live daemon that dropped frames
-        calls this before handing over the next frame it took, so their results do not wait for it."""
+        ``time_us`` or later can be (it is more than :data:`~ipt.receiver.core.history.MAX_PAIR_PERIODS`
+        projector periods after them). Processing that frame would give the same results, only after it: a
+        live daemon that dropped frames calls this before handing over the next frame it took, so their
+        results do not wait for it."""
         for f in self._pending:  # in frame order: the frames before one still waiting are final or finished here
             if not f.final and time_us - f.time_us > self.pair_span_us:
                 self._finish(f)
@@ -255,9 +257,9 @@ class Pipeline(PoseGates, ContentBridge, SecondLook, PaperWay):
     def _restart(self) -> None:
         """Start pairing afresh: earlier frames get no more partners, the motion is forgotten."""
         self._finish_pending()
-        self._history.clear()
+        self.history.clear()
         self._pairs.clear()
-        self._track.clear()
+        self.gates.motion.clear()
         self._guide.clear()
         self.scales.forget()
 
@@ -273,50 +275,22 @@ class Pipeline(PoseGates, ContentBridge, SecondLook, PaperWay):
                 self._detector_failed = False
             self.reasons[result.reason] += 1
             out.append(result)
-        live = {f.index for f in self._history}
+        live = {f.index for f in self.history}
         self._pairs = {k: v for k, v in self._pairs.items() if k[0] in live and k[1] in live}
-        self._bridged = {k: n for k, n in self._bridged.items() if k in live}
+        self.bridge.keep_only(live)
         return out
 
-    def _lap(self, stage: str, t0: float) -> float:
+    def lap(self, stage: str, t0: float) -> float:
+        """Count this thread's processor time since ``t0`` to ``stage`` (:attr:`stage_seconds`); the time now."""
         t1 = time.thread_time()
         self.stage_seconds[stage] += t1 - t0
         return t1
 
     # -- pairing --------------------------------------------------------------------------------------
 
-    def _phase_error(self, dt_us: int) -> float:
-        periods = abs(dt_us) * 1e-6 * self.projector_hz
-        return float(abs(periods - (2 * np.floor(periods / 2) + 1)))
-
-    def _partners(self, frame: _Frame, earlier: bool) -> list[_Frame]:
-        """Frames to pair ``frame`` with, on one side, the best phase first."""
-        others = [f for f in self._history if (f.index < frame.index if earlier else f.index > frame.index)]
-        if self.cfg.demodulation.pairing == "previous":
-            return others[-1:] if earlier else []
-        others = [f for f in others if abs(frame.time_us - f.time_us) <= self.pair_span_us]
-        good = [f for f in others if self._phase_error(frame.time_us - f.time_us) < MAX_PHASE_ERROR]
-        return sorted(good, key=lambda f: self._partner_rank(frame, f))[:MAX_PARTNERS]
-
-    def _partner_rank(self, frame: _Frame, other: _Frame) -> tuple[int, int]:
-        """Sorts ``frame``'s partners best first: phase errors within a twentieth of a period are equal here
-        (capture times are whole microseconds), and of those the closer partner comes first."""
-        dt_us = frame.time_us - other.time_us
-        return round(self._phase_error(dt_us) * 20), abs(dt_us)
-
-    def _predicted_phase(self, frame: _Frame) -> int | None:
-        """+1 if ``frame`` probably showed the +ΔL phase, from what earlier poses revealed."""
-        if frame.phase is not None:
-            return frame.phase
-        for f in reversed(self._history):
-            if f.phase is not None and f is not frame:
-                flips = round((frame.time_us - f.time_us) * 1e-6 * self.projector_hz)
-                return f.phase * (-1 if flips % 2 else 1)
-        return None
-
     # -- the ipt way ----------------------------------------------------------------------------------
 
-    def _ipt(self, new: _Frame) -> None:
+    def _ipt(self, new: Frame) -> None:
         """Every pair ``new`` makes with an earlier frame gives each of its two frames a candidate pose; a
         frame takes its best candidate (the one that fits most of the map's edges: a pair whose content
         changed between its frames doubles the edges and fits fewer) once no later frame can pair with it,
@@ -324,31 +298,33 @@ class Pipeline(PoseGates, ContentBridge, SecondLook, PaperWay):
         only for their own sake, if they have none (fast: 84.2 → 88.3 %: a frame exposed across a flip often has
         its strongest pair with its later neighbour, which had found its own pose with the frame before)."""
         good = False
-        for partner in self._partners(new, earlier=True):
+        for partner in self.history.partners(new, earlier=True):
             if not good:
                 self._solve(partner, new, new)
             if not partner.final and not (good and partner.best is not None):
                 self._solve(partner, new, partner)
             good = new.best is not None and new.best.quality >= GOOD_QUALITY
-        self._bridge_pending(new)
+        if self.tracking:
+            self.bridge.offer(new)
         for f in self._pending:
-            if not f.final and new.index - f.index >= self.lookahead + self._bridge_wait(f):
+            if not f.final and new.index - f.index >= self.lookahead + (self.bridge.wait(f) if self.tracking else 0):
                 self._finish(f)
 
-    def _finish(self, f: _Frame) -> None:
+    def _finish(self, f: Frame) -> None:
         """Judge ``f``'s candidates (earlier frames are final already), after a second look if the recent motion
         doubts them all: the best fit it does not doubt, or else the best fit, which the gates then hold back."""
         f.final = True
-        self._second_look(f)
+        if self.tracking:
+            self.second_look.look(f)
         if not f.candidates:
             f.result = f.failure
             return
         ranked = sorted(f.candidates, key=lambda c: -c.quality)
-        best = next((c for c in ranked if self._doubtful(f.time_us, c.pose) is None), ranked[0])
-        f.result = self._gated(f, best.pose, best.tags, best.method, best.partner)
+        best = next((c for c in ranked if self.gates.doubt(f.time_us, c.pose) is None), ranked[0])
+        f.result = self.gates.judge(f.index, f.time_us, best.pose, best.tags, best.method, best.partner)
         f.rt = best.rt if f.result.pose is not None else None
 
-    def _pair(self, a: _Frame, b: _Frame) -> _Pair | None:
+    def pair(self, a: Frame, b: Frame) -> Pair | None:
         """The alignment and difference of ``a`` (earlier) and ``b`` (later), computed once."""
         key = (a.index, b.index)
         if key in self._pairs:
@@ -360,24 +336,24 @@ class Pipeline(PoseGates, ContentBridge, SecondLook, PaperWay):
         assert b.signal is not None
         if b.target is None:
             b.target = AlignTarget.of(b.features, b.signal)
-        warp = floor_warp_between(b.target, a.features, self._predicted_warp(a, b), a.signal)
-        t0 = self._lap("align", t0)
+        warp = floor_warp_between(b.target, a.features, self.predicted_warp(a, b), a.signal)
+        t0 = self.lap("align", t0)
         pair = None
         if warp is not None:
             coverage = self.undistort.coverage if self.undistort is not None else None
-            pair = _Pair(warp, pair_difference(a.lum, b.lum, warp, a.signal, b.signal, coverage))
-        self._lap("difference", t0)
+            pair = Pair(warp, pair_difference(a.lum, b.lum, warp, a.signal, b.signal, coverage))
+        self.lap("difference", t0)
         self._pairs[key] = pair
         return pair
 
-    def _predicted_warp(self, a: _Frame, b: _Frame, poses: tuple[Pose, Pose] | None = None) -> F64 | None:
+    def predicted_warp(self, a: Frame, b: Frame, poses: tuple[Pose, Pose] | None = None) -> F64 | None:
         """The floor homography from ``a`` to ``b`` from their ``poses``, else the ones found or predicted, if
         trusted."""
         if not self.cfg.demodulation.predict_warp:
             return None
         k = self.pinhole.camera_matrix
         if poses is None:
-            found = [pose_of(*f.rt) if f.rt is not None else self._track.pose_at(f.time_us) for f in (a, b)]
+            found = [pose_of(*f.rt) if f.rt is not None else self.gates.motion.pose_at(f.time_us) for f in (a, b)]
             if found[0] is None or found[1] is None:
                 return None
             poses = (found[0], found[1])
@@ -393,7 +369,7 @@ class Pipeline(PoseGates, ContentBridge, SecondLook, PaperWay):
             return None
         return warp
 
-    def _difference_in(self, pair: _Pair, target_is_later: bool) -> PairDifference:
+    def difference_in(self, pair: Pair, target_is_later: bool) -> PairDifference:
         """The pair's difference in the target frame's geometry, as target minus other."""
         if target_is_later:
             return pair.later
@@ -405,36 +381,36 @@ class Pipeline(PoseGates, ContentBridge, SecondLook, PaperWay):
             pair.earlier = PairDifference(diff, np.asarray(valid, np.uint8), d.amplitude, d.changed)
         return pair.earlier
 
-    def _solve(self, a: _Frame, b: _Frame, target: _Frame) -> None:
+    def _solve(self, a: Frame, b: Frame, target: Frame) -> None:
         """A candidate pose of ``target`` (``a`` or ``b``) from the pair (a earlier, b later)."""
         other = b if target is a else a
         target.tried.add(other.index)
-        pair = self._pair(a, b)
+        pair = self.pair(a, b)
         if pair is None:
             target.failure = FrameResult(
                 target.index, target.time_us, None, 0, FrameReason.NO_ALIGNMENT, partner=other.index
             )
             return
-        diff = self._difference_in(pair, target is b)
+        diff = self.difference_in(pair, target is b)
         warp_other_to_target = pair.warp if target is b else np.asarray(np.linalg.inv(pair.warp), np.float64)
         t0 = time.thread_time()
         reason = FrameReason.NO_TAGS
         guess = self._initial_pose(target, other, warp_other_to_target)
         tracked: TrackResult | None = None
         if self.tracking and guess is not None:
-            tracked = self._track_guessed(diff, guess, target.signal)
-            t0 = self._lap("track", t0)
+            tracked = self.track_guessed(diff, guess, target.signal)
+            t0 = self.lap("track", t0)
             if tracked is None:
                 reason = FrameReason.LOST
             elif self.cfg.pose.track.verify_every and self._since_verify >= self.cfg.pose.track.verify_every:
                 if not self._verified(tracked, diff, t0):
                     tracked, reason = None, FrameReason.TRACK_DISAGREES
                 t0 = time.thread_time()
-        candidate: _Candidate | None = None
+        candidate: Candidate | None = None
         if tracked is not None:
             self._since_verify += 1
             target.phase, other.phase = tracked.sign, -tracked.sign
-            candidate = self._candidate(tracked, other.index)
+            candidate = self.candidate(tracked, other.index)
         elif not self.tracking or guess is None or (not guess[1] and self._lost(target)):
             # AprilTag when there is no track to follow: at the start, or once the motion it predicted from
             # is too old (while it lasts, a pair that fails is just a bad pair: another partner may do).
@@ -444,14 +420,14 @@ class Pipeline(PoseGates, ContentBridge, SecondLook, PaperWay):
                 target.failure = FrameResult(target.index, target.time_us, None, 0, FrameReason.DETECTOR_FAILED)
                 self._detector_failed = True
                 return
-            t0 = self._lap("detect", t0)
+            t0 = self.lap("detect", t0)
         if candidate is None:
             target.failure = FrameResult(target.index, target.time_us, None, 0, reason, partner=other.index)
             return
-        self._lap("pose", t0)
-        self._add_candidate(target, candidate)
+        self.lap("pose", t0)
+        self.add_candidate(target, candidate)
 
-    def _add_candidate(self, target: _Frame, candidate: _Candidate) -> None:
+    def add_candidate(self, target: Frame, candidate: Candidate) -> None:
         target.candidates.append(candidate)
         if target.best is None or candidate.quality > target.best.quality:
             target.best = candidate
@@ -460,15 +436,15 @@ class Pipeline(PoseGates, ContentBridge, SecondLook, PaperWay):
             self.scales.seen_at(float(p.position_m[2]))
             self._guide.add(target.time_us, p.position_m, p.r_arena_cam, float(np.linalg.norm(p.position_std_m)))
 
-    def _lost(self, target: _Frame) -> bool:
+    def _lost(self, target: Frame) -> bool:
         """No recent pose to track from: the newest is more than :data:`LOST_AFTER_US` before ``target``."""
-        newest = max((f.time_us for f in self._history if f.best is not None), default=None)
+        newest = max((f.time_us for f in self.history if f.best is not None), default=None)
         return newest is None or target.time_us - newest > LOST_AFTER_US
 
-    def _candidate(self, tracked: TrackResult, partner: int) -> _Candidate:
+    def candidate(self, tracked: TrackResult, partner: int) -> Candidate:
         pose = tracked.estimate()
         rt = (tracked.rvec, tracked.tvec)
-        return _Candidate(pose, rt, len(tracked.tags), "track", partner, tracked.inlier_fraction)
+        return Candidate(pose, rt, len(tracked.tags), "track", partner, tracked.inlier_fraction)
 
     def _track_from(self, diff: PairDifference, init: tuple[F64, F64], lit: U8 | None = None) -> TrackResult | None:
         """The pose from the map's edges on ``diff`` from ``init``; only where ``lit`` (the target frame's
@@ -498,7 +474,7 @@ class Pipeline(PoseGates, ContentBridge, SecondLook, PaperWay):
             return None
         return result
 
-    def _track_guessed(self, diff: PairDifference, guess: Guess, lit: U8 | None) -> TrackResult | None:
+    def track_guessed(self, diff: PairDifference, guess: Guess, lit: U8 | None) -> TrackResult | None:
         """The pose tracked from ``guess``: from its start if close, else from a search around it; a close start
         that fails is searched around too (the partner's pose or the pair's homography was off)."""
         init, close = guess
@@ -507,7 +483,7 @@ class Pipeline(PoseGates, ContentBridge, SecondLook, PaperWay):
             tracked = self._track_from(diff, self._coarse(diff, init), lit)
         return tracked
 
-    def _initial_pose(self, target: _Frame, other: _Frame, warp_other_to_target: F64) -> Guess | None:
+    def _initial_pose(self, target: Frame, other: Frame, warp_other_to_target: F64) -> Guess | None:
         """A first guess of ``target``'s pose and whether it is close (within a few pixels): the partner's
         pose carried by the pair's homography (close), else the recent motion's prediction (not)."""
         if other.rt is not None:
@@ -542,11 +518,11 @@ class Pipeline(PoseGates, ContentBridge, SecondLook, PaperWay):
         moved = shifted_pose(k, init[0], init[1], dx, dy, size)
         return init if moved is None else moved
 
-    def _acquire(self, target: _Frame, other: _Frame, diff: PairDifference) -> _Candidate | None:
+    def _acquire(self, target: Frame, other: Frame, diff: PairDifference) -> Candidate | None:
         """AprilTag on the pair's difference, then (tracking) the map's edges from its pose; None: no pose."""
-        first = self._predicted_phase(target) or 1
+        first = self.history.predicted_phase(target) or 1
         for scale, sign in ((s, sign) for s in self.scales.to_try(target.index) for sign in (first, -first)):
-            self.detector_runs += 1
+            self._detector_runs += 1
             dets = self.detector.detect(binarise_difference(diff, sign, scale.ksize), scale.decimate)
             if len(dets) < self.cfg.pose.min_tags:
                 continue
@@ -560,8 +536,8 @@ class Pipeline(PoseGates, ContentBridge, SecondLook, PaperWay):
                 refined = self._track_from(diff, self._coarse(diff, start), target.signal)
                 if refined is not None:
                     self._since_verify = 0
-                    return self._candidate(refined, other.index)
-            return _Candidate(pose, start, len(dets), "apriltag", other.index, 0.0)
+                    return self.candidate(refined, other.index)
+            return Candidate(pose, start, len(dets), "apriltag", other.index, 0.0)
         return None
 
     def _verified(self, tracked: TrackResult, diff: PairDifference, t0: float) -> bool:
@@ -570,14 +546,14 @@ class Pipeline(PoseGates, ContentBridge, SecondLook, PaperWay):
         r_cam, _ = cv2.Rodrigues(tracked.rvec)
         position = -r_cam.T @ tracked.tvec
         scale = self.scales.at(float(position[2]))
-        self.detector_runs += 1
+        self._detector_runs += 1
         try:
             dets = self.detector.detect(binarise_difference(diff, tracked.sign, scale.ksize), scale.decimate)
         except DetectorError:
             self._detector_failed = True  # reported with the next result that comes out; the track goes on
             return True
         finally:
-            self._lap("detect", t0)
+            self.lap("detect", t0)
         if len(dets) < self.cfg.pose.min_tags:
             return True
         pose = solve_pose(dets, self.tag_map, self.pinhole, self.cfg.pose)

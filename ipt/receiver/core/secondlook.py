@@ -1,6 +1,7 @@
 """A second look at a frame whose fits the recent motion doubts, or whose track was lost on every pair: the
-track once more, started from where that motion puts the camera (:meth:`SecondLook._second_look`). A
-mix-in of :class:`ipt.receiver.core.pipeline.Pipeline`, whose state and stages it uses.
+track once more, started from where that motion puts the camera (:meth:`SecondLook.look`). The pipeline
+holds one and asks it about each frame before judging it; it pairs and tracks through the pipeline's own
+stages (:class:`PairTracker`).
 
 Why. A frame's track starts from its partner's pose carried by the pair's homography. On a vibrating drone
 over moving video that homography is now and then a few pixels off, the fit settles in a wrong basin (the
@@ -18,21 +19,17 @@ take-off 70.0 → 72.2 %; no pose over 10 cm on any flight whose arena file is r
 
 from __future__ import annotations
 
-from collections import deque
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 import numpy.typing as npt
 
+from ipt.receiver.core.demodulator import PairDifference
+from ipt.receiver.core.gates import PoseGates
+from ipt.receiver.core.history import Candidate, Frame, FrameHistory, Pair
 from ipt.receiver.core.pose import rt_of
 from ipt.receiver.core.reasons import FrameReason
-
-if TYPE_CHECKING:
-    from ipt.receiver.core.demodulator import PairDifference
-    from ipt.receiver.core.frameresult import _Candidate, _Frame, _Pair
-    from ipt.receiver.core.motion import MotionTrack
-    from ipt.receiver.core.pose import PoseEstimate
-    from ipt.receiver.core.track import TrackResult
+from ipt.receiver.core.track import TrackResult
 
 F64 = npt.NDArray[np.float64]
 U8 = npt.NDArray[np.uint8]
@@ -41,58 +38,65 @@ U8 = npt.NDArray[np.uint8]
 LOST_PAIRS = 2
 
 
+class PairTracker(Protocol):
+    """The pipeline's stages the second look uses."""
+
+    def pair(self, a: Frame, b: Frame) -> Pair | None:
+        """The alignment and difference of ``a`` (earlier) and ``b`` (later), computed once."""
+
+    def difference_in(self, pair: Pair, target_is_later: bool) -> PairDifference:
+        """The pair's difference in the target frame's geometry."""
+
+    def track_guessed(
+        self, diff: PairDifference, guess: tuple[tuple[F64, F64], bool], lit: U8 | None
+    ) -> TrackResult | None:
+        """The pose tracked on ``diff`` from ``guess`` (OpenCV's rvec, tvec; and whether it is close)."""
+
+    def candidate(self, tracked: TrackResult, partner: int) -> Candidate:
+        """A candidate of the track's pose, paired with frame ``partner``."""
+
+    def add_candidate(self, target: Frame, candidate: Candidate) -> None:
+        """``candidate`` joins ``target``'s candidates."""
+
+
 class SecondLook:
-    """The second look, as a method of :class:`~ipt.receiver.core.pipeline.Pipeline` (which has what is declared
-    here)."""
+    """The second look at the frames of ``history`` that ``gates`` would doubt, through ``stages``."""
 
-    tracking: bool
-    _history: deque[_Frame]
-    _track: MotionTrack
+    def __init__(self, history: FrameHistory, gates: PoseGates, stages: PairTracker) -> None:
+        self.history, self.gates, self.stages = history, gates, stages
 
-    if TYPE_CHECKING:  # the pipeline's own stages and gates
-
-        def _doubtful(self, t_us: int, pose: PoseEstimate) -> str | None: ...
-        def _pair(self, a: _Frame, b: _Frame) -> _Pair | None: ...
-        def _difference_in(self, pair: _Pair, target_is_later: bool) -> PairDifference: ...
-        def _partner_rank(self, frame: _Frame, other: _Frame) -> tuple[int, int]: ...
-        def _track_guessed(
-            self, diff: PairDifference, guess: tuple[tuple[F64, F64], bool], lit: U8 | None
-        ) -> TrackResult | None: ...
-        def _candidate(self, tracked: TrackResult, partner: int) -> _Candidate: ...
-        def _add_candidate(self, target: _Frame, candidate: _Candidate) -> None: ...
-
-    def _second_look(self, f: _Frame) -> None:
+    def look(self, f: Frame) -> None:
         """If no candidate of ``f`` fits the recent motion (all doubted, or the track lost on every pair), track
         it again from the motion's prediction on its pairs with the frames still kept; the first fit the gates
         do not doubt joins its candidates."""
-        if not self.tracking or not f.tried:
+        if not f.tried:
             return
-        partners = list(self._history)
+        partners = list(self.history)
         if f.candidates:
-            if any(self._doubtful(f.time_us, c.pose) is None for c in f.candidates):
+            if any(self.gates.doubt(f.time_us, c.pose) is None for c in f.candidates):
                 return
             by_index = {p.index: p for p in partners}
             ranked = sorted(f.candidates, key=lambda c: -c.quality)
             others = [by_index[i] for i in dict.fromkeys(c.partner for c in ranked) if i in by_index]
         elif f.failure is not None and f.failure.reason == FrameReason.LOST:
             others = [p for p in partners if p.index in f.tried]
-            others.sort(key=lambda p: self._partner_rank(f, p))
+            others.sort(key=lambda p: self.history.partner_rank(f, p))
             others = others[:LOST_PAIRS]
         else:
             return
-        predicted = self._track.pose_at(f.time_us)
+        predicted = self.gates.motion.pose_at(f.time_us)
         if predicted is None:
             return
         init = rt_of(*predicted)
         for other in others:
             a, b = (other, f) if other.index < f.index else (f, other)
-            pair = self._pair(a, b)
+            pair = self.stages.pair(a, b)
             if pair is None:
                 continue
-            tracked = self._track_guessed(self._difference_in(pair, f is b), (init, True), f.signal)
+            tracked = self.stages.track_guessed(self.stages.difference_in(pair, f is b), (init, True), f.signal)
             if tracked is None:
                 continue
-            candidate = self._candidate(tracked, other.index)
-            if self._doubtful(f.time_us, candidate.pose) is None:
-                self._add_candidate(f, candidate)
+            candidate = self.stages.candidate(tracked, other.index)
+            if self.gates.doubt(f.time_us, candidate.pose) is None:
+                self.stages.add_candidate(f, candidate)
                 return

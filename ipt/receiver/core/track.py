@@ -222,7 +222,7 @@ def _select(edges: MapEdges, camera_matrix: F64, r: F64, t: F64, size: tuple[int
     return chosen
 
 
-def _median(values: npt.NDArray[np.floating[Any]]) -> float:
+def fast_median(values: npt.NDArray[np.floating[Any]]) -> float:
     """The median of a non-empty 1-D array (numpy's own costs ~10x more on the few hundred values here)."""
     values = values.ravel()
     n = len(values)
@@ -237,7 +237,7 @@ def slope_noise(diff: F32, valid: npt.NDArray[np.uint8] | None) -> float:
     """The median absolute slope of ``diff`` along rows (where valid): what a step must stand out from.
     (Every fourth row, every second column, gathered in one compiled pass: :func:`~ipt.receiver.core.kernels.
     slopes_sampled`.)"""
-    return max(_median(kernels.slopes_sampled(diff, _NO_MASK if valid is None else valid)), 1e-3)
+    return max(fast_median(kernels.slopes_sampled(diff, _NO_MASK if valid is None else valid)), 1e-3)
 
 
 def track_pose(
@@ -362,7 +362,7 @@ class _Fit:
                 break  # the same fit, the same cut: nothing would change
             sol, fitted = self._solve(np.compress(keep, a_rows, axis=0), offsets[keep]), keep
             res = offsets - a_rows @ sol
-            scale = max(1.4826 * _median(np.abs(res[keep])), 0.25)
+            scale = max(1.4826 * fast_median(np.abs(res[keep])), 0.25)
             keep = strong & (np.abs(res) < 3.0 * scale)
         # (the number of tags seen: bincount costs a tenth of np.unique here)
         if keep.sum() < s.min_inliers or np.count_nonzero(np.bincount(self.owner[idx][keep])) < s.min_tags:
