@@ -53,6 +53,18 @@ def _check_size(width_px: int, height_px: int) -> None:
             raise ContentError(f"{name} must be a positive integer, not {value!r}")
 
 
+def file_frame_index(index: int, fps: float | None, rate_hz: float) -> int:
+    """The frame of a file at ``fps`` (before looping; ``None``: a folder, one frame each) shown as input
+    frame ``index`` at ``rate_hz``: the one rule of :class:`VideoScene` and the sender's prefetching reader."""
+    _check_rate(rate_hz)
+    if index < 0:
+        raise ContentError(f"frame index must not be negative, not {index}")
+    if fps is None:
+        return index
+    # The small tolerance keeps e.g. index 3 at 59.94 Hz of a 59.94 fps file on frame 3, not 2.
+    return math.floor(index * fps / rate_hz + 1e-6)
+
+
 def _check_rate(rate_hz: float) -> None:
     try:
         ok = math.isfinite(rate_hz) and rate_hz > 0
@@ -423,13 +435,7 @@ class VideoScene:
 
     def file_index(self, index: int, rate_hz: float) -> int:
         """The file frame (before looping) shown as input frame ``index`` at ``rate_hz``."""
-        _check_rate(rate_hz)
-        if index < 0:
-            raise ContentError(f"frame index must not be negative, not {index}")
-        if self.fps is None:
-            return index
-        # The small tolerance keeps e.g. index 3 at 59.94 Hz of a 59.94 fps file on frame 3, not 2.
-        return math.floor(index * self.fps / rate_hz + 1e-6)
+        return file_frame_index(index, self.fps, rate_hz)
 
     def frame(self, index: int, rate_hz: float) -> U8:
         """File frame for input frame ``index`` at ``rate_hz``: a new array the caller may modify."""

@@ -31,6 +31,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.errors import IptError
+from ipt.sender.content import ContentError, file_frame_index
 from ipt.videoio import FrameSource, VideoError, open_frames
 
 U8 = npt.NDArray[np.uint8]
@@ -223,14 +224,11 @@ class PrefetchedVideo:
     # -- the consumer (the content thread) --
 
     def file_index(self, index: int, rate_hz: float) -> int:
-        """The file frame (before looping) shown as input frame ``index`` at ``rate_hz``, as VideoScene's."""
-        if not (isinstance(rate_hz, int | float) and math.isfinite(rate_hz) and rate_hz > 0):
-            raise PrefetchError(f"rate_hz must be a positive number, not {rate_hz!r}")
-        if index < 0:
-            raise PrefetchError(f"frame index must not be negative, not {index}")
-        if self.fps is None:
-            return index
-        return math.floor(index * self.fps / rate_hz + 1e-6)
+        """The file frame (before looping) shown as input frame ``index`` at ``rate_hz``: VideoScene's rule."""
+        try:
+            return file_frame_index(index, self.fps, rate_hz)
+        except ContentError as exc:
+            raise PrefetchError(str(exc)) from None
 
     def frame(self, index: int, rate_hz: float) -> U8:
         """File frame for input frame ``index`` at ``rate_hz``: a new array the caller may modify."""
