@@ -8,7 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from ipt.receiver.kernelcache import STAMP_NAME, stamp_text
+from ipt.receiver.core.kernelcache import STAMP_NAME, stamp_text
 
 
 def _warm(cache: Path, *flags: str) -> subprocess.CompletedProcess[str]:
@@ -57,3 +57,19 @@ def test_warm_fails_when_the_cache_is_not_where_numba_cache_dir_says(tmp_path: P
     assert result.returncode == 1, result.stdout + result.stderr[-2000:]
     assert f"NUMBA_CACHE_DIR={blocked / 'cache'}" in result.stderr, result.stderr[-500:]
     assert "Traceback" not in result.stderr
+
+
+def test_the_stamp_covers_the_cores_sources() -> None:
+    """The stamp changes with any source of the receiver's core (where kernels are defined): a stamp that read
+    an empty folder would call a stale cache warm."""
+    import hashlib
+
+    import ipt.receiver.core as core
+
+    folder = Path(core.__file__).resolve().parent
+    sources = sorted(folder.glob("*.py"))
+    assert any(p.name == "kernels.py" for p in sources)
+    digest = hashlib.sha256()
+    for source in sources:
+        digest.update(source.name.encode() + b"\0" + source.read_bytes())
+    assert f"sources {digest.hexdigest()}" in stamp_text().splitlines()

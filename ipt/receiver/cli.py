@@ -75,14 +75,14 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 def _say_kernels() -> None:
     """The kernels' line (compiled? from the cache? compiled in this process?) on stdout: stderr's last line
     stays the run's final statistics (or the replay's summary)."""
-    from ipt.receiver.kernelcache import status
+    from ipt.receiver.core.kernelcache import status
 
     print(f"ipt-receiver: {status().line()}", flush=True)
 
 
 def _cmd_warm(args: argparse.Namespace) -> int:
     """``ipt-receiver warm``: exit 0 when every kernel is compiled and in numba's disk cache, else 1."""
-    from ipt.receiver.kernelcache import STAMP_NAME, already_warm, cache_env_hint, warm
+    from ipt.receiver.core.kernelcache import STAMP_NAME, already_warm, cache_env_hint, warm
 
     if not args.force and already_warm():
         print(f"ipt-receiver warm: kernels already cached for this installation ({STAMP_NAME} matches); "

@@ -77,7 +77,7 @@ def stamp_text() -> str:
     """What the cached kernels depend on: the receiver core's sources (the kernels and whatever defines
     more of them there), numba's and llvmlite's versions, Python's version and the processor's kind."""
     digest = hashlib.sha256()
-    core = Path(__file__).resolve().parent / "core"  # ipt.receiver.core, without importing numpy
+    core = Path(__file__).resolve().parent  # ipt.receiver.core (this module's folder), without importing numpy
     for source in sorted(core.glob("*.py")):
         digest.update(source.name.encode() + b"\0" + source.read_bytes())
     versions = [f"{name} {importlib.metadata.version(name)}" for name in ("numba", "llvmlite")]
