@@ -9,6 +9,8 @@ not. Each rendering is then replayed through each receiver profile, pinned to on
 helper process too) with OpenCV on one thread, and scored against its ground truth:
 
 - ``yield_pct``: poses per camera frame; ``yield_by_height_pct``: the same per band of true height;
+  ``vertical_bands``: for flights that climb and descend, yield and MAE per band of true height on the way
+  up and on the way down apart (``climb_0.5-0.8m``, ``descent_0.8-0.4m``);
 - ``mae_mm``: X, Y, Z mean absolute error; ``tilt_mae_deg`` and ``yaw_mae_deg``; ``poses_over_10cm`` and
   the worst position error;
 - ``rolling_shutter``: true when the receiver was told the camera has one (a flight whose camera reads
@@ -243,10 +245,50 @@ def score(
         if inside.sum() >= 10:
             bands[f"{lo:g}-{hi:g}"] = round(100.0 * float(posed[inside].mean()), 1)
     out["yield_by_height_pct"] = bands
+    phases = vertical_bands(truth, frames, times, positions)
+    if phases:
+        out["vertical_bands"] = phases
     out["frames_per_s"] = round(frames / busy_s, 1) if busy_s > 0 else None
     out["stage_ms_per_frame"] = {k: round(1e3 * v / frames, 3) for k, v in pipeline.stage_seconds.items()}
     out["reasons"] = dict(sorted(pipeline.reasons.items()))
     out["ms_per_frame_by_outcome"] = by_outcome(results, frame_s)
+    return out
+
+
+#: Bands of true height (m) scored apart on the way up and on the way down (issue 30: the climb from a
+#: take-off spot and the descent through the same heights); overlapping on purpose.
+VERTICAL_BANDS_M = ((0.25, 0.4), (0.4, 0.5), (0.5, 0.8), (0.4, 0.8), (0.8, 1.2), (1.2, 2.2))
+#: Vertical speed (m/s, true) above which a frame counts as climbing or descending.
+VERTICAL_SPEED_MPS = 0.05
+
+
+def vertical_bands(
+    truth: Trajectory, frames: int, times: list[float], positions: list[Any]
+) -> dict[str, dict[str, Any]]:
+    """Yield and X / Y / Z MAE per band of true height, climbing and descending apart
+    (``climb_0.5-0.8m``, ``descent_0.8-0.4m``): for flights that go up and down (at least 10 frames in a
+    band and direction)."""
+    t_s, z = truth.times_s[:frames], truth.positions_m[:frames, 2]
+    vz = np.gradient(z, t_s) if frames > 2 else np.zeros(frames)
+    key = np.round(t_s, 6)
+    posed_at = {round(float(t), 6): np.asarray(p, dtype=np.float64) for t, p in zip(times, positions, strict=True)}
+    out: dict[str, dict[str, Any]] = {}
+    for lo, hi in VERTICAL_BANDS_M:
+        for name, moving in (("climb", vz > VERTICAL_SPEED_MPS), ("descent", vz < -VERTICAL_SPEED_MPS)):
+            inside = np.flatnonzero(moving & (z >= lo) & (z < hi))
+            if len(inside) < 10:
+                continue
+            errors = [
+                np.abs(posed_at[k] - truth.positions_m[i])
+                for i, k in zip(inside, key[inside], strict=True)
+                if k in posed_at
+            ]
+            band = f"{name}_{lo:g}-{hi:g}m" if name == "climb" else f"{name}_{hi:g}-{lo:g}m"
+            out[band] = {
+                "frames": len(inside),
+                "yield_pct": round(100.0 * len(errors) / len(inside), 1),
+                "mae_mm": [round(1e3 * float(v), 2) for v in np.mean(errors, axis=0)] if errors else None,
+            }
     return out
 
 
@@ -452,6 +494,10 @@ def main() -> int:
                 file=sys.stderr,
                 flush=True,
             )
+            for band, v in r.get("vertical_bands", {}).items():
+                mae = _cell_mm(v["mae_mm"])
+                print(f"suite: {path.stem} / {profile}: {band}: yield {v['yield_pct']:.1f} % of {v['frames']}, "
+                      f"MAE {mae} mm", file=sys.stderr, flush=True)  # fmt: skip
             if len(r["yield_by_height_pct"]) > 1:  # a flight through several heights (take-off): each band
                 bands = ", ".join(f"{k} m {v:.1f} %" for k, v in r["yield_by_height_pct"].items())
                 print(f"suite: {path.stem} / {profile}: yield by true height: {bands}", file=sys.stderr, flush=True)
