@@ -477,9 +477,16 @@ class _DaemonRun:
             # recording that looks complete.
             await asyncio.to_thread(self.ros.close if self.running else self.ros.abort)
         self.worker.shutdown(wait=False, cancel_futures=True)
+        # The detector's helper process ends when its pipe closes: close it once the pipeline thread is done
+        # with its frame (not at garbage collection, which may be much later for a daemon run in-process).
+        threading.Thread(target=self._close_pipeline, name="ipt-close-pipeline", daemon=True).start()
         # The read in progress (a render, a decode, a camera grab) ends by itself; wait for it within the
         # budget. If it does not end, the thread is a daemon thread and `capture_running` tells the caller.
         self.capture.join(budget.left())
+
+    def _close_pipeline(self) -> None:
+        self.worker.shutdown(wait=True)
+        self.pipeline.close()
 
     def stats(self) -> DaemonStats:
         """The totals of the run (after :meth:`shutdown`)."""
