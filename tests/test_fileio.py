@@ -55,7 +55,17 @@ def test_a_stop_signal_right_after_the_temporary_file_is_made_leaves_nothing(
         raise KeyboardInterrupt
 
     real = getattr(os, step)
-    monkeypatch.setattr(fileio.os, step, lambda *args: (real(*args), stopped())[1])
+
+    class FileioOs:
+        """The os module as fileio sees it, ``step`` stopped: patching os itself would stop every other
+        caller too (a detector's finalizer closing its pipe when the garbage collector runs meanwhile)."""
+
+        def __getattr__(self, name: str) -> object:
+            return getattr(os, name)
+
+    patched = FileioOs()
+    setattr(patched, step, lambda *args: (real(*args), stopped())[1])
+    monkeypatch.setattr(fileio, "os", patched)
     with pytest.raises(KeyboardInterrupt), atomic_path(tmp_path / "poses.tum"):
         pytest.fail("the body does not run")
     monkeypatch.undo()
