@@ -14,13 +14,14 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from ipt.cliutil import SEED_MAX
+from ipt.config.camera_info import MAX_DISTORTION, MAX_FOCAL_WIDTHS, MIN_FOCAL_WIDTHS
 from ipt.errors import IptError
 from ipt.sim.config import SimConfig
 
-FOCAL_RANGE_WIDTHS = (0.05, 20.0)
-"""A focal length, in image widths (fx, fy): the range issue 33 calls sensible for a real camera."""
-DISTORTION_LIMIT = 10.0
-"""Each plumb_bob coefficient k1 k2 p1 p2 k3 is within ± this."""
+FOCAL_RANGE_WIDTHS = (MIN_FOCAL_WIDTHS, MAX_FOCAL_WIDTHS)
+"""A focal length, in image widths (fx, fy): the bounds a camera.yaml is held to (ipt.config.camera_info)."""
+DISTORTION_LIMIT = MAX_DISTORTION
+"""Each plumb_bob coefficient k1 k2 p1 p2 k3 is within ± this (camera.yaml's bound too)."""
 
 
 class FlightLimitsError(IptError):
@@ -31,8 +32,9 @@ def _bounds(sim: SimConfig) -> Iterator[tuple[str, float, float, float, str]]:
     """(key, value, lowest, highest, unit) for every bounded value of ``sim``."""
     cam, flight = sim.camera, sim.flight
     lo, hi = FOCAL_RANGE_WIDTHS
-    yield "camera.fx_px", cam.fx_px, lo * cam.width_px, hi * cam.width_px, "px (0.05 to 20 image widths)"
-    yield "camera.fy_px", cam.fy_px, lo * cam.width_px, hi * cam.width_px, "px (0.05 to 20 image widths)"
+    widths = f"px ({lo:g} to {hi:g} image widths)"
+    yield "camera.fx_px", cam.fx_px, lo * cam.width_px, hi * cam.width_px, widths
+    yield "camera.fy_px", cam.fy_px, lo * cam.width_px, hi * cam.width_px, widths
     yield "camera.cx_px", cam.cx_px, 0.0, float(cam.width_px), "px (inside the image)"
     yield "camera.cy_px", cam.cy_px, 0.0, float(cam.height_px), "px (inside the image)"
     for name, k in zip(("k1", "k2", "p1", "p2", "k3"), cam.distortion, strict=True):
