@@ -9,19 +9,14 @@ digits); ``ipt-sender``, ``ipt-receiver run`` and ``ipt-receiver doctor`` print 
 from __future__ import annotations
 
 import hashlib
-import json
 
 from ipt.tagmap import TagMap
 
 
-def layout_json(tag_map: TagMap) -> str:
-    """The exported layout JSON, byte for byte as :func:`ipt.tagmap.export_map` writes it."""
-    return json.dumps(tag_map.layout_dict(), indent=1) + "\n"
-
-
 def map_hash(tag_map: TagMap) -> str:
-    """The SHA-256 of the exported layout JSON, as 64 hexadecimal digits."""
-    return hashlib.sha256(layout_json(tag_map).encode("utf-8")).hexdigest()
+    """The SHA-256 of the exported layout JSON (:meth:`ipt.tagmap.TagMap.layout_json`), as 64 hexadecimal
+    digits."""
+    return hashlib.sha256(tag_map.layout_json().encode("utf-8")).hexdigest()
 
 
 def map_hash_line(prog: str, tag_map: TagMap) -> str:
@@ -29,4 +24,4 @@ def map_hash_line(prog: str, tag_map: TagMap) -> str:
     return f"{prog}: map hash sha256:{map_hash(tag_map)} ({len(tag_map.tags)} tags)"
 
 
-__all__ = ["layout_json", "map_hash", "map_hash_line"]
+__all__ = ["map_hash", "map_hash_line"]

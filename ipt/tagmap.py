@@ -156,6 +156,10 @@ class TagMap:
         img[mask < 0] = 0
         return img
 
+    def layout_json(self) -> str:
+        """The exported layout file's text (what :func:`export_map` writes and the map hash digests)."""
+        return json.dumps(self.layout_dict(), indent=1) + "\n"
+
     def layout_dict(self) -> dict[str, Any]:
         """The layout in the exported JSON shape."""
         return {
@@ -403,7 +407,7 @@ def export_map(tag_map: TagMap, image_path: str | Path, layout_path: str | Path)
     try:
         with output_group():  # both files, or neither
             write_image(image_path, img, TagMapError, suffix=".png")  # lossless, whatever the name says
-            write_text_atomic(layout_path, json.dumps(tag_map.layout_dict(), indent=1) + "\n")
+            write_text_atomic(layout_path, tag_map.layout_json())
     except WriteError as exc:
         raise TagMapError(str(exc)) from None
 
