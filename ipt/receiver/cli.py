@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ipt import __version__
-from ipt.cliutil import Parser, run_main
+from ipt.cliutil import Parser, positive_float, run_main
 from ipt.signals import Interrupted, interruption
 
 if TYPE_CHECKING:
@@ -107,16 +107,6 @@ def _positive_int(text: str) -> int:
 
 
 _positive_int.__name__ = "positive integer"
-
-
-def _positive_float(text: str) -> float:
-    value = float(text)
-    if not (math.isfinite(value) and value > 0):
-        raise ValueError(text)
-    return value
-
-
-_positive_float.__name__ = "positive number"
 
 
 EMPTY_FINAL_LINE = (
@@ -396,14 +386,14 @@ def _add_run(sub: argparse._SubParsersAction[Parser]) -> None:
     )
     d.add_argument(
         "--record-frames-max-mb",
-        type=_positive_float,
+        type=positive_float,
         default=4000.0,
         metavar="MB",
         help="stop recording frames at this size (default 4000 MB; localisation goes on)",
     )
     d.add_argument(
         "--record-frames-max-s",
-        type=_positive_float,
+        type=positive_float,
         default=600.0,
         metavar="S",
         help="stop recording frames after this many seconds of capture time (default 600)",
