@@ -501,3 +501,22 @@ def test_frames_prepared_on_another_thread_give_the_same_poses(short_flight: Pat
         if a.pose is not None and b.pose is not None:
             assert np.array_equal(a.pose.position_m, b.pose.position_m)
             assert np.array_equal(a.pose.quat_wxyz, b.pose.quat_wxyz)
+
+
+def test_a_frame_mostly_in_shadow_says_so(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]
+    # Issue 30: below ~0.4 m the drone's own shadow covers most of the view; a frame without a pose says why,
+    # from its image (the share of the view its signal mask lights), and the frames around keep their poses.
+    h, w = frames[0].shape[:2]
+    shadow = np.zeros((h, w), np.uint8)
+    cv2.ellipse(shadow, (w // 2, h // 2), (int(0.62 * w), int(0.62 * h)), 0, 0, 360, 255, -1)
+    dark = [f.copy() for f in frames[:40]]
+    for k in range(20, 32):
+        dark[k][shadow > 0] = 6  # the floor under the drone: only a little room light
+    p = _pipeline(short_flight, PipelineConfig())
+    results = _run(p, dark)
+    shadowed = [r.index for r in results if r.reason == FrameReason.SHADOWED]
+    assert shadowed, [r.reason for r in results[20:32]]
+    assert set(shadowed) <= set(range(20, 32))
+    assert all(r.pose is None for r in results if r.reason == FrameReason.SHADOWED)
+    assert sum(r.pose is not None for r in results[8:20]) >= 10  # lit frames before it keep their poses
+    assert p.reasons["shadowed"] == len(shadowed)

@@ -24,6 +24,10 @@ class FrameReason(StrEnum):
     """An image of another size than the camera's."""
     DARK = "dark"
     """Too little light to see the hidden tags."""
+    SHADOWED = "shadowed"
+    """No pose, and most of the view had no projector light (the drone's own shadow at take-off or landing,
+    or the floor beyond the projection): decided from the frame's signal mask, not from a height
+    (:data:`ipt.receiver.core.pipeline.SHADOWED_SHARE`)."""
     SATURATED = "saturated"
     """Too much of the frame saturated."""
     NO_ALIGNMENT = "no_alignment"
