@@ -8,6 +8,11 @@ pose of the new process from the kill (``resumed_s``) and from its start (``firs
 start's first pose, for comparison. Prints one JSON object with every round and the medians; ``loadavg``
 says how busy the machine was (these are wall-clock times on a shared machine).
 
+Before the rounds it runs ``ipt-receiver warm`` once, as the unit's ExecStartPre does: numba's cache of the
+kernels and ipt's own bytecode are then in place, as on an installed drone (``pip install`` compiles the
+bytecode; an editable checkout under ``PYTHONDONTWRITEBYTECODE`` would otherwise compile every module of
+ipt at every start, so the warm runs without that variable).
+
     ./dev run python benchmarks/restart.py              # 5 rounds, about half a minute
     ./dev run python benchmarks/restart.py --rounds 9
 """
@@ -49,6 +54,13 @@ def _command(folder: Path, port: int) -> list[str]:
     ]  # fmt: skip
 
 
+def _warm() -> None:
+    """``ipt-receiver warm``: the kernels in numba's cache, ipt's modules compiled (see the module's doc)."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    command = [sys.executable, "-m", "ipt.receiver.cli", "warm"]
+    subprocess.run(command, env=env, check=False, stdout=subprocess.DEVNULL, timeout=600)
+
+
 def _drain(listener: socket.socket) -> None:
     listener.settimeout(0.05)
     while True:
@@ -68,6 +80,8 @@ def main() -> int:
         folder = Path(tmp)
         print("restart: rendering a 1 s flight", file=sys.stderr)
         _render(folder)
+        _warm()
+        load_before = os.getloadavg()
         listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         listener.bind(("127.0.0.1", 0))
         cmd = _command(folder, listener.getsockname()[1])
@@ -101,6 +115,7 @@ def main() -> int:
         "rounds": rounds,
         "median_resumed_s": round(statistics.median(r["resumed_s"] for r in rounds), 3),
         "median_first_pose_s": round(statistics.median(r["first_pose_s"] for r in rounds), 3),
+        "loadavg_before": load_before,
         "loadavg": os.getloadavg(),
     }
     print(json.dumps(out, indent=1))

@@ -32,7 +32,6 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal, Self
 
-import av
 import cv2
 import numpy as np
 import numpy.typing as npt
@@ -40,6 +39,9 @@ import numpy.typing as npt
 from ipt.errors import IptError
 from ipt.fileio import WriteError, atomic_path, disk_write_error, read_bytes_file
 from ipt.imageio import IMAGE_SUFFIXES, MAX_IMAGE_BYTES, MAX_IMAGE_PIXELS, image_from_bytes, too_many_pixels
+
+# PyAV (``av``) is imported where a video is opened, not here: a folder of images needs none of it, and it
+# costs a replay or a daemon's start a twentieth of a second.
 
 __all__ = ["FFV1_PIX_FMT", "IMAGE_SUFFIXES", "FfvWriter", "FrameSource", "VideoError", "open_frames"]
 
@@ -113,6 +115,8 @@ class FfvWriter:
             tmp = self._stack.enter_context(atomic_path(self.path))
         except OSError as e:
             raise VideoError(f"{self.path}: cannot create a file here: {e.strerror or e}") from e
+        import av
+
         try:
             self._container = av.open(str(tmp), mode="w", format="matroska")
             self._stream = self._container.add_stream("ffv1", rate=self.rate)
@@ -131,6 +135,8 @@ class FfvWriter:
         if self._closed:
             raise VideoError(f"{self.path}: write after the writer was closed")
         frame = _check_frame(frame_rgb, self.width, self.height, str(self.path), self.grey)
+        import av
+
         video_frame = av.VideoFrame.from_ndarray(frame, format="gray" if self.grey else "rgb24")
         video_frame.pts = self.frames_written
         video_frame.time_base = 1 / self.rate
@@ -148,6 +154,8 @@ class FfvWriter:
         """Finish the file and move it to ``path``. Calling it again does nothing."""
         if self._closed:
             return
+        import av
+
         try:
             if self.frames_written == 0:
                 self._container.start_encoding()  # so that even an empty video has a valid header
@@ -173,6 +181,8 @@ class FfvWriter:
             self._fail()
 
     def _fail(self) -> None:
+        import av
+
         self._closed = True
         if self._container is not None:
             with contextlib.suppress(av.FFmpegError, OSError):
@@ -262,8 +272,6 @@ def _stream_fps(stream: Any) -> float | None:
     return None
 
 
-_DECODE_ERRORS = (av.FFmpegError, OSError, ValueError)
-
 #: Limited-range ("MPEG", studio swing) luma 16..235 to full range 0..255, clipped: what OpenCV's and
 #: FFmpeg's conversions of such YUV to RGB do to the luma, so a Y plane gives the RGB frame's luma.
 LIMITED_TO_FULL_LUMA = np.clip(np.round((np.arange(256) - 16) * 255 / 219), 0, 255).astype(np.uint8)
@@ -306,6 +314,8 @@ class _VideoSource(FrameSource):
         self.path = path
         self.skip_bad = skip_bad
         self.grey = grey
+        import av
+
         try:
             self._container: Any = av.open(str(path), mode="r")
         except av.EOFError as e:
@@ -338,18 +348,21 @@ class _VideoSource(FrameSource):
 
     def _decoded(self, stream: Any) -> Iterator[npt.NDArray[np.uint8] | Exception]:
         """Each frame of the file in order: its pixels, or the error that lost it."""
+        import av
+
+        decode_errors = (av.FFmpegError, OSError, ValueError)
         packets = self._container.demux(stream)
         while True:
             try:
                 packet = next(packets)
             except StopIteration:
                 return
-            except _DECODE_ERRORS as e:  # the container itself is damaged: nothing after this can be found
+            except decode_errors as e:  # the container itself is damaged: nothing after this can be found
                 self._damaged = str(e)
                 return
             try:
                 frames = packet.decode()
-            except _DECODE_ERRORS as e:
+            except decode_errors as e:
                 yield e
                 continue
             for frame in frames:
@@ -358,7 +371,7 @@ class _VideoSource(FrameSource):
                         yield _luma(frame)
                     else:
                         yield np.ascontiguousarray(frame.to_ndarray(format="rgb24"), dtype=np.uint8)
-                except _DECODE_ERRORS as e:
+                except decode_errors as e:
                     yield e
 
     def _take(self) -> npt.NDArray[np.uint8] | Exception | None:

@@ -77,13 +77,13 @@ from ipt.receiver.core.pipeline import FrameResult, Pipeline
 from ipt.receiver.core.reasons import FrameReason
 from ipt.receiver.detect.detector import pipeline_detector
 from ipt.receiver.options import ProcessedHook, ReceiverOptions, ReceiverSetup, ResultHook, load_setup
-from ipt.receiver.outputs.ros.output import RosOutputs
 from ipt.receiver.outputs.udp import PacketMaker, UdpPoseSender, new_stream_id
 from ipt.runtime import Clock, Histogram, Interval, ShutdownBudget, TaskSet, run_loop, write_line
 
 if TYPE_CHECKING:
     from ipt.receiver.capture.framelog import FrameLogWriter
     from ipt.receiver.outputs.mavlink.output import MavlinkOutput
+    from ipt.receiver.outputs.ros.output import RosOutputs
 
 MAX_IN_FLIGHT = 2
 """Frames submitted to the pipeline worker at once from a recording (one processing, one waiting); a live
@@ -265,7 +265,7 @@ class _DaemonRun:
         self.sender = UdpPoseSender(cfg.send_targets)
         self.maker = PacketMaker(cfg.vehicle_id, self.key, stream_id=new_stream_id())  # each run a newer stream
         self.mavlink = _mavlink_output(cfg, out)
-        self.ros = RosOutputs.create(cfg, projector_hz, lambda line: write_line(out, f"{PROG}: {line}"))
+        self.ros = _ros_outputs(cfg, projector_hz, out)
         self.meter = _Meter(Interval(cfg.stats_interval_s, self.clock.now()))
         self.errors_reported = 0
 
@@ -528,6 +528,16 @@ def _mavlink_output(cfg: ReceiverConfig, out: TextIO) -> MavlinkOutput | None:
     from ipt.receiver.outputs.mavlink.output import MavlinkOutput
 
     return MavlinkOutput(cfg.mavlink, report=out, prog=PROG)
+
+
+def _ros_outputs(cfg: ReceiverConfig, projector_hz: float, out: TextIO) -> RosOutputs | None:
+    """The ROS 2 topics and the MCAP log ``cfg.ros2`` and ``cfg.record`` ask for, if any (their module, with the
+    ROS message layouts, is imported only then: a daemon without them starts sooner)."""
+    if not cfg.ros2.enabled and cfg.record.path is None:
+        return None
+    from ipt.receiver.outputs.ros.output import RosOutputs
+
+    return RosOutputs.create(cfg, projector_hz, lambda line: write_line(out, f"{PROG}: {line}"))
 
 
 async def _wait_event(event: asyncio.Event) -> None:

@@ -30,7 +30,6 @@ from ipt.errors import IptError
 from ipt.fileio import atomic_path
 from ipt.maphash import map_hash
 from ipt.ratelimit import LogThrottle
-from ipt.receiver.capture.framelog import KIND_FINISH, KIND_LOST, FrameLog
 from ipt.receiver.core.pipeline import FrameResult, Pipeline, Prepared
 from ipt.receiver.detect.detector import pipeline_detector
 from ipt.tagmap import TagMap, grid_tag_map
@@ -197,6 +196,9 @@ def replay_frame_log(folder: Path, output_path: Path, progress: TextIO | None = 
     pipeline settings are in the recording) with the recorded frame numbers and capture times, and the
     live run's finishing points where it dropped frames: the poses it sent, bit for bit, as exact TUM lines
     (:func:`exact_tum_line`)."""
+    # Here, not at the top: the capture package (cameras, PyAV, asyncio) is not for a replay of a recording.
+    from ipt.receiver.capture.framelog import KIND_FINISH, KIND_LOST, FrameLog
+
     log = FrameLog(folder)
     try:
         arena = ArenaConfig.model_validate(log.meta["arena"])

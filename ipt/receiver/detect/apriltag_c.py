@@ -13,14 +13,14 @@ Detections come out as the C library gives them (:data:`RawDetection`, AprilTag'
 unfiltered); :class:`~ipt.receiver.detect.detector.TagDetector` filters them and moves the corners to OpenCV's.
 
 This module imports neither pydantic nor the configuration models, so that the helper process starts
-quickly.
+quickly; dt-apriltags itself loads when a detector is made (the daemon's own process, which leaves the C code
+to the helper, never loads it).
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-import dt_apriltags
 import numpy as np
 import numpy.typing as npt
 
@@ -55,6 +55,8 @@ def free_pupil_detector(det: Any) -> None:
 def make_pupil_detector(settings: dict[str, float]) -> Any:
     """A tag36h11 dt-apriltags detector with ``settings`` (see :func:`ipt.receiver.detect.detector.c_settings`).
     Free it with :func:`free_pupil_detector`."""
+    import dt_apriltags
+
     det = dt_apriltags.Detector(
         families="tag36h11",
         nthreads=int(settings["nthreads"]),
