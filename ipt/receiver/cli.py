@@ -425,8 +425,17 @@ def _main(argv: Sequence[str] | None) -> int:
     return rc
 
 
+SERIAL_BLAS = {"OPENBLAS_NUM_THREADS": "1"}
+"""Set (unless already set) before numpy loads: the receiver's matrix products are small (3x3 up to a few
+thousand rows by 3), and OpenBLAS's worker threads, one per core, started with numpy in this process and in
+the AprilTag helper, only spin: a tenth of a second of processor time at every start, taken from the other
+core while the daemon starts. Under ``taskset -c 0`` OpenBLAS runs one thread anyway; the poses are the same."""
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``ipt-receiver``."""
+    for name, value in SERIAL_BLAS.items():
+        os.environ.setdefault(name, value)
     words = list(sys.argv[1:] if argv is None else argv)
 
     def on_interrupt(exc: Interrupted) -> int:
