@@ -42,8 +42,6 @@ def _camera_rate(text: str) -> float:
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
-    if args.video is not None and args.camera is not None and args.frames is None and args.profile == "ipt":
-        _warm_kernels_in_background()  # numba loads them while the rest is imported and set up
     from ipt.config.models import PipelineConfig, load_arena_config, shipped_config_path
     from ipt.receiver.replay import ReplayError, replay, replay_frame_log
     from ipt.tagmap import grid_tag_map
