@@ -6,7 +6,9 @@ a UDP socket on 127.0.0.1. Each round: wait for the first pose, ``kill -9`` the 
 ``RestartSec`` (300 ms, deploy/systemd/ipt-receiver.service), start the same command, and time the first
 pose of the new process from the kill (``resumed_s``) and from its start (``first_pose_s``). Also a cold
 start's first pose, for comparison. Prints one JSON object with every round and the medians; ``loadavg``
-says how busy the machine was (these are wall-clock times on a shared machine).
+says how busy the machine was (these are wall-clock times on a shared machine). Each round also gives
+``first_pose_cpu_s``: the processor time (user + sys) the new daemon and its AprilTag helper had used when
+its first pose arrived, which a busy machine changes far less than the wall-clock time (Linux: from /proc).
 
 Before the rounds it runs ``ipt-receiver warm`` once, as the unit's ExecStartPre does: numba's cache of the
 kernels and ipt's own bytecode are then in place, as on an installed drone (``pip install`` compiles the
@@ -29,6 +31,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 RESTART_SEC = 0.3
 """deploy/systemd/ipt-receiver.service's RestartSec."""
@@ -61,6 +64,30 @@ def _warm() -> None:
     subprocess.run(command, env=env, check=False, stdout=subprocess.DEVNULL, timeout=600)
 
 
+def _cpu_s(pid: int) -> float:
+    """Processor time (user + sys) process ``pid`` has used so far, seconds (0 if it is gone)."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="ascii") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _tree_cpu_s(pid: int) -> float | None:
+    """Processor time of ``pid`` and its children (the AprilTag helper), or None without /proc."""
+    if not os.path.isdir(f"/proc/{pid}/task"):
+        return None
+    children: list[int] = []
+    for task in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{task}/children", encoding="ascii") as f:
+                children += [int(c) for c in f.read().split()]
+        except OSError:
+            continue
+    return _cpu_s(pid) + sum(_cpu_s(c) for c in children)
+
+
 def _drain(listener: socket.socket) -> None:
     listener.settimeout(0.05)
     while True:
@@ -68,6 +95,11 @@ def _drain(listener: socket.socket) -> None:
             listener.recv(2048)
         except TimeoutError:
             return
+
+
+def _median_or_none(values: list[float | None]) -> float | None:
+    known = [v for v in values if v is not None]
+    return round(statistics.median(known), 3) if known else None
 
 
 def main() -> int:
@@ -85,7 +117,7 @@ def main() -> int:
         listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         listener.bind(("127.0.0.1", 0))
         cmd = _command(folder, listener.getsockname()[1])
-        rounds = []
+        rounds: list[dict[str, Any]] = []
         try:
             started = time.monotonic()
             proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -103,7 +135,14 @@ def main() -> int:
                 listener.settimeout(20.0)
                 listener.recv(2048)
                 now = time.monotonic()
-                rounds.append({"resumed_s": round(now - killed, 3), "first_pose_s": round(now - started, 3)})
+                cpu_s = _tree_cpu_s(proc.pid)
+                rounds.append(
+                    {
+                        "resumed_s": round(now - killed, 3),
+                        "first_pose_s": round(now - started, 3),
+                        "first_pose_cpu_s": None if cpu_s is None else round(cpu_s, 3),
+                    }
+                )
                 print(f"restart: round {k + 1}: poses resumed {now - killed:.2f} s after the kill", file=sys.stderr)
         finally:
             proc.kill()
@@ -115,6 +154,7 @@ def main() -> int:
         "rounds": rounds,
         "median_resumed_s": round(statistics.median(r["resumed_s"] for r in rounds), 3),
         "median_first_pose_s": round(statistics.median(r["first_pose_s"] for r in rounds), 3),
+        "median_first_pose_cpu_s": _median_or_none([r["first_pose_cpu_s"] for r in rounds]),
         "loadavg_before": load_before,
         "loadavg": os.getloadavg(),
     }
