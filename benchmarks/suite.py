@@ -83,7 +83,8 @@ HEIGHT_BANDS_M = ((0.0, 0.4), (0.4, 0.7), (0.7, 1.2), (1.2, 1.7), (1.7, 2.2), (2
 #: Sources whose change invalidates a cached rendering: what renders a flight (not the demo, its lock-step
 #: loop or the simulated live camera, which make nothing the suite keeps).
 RENDER_SOURCES = ("ipt/sim/__init__.py", "ipt/sim/arena.py", "ipt/sim/config.py", "ipt/sim/flight.py",
-                  "ipt/sim/render.py", "ipt/sim/run.py", "ipt/sim/shadow.py", "ipt/sender/photos.py",
+                  "ipt/sim/render.py", "ipt/sim/run.py", "ipt/sim/shadow.py", "ipt/sim/darkscene.py",
+                  "ipt/sender/photos.py",
                   "ipt/sender/content.py", "ipt/sender/basemap.py", "ipt/sender/modulator.py",
                   "ipt/sender/pairs.py", "ipt/sender/framekernel.py", "ipt/sender/cielab.py",
                   "ipt/sender/colour.py", "ipt/tagmap.py", "ipt/videoio.py", "ipt/calib/floor.py")  # fmt: skip

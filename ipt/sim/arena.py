@@ -27,6 +27,7 @@ from ipt.sender.content import ContentSource, GeneratedScene
 from ipt.sender.modulator import JIT_UNAVAILABLE, FrameTiming, make_modulator, phase_sign
 from ipt.sender.photos import PanningPhotoScene
 from ipt.sim.config import SimConfig, apply_arena_changes
+from ipt.sim.darkscene import DarkScene
 from ipt.sim.flight import Flight, FlightState, HoverPath, Oscillation, Path, RectangleFlight, TakeoffPath
 from ipt.sim.render import CameraRenderer
 from ipt.tagmap import TagMap, arena_to_pixel_matrix, grid_tag_map, pixel_to_arena_m
@@ -92,6 +93,8 @@ def scene_for(sim: SimConfig, arena: ArenaConfig) -> ContentSource:
     c = sim.content
     if c.kind == "map":
         return GeneratedScene(pr.width_px, pr.height_px, seed=sim.seed)
+    if c.kind == "dark":
+        return DarkScene(pr.width_px, pr.height_px, sim.seed, c.pan_px_per_frame, c.cut_every_s)
     return PanningPhotoScene(pr.width_px, pr.height_px, sim.seed, c.pan_px_per_frame, c.cut_every_s)
 
 

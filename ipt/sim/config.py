@@ -213,17 +213,19 @@ class ShadowConfig(StrictModel):
 class SimContentConfig(StrictModel):
     """What the projector shows (before the tags are hidden in it)."""
 
-    kind: Literal["photos", "map"] = Field(
+    kind: Literal["photos", "map", "dark"] = Field(
         "photos",
         description="'photos': photographic scenes that pan and cut (a video never seen before); 'map': the "
-        "built-in map app of the paper's experiment, slowly animated. `ipt sim --content FILE` shows a video "
-        "file or image folder instead.",
+        "built-in map app of the paper's experiment, slowly animated; 'dark': a dark AR scene (night-mode map, "
+        "game): the photographs dimmed to a tenth under bright thin lines and labels that pan. `ipt sim "
+        "--content FILE` shows a video file or image folder instead.",
     )
     pan_px_per_frame: tuple[float, float] = Field(
         (3.0, 10.0),
-        description="'photos': the pan's speed in projector pixels per content frame, varying within this band.",
+        description="'photos' and 'dark': the pan's speed in projector pixels per content frame, varying within "
+        "this band.",
     )
-    cut_every_s: float = Field(2.5, gt=0, le=3600, description="'photos': seconds between scene cuts.")
+    cut_every_s: float = Field(2.5, gt=0, le=3600, description="'photos' and 'dark': seconds between scene cuts.")
 
     @field_validator("pan_px_per_frame")
     @classmethod
@@ -374,6 +376,8 @@ def describe_flight(sim: SimConfig) -> str:
     if sim.content.kind == "photos":
         lo, hi = sim.content.pan_px_per_frame
         parts.append(f"over photographs panning {lo:g}-{hi:g} px/frame")
+    elif sim.content.kind == "dark":
+        parts.append("over a dark scene (photographs dimmed to a tenth, bright lines and labels)")
     else:
         parts.append("over the map app")
     sensor = "mono" if cam.mono else "colour"
