@@ -2,11 +2,12 @@
 
     python benchmarks/dark_signal.py benchmarks/flights/dark-scene.yaml [--frames 12] [--seconds 8]
 
-For frames spread over the flight, the simulator renders each camera frame three more ways: without the
-sensor's noise, without the noise and with the projector's other phase (every tag pixel's lightness step
-reversed, nothing else changed), and with the tags not hidden at all, the projector lit by the bare content
-and no room light (which says where the content itself is dark). Then, in the camera's 8-bit grey (BT.601
-luma of the RGB frame, or a mono camera's own):
+For frames spread over the flight (each the next one whose exposure lies within one projector frame: a frame
+across a flip sees a blend of both phases, so its step is smaller), the simulator renders each camera frame
+three more ways: without the sensor's noise, without the noise and with the projector's other phase (every
+tag pixel's lightness step reversed, nothing else changed), and with the tags not hidden at all, the
+projector lit by the bare content and no room light (which says where the content itself is dark). Then, in
+the camera's 8-bit grey (BT.601 luma of the RGB frame, or a mono camera's own):
 
 - the **tag step**: noise-free other phase − noise-free frame, over the pixels where it is at least half a
   grey level (the tags the camera sees lit): the step a pair of frames shows, before any noise;
@@ -85,6 +86,23 @@ def _stats(step: F32, noise: F32, cell_px: float) -> dict[str, Any]:
     }
 
 
+def _whole_phase_frames(arena: SimulatedArena, count: int, seconds: float) -> list[int]:
+    """``count`` camera frames spread over ``seconds``, each moved on to the next one whose exposure lies in
+    one projector frame (a frame across a flip sees a blend of the two phases and shows less of the step)."""
+    cam = arena.sim.camera
+    half_s = (cam.exposure_ms + cam.readout_ms) * 1e-3 / 2
+    last = max(0, round(seconds * cam.fps) - 1)
+    out = []
+    for k in np.linspace(0, last, count).astype(int):
+        for j in range(int(k), last + 1):
+            t = j / cam.fps
+            first, end = arena.projector_indices(np.array([t - half_s, t + half_s]))
+            if first == end:
+                out.append(j)
+                break
+    return out
+
+
 def measure(sim: SimConfig, frames: int, seconds: float, dark_grey: float, cell_px: float) -> dict[str, Any]:
     arena = apply_arena_changes(load_arena_config(shipped_config_path("arena.yaml")), sim.arena)
     cam = sim.camera
@@ -95,9 +113,10 @@ def measure(sim: SimConfig, frames: int, seconds: float, dark_grey: float, cell_
     flipped, content = FlippedArena(arena, quiet, scene), BareArena(arena, bare, scene)
     parts: dict[str, tuple[list[F32], list[F32]]] = {k: ([], []) for k in ("dark", "black", "dim", "all")}
     levels: list[float] = []
+    measured = _whole_phase_frames(clean, frames, seconds)
     # The camera's grey of a projector at BLACK_CODE, without room light: content at most this is black.
     black_grey = float(linear_to_srgb_u8(srgb_to_linear(np.full((1, 1), BLACK_CODE, np.uint8)) * cam.gain)[0, 0])
-    for k in np.linspace(0, round(seconds * cam.fps) - 1, frames).astype(int):
+    for k in measured:
         base = grey(clean.render(int(k)).image_rgb)
         step = grey(flipped.render(int(k)).image_rgb) - base
         noise = grey(noisy.render(int(k)).image_rgb) - base
@@ -115,6 +134,7 @@ def measure(sim: SimConfig, frames: int, seconds: float, dark_grey: float, cell_
             parts[name][1].append(noise[where])
     out: dict[str, Any] = {
         "frames": frames,
+        "measured_frames": measured,
         "dark_grey": dark_grey,
         "black_grey": black_grey,
         "dark_area_grey_median": round(float(np.median(levels)), 1) if levels else None,
