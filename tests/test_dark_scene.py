@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from ipt.config.models import ArenaConfig, load_yaml_model
+from ipt.receiver.core.demodulator import signal_mask
 from ipt.sim.arena import flight_of, scene_for
 from ipt.sim.config import SimConfig, describe_flight
 from ipt.sim.darkscene import DarkScene
@@ -89,3 +90,19 @@ def test_dark_signal_refuses_a_missing_flight_in_one_line(tmp_path: Path) -> Non
     assert out.stderr.count("\n") == 1
     assert "nope.yaml" in out.stderr
     assert "Traceback" not in out.stderr
+
+
+def test_the_signal_mask_keeps_dim_lit_floor_under_camera_noise() -> None:
+    # A dark scene under a gained-up camera: lit floor only 7 levels above the drone's shadow, with a
+    # noise of 2.4 levels per pixel. The mask must keep the lit floor and leave the shadow out.
+    rng = np.random.default_rng(30)
+    h, w = 360, 640
+    yy, xx = np.mgrid[0:h, 0:w]
+    shadow = (xx - 320) ** 2 + (yy - 180) ** 2 < 100**2
+    clean = np.where(shadow, 65.0, 72.0)
+    lum = np.clip(np.rint(clean + rng.normal(0, 2.4, (h, w))), 0, 255).astype(np.uint8)
+    mask = signal_mask(lum) > 0
+    inner_lit = ~shadow & ((xx - 320) ** 2 + (yy - 180) ** 2 > 115**2)
+    inner_lit[:10], inner_lit[-10:], inner_lit[:, :10], inner_lit[:, -10:] = False, False, False, False
+    assert mask[inner_lit].mean() > 0.9
+    assert mask[shadow].mean() < 0.02

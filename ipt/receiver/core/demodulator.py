@@ -230,15 +230,22 @@ def percentiles_u8(values: U8, percents: tuple[float, ...]) -> tuple[float, ...]
 DARK_FRACTION = 0.35
 #: The mask keeps this far (pixels at 640 wide) from the dark regions: their soft edges carry no signal.
 DARK_MARGIN_PX = 5
+#: The lightness is averaged over a square of this side (pixels at 640 wide) before it is compared with the
+#: level: in a dark scene lit floor is only a few levels above shadow, under a camera noise of as much, and
+#: pixel by pixel the test would shred the lit floor (issue 30); the average is 5x less noisy.
+MASK_BOX_PX = 5
 
 
 def signal_mask(lum: U8, coverage: U8 | None = None) -> U8:
-    """255 where the frame may carry the hidden tags: lit by the projector, inside the sensor's view."""
+    """255 where the frame may carry the hidden tags: lit by the projector (the lightness, averaged over
+    :data:`MASK_BOX_PX`, above the level :data:`DARK_FRACTION` sets), inside the sensor's view."""
     _h, w = lum.shape
-    low, mid = percentiles_u8(lum[::4, ::4], (10, 50))
+    box = max(1, round(MASK_BOX_PX * w / REFERENCE_WIDTH_PX))
+    smooth = np.asarray(cv2.blur(lum, (box, box)), np.uint8) if box > 1 else lum
+    low, mid = percentiles_u8(smooth[::4, ::4], (10, 50))
     level = max(12.0, low + DARK_FRACTION * (mid - low))
     # 255 where lum > level (for 8-bit pixels OpenCV compares with floor(level): the same test, 5x cheaper)
-    lit = np.asarray(cv2.threshold(lum, level, 255, cv2.THRESH_BINARY)[1], np.uint8)
+    lit = np.asarray(cv2.threshold(smooth, level, 255, cv2.THRESH_BINARY)[1], np.uint8)
     if coverage is not None:
         lit = np.minimum(lit, coverage)
     margin = max(1, round(DARK_MARGIN_PX * w / REFERENCE_WIDTH_PX))
