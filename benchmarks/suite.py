@@ -124,7 +124,8 @@ def render(name: str, sim: SimConfig, arena: ArenaConfig, seconds: float, cache:
     if (folder / "groundtruth.tum").is_file() and (folder / "frames.mkv").is_file():
         return folder
     for old in cache.glob(f"{name}-*"):  # an older rendering of this flight: settings or code changed
-        shutil.rmtree(old, ignore_errors=True)
+        if old.name.rsplit("-", 1)[0] == name:  # not another flight whose name starts with this one's
+            shutil.rmtree(old, ignore_errors=True)
     start = time.monotonic()
     print(f"suite: rendering {name} ({seconds:g} s): {describe_flight(sim)}", file=sys.stderr, flush=True)
     simulate_to_folder(arena, sim, scene_for(sim, arena), folder, seconds)
