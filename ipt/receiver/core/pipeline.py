@@ -54,6 +54,7 @@ from ipt.receiver.core.frameresult import FrameResult
 from ipt.receiver.core.gates import PoseGates
 from ipt.receiver.core.history import Candidate, Frame, FrameHistory, Pair
 from ipt.receiver.core.imagealign import AlignTarget, alignment_features, floor_warp_between, warp_image
+from ipt.receiver.core.mapsearch import MapSearch
 from ipt.receiver.core.motion import MotionTrack, floor_warp
 from ipt.receiver.core.paperway import PaperWay
 from ipt.receiver.core.pose import Pose, pose_of, rt_of, solve_pose
@@ -104,6 +105,8 @@ PAIR_FAILURES = frozenset(
         FrameReason.POSE_REJECTED,
     }
 )
+#: While no pose and no whole tag is found, the map is searched on one pair every this many frames.
+SEARCH_EVERY = 1
 
 
 @dataclass(frozen=True)
@@ -177,6 +180,9 @@ class Pipeline:
         """Processor time of the pipeline's thread spent per stage (the AprilTag helper process's own time is not
         in "detect"), for benchmarks and diagnostics."""
         self._detector_runs = 0
+        self.map_search: MapSearch | None = None
+        """The search of the whole map for a view without a whole tag (built at its first use)."""
+        self._searched_at = -SEARCH_EVERY
         self.paper = PaperWay(cfg, camera, tag_map, detector, self.history, self.gates, self.lap)
         """The paper's way through (the paper profile)."""
         self.detector.wait_ready()
@@ -473,11 +479,13 @@ class Pipeline:
         rt = (tracked.rvec, tracked.tvec)
         return Candidate(pose, rt, len(tracked.tags), "track", partner, tracked.inlier_fraction)
 
-    def _track_from(self, diff: PairDifference, init: tuple[F64, F64], lit: U8 | None = None) -> TrackResult | None:
+    def _track_from(
+        self, diff: PairDifference, init: tuple[F64, F64], lit: U8 | None = None, coarse_px: float = 0.0
+    ) -> TrackResult | None:
         """The pose from the map's edges on ``diff`` from ``init``; only where ``lit`` (the target frame's
         signal mask) too, if given: samples in the drone's shadow find no step, and counted as tried they
         would sink the inlier fraction of a right pose once the shadow fills most of the view (a landing
-        drone)."""
+        drone). ``coarse_px``: how far off ``init`` may be (:func:`~ipt.receiver.core.track.track_pose`)."""
         assert self.edges is not None
         if diff.noise is None:
             diff.noise = slope_noise(diff.diff, diff.valid)
@@ -490,6 +498,7 @@ class Pipeline:
             self.track_settings,
             None,
             diff.valid if lit is None else np.minimum(diff.valid, lit),
+            coarse_px=coarse_px,
             noise=diff.noise,
         )
         t = self.cfg.pose.track
@@ -565,6 +574,31 @@ class Pipeline:
                     self._since_verify = 0
                     return self.candidate(refined, other.index)
             return Candidate(pose, start, len(dets), "apriltag", other.index, 0.0)
+        return self._search_map(target, other, diff) if self.tracking else None
+
+    def _search_map(self, target: Frame, other: Frame, diff: PairDifference) -> Candidate | None:
+        """No whole tag: the level poses that lay the whole map on the difference (:mod:`~ipt.receiver.core.
+        mapsearch`; one pair every :data:`SEARCH_EVERY` frames), the first the track confirms."""
+        if target.index - self._searched_at < SEARCH_EVERY:
+            return None
+        self._searched_at = target.index
+        if self.map_search is None:
+            assert self.edges is not None
+            cell_m = float(np.median(self.edges.tag_cell_m)) if self.edges.tag_cell_m is not None else self.edges.cell_m
+            self.map_search = MapSearch(self.tag_map.render_mask(), pixel_to_arena(self.tag_map), cell_m)
+        lit = diff.valid if target.signal is None else np.minimum(diff.valid, target.signal)
+        k = self.pinhole.camera_matrix
+        for h in self.map_search.search(diff.diff, lit, k):
+            # (a search around the start, not _coarse's: that one lays a level guess's view wrong by a tag)
+            coarse_px = 0.6 * k[0, 0] * self.map_search.cell_m / float(h.position_m[2])
+            try:
+                tracked = self._track_from(diff, (h.rvec, h.tvec), target.signal, coarse_px)
+            except np.linalg.LinAlgError:  # a wrong placement's samples may all run one way
+                continue
+            if tracked is not None:
+                self._since_verify = 0
+                target.phase, other.phase = tracked.sign, -tracked.sign
+                return self.candidate(tracked, other.index)
         return None
 
     def _verified(self, tracked: TrackResult, diff: PairDifference, t0: float) -> bool:
