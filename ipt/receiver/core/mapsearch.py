@@ -41,17 +41,21 @@ class SearchSettings:
 
     min_height_m: float = 0.35
     max_height_m: float = 1.2
-    height_ratio: float = 1.06
+    height_ratio: float = 1.1
     """Consecutive heights of the coarse grid differ by this factor."""
     fine_ratio: float = 1.015
     """The refinement around the best heights steps by this factor."""
-    cells_per_px: float = 0.5
+    cells_per_px: float = 0.75
     """The map's resolution, in code cells per map pixel."""
     min_valid_share: float = 0.05
     """A difference valid on less than this share of the image is not searched."""
-    min_score: float = 0.15
-    """A placement whose normalised correlation is weaker than this is no hypothesis."""
+    min_score: float = 0.3
+    """A placement whose normalised correlation is weaker than this is no hypothesis (noise alone gives ~0.2,
+    the right placement 0.6-1)."""
     hypotheses: int = 3
+    local_energy: bool = False
+    """Normalise each placement by the map's energy under it (one more transform per placement), rather
+    than by the map's mean."""
 
 
 @dataclass(frozen=True)
@@ -144,6 +148,7 @@ class MapSearch:
             ),
             np.float32,
         )
+        self.mean_energy = float(np.mean(self.map[self.map != 0] ** 2))
         self._spectra: dict[tuple[int, int], tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]] = {}
 
     def _spectrum(self, shape: tuple[int, int]) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
@@ -201,8 +206,11 @@ class MapSearch:
             big = np.zeros((rows, cols), np.float32)
             big[: patch.shape[0], : patch.shape[1]] = patch
             corr = _correlate(big, f_map)
-            big[: patch.shape[0], : patch.shape[1]] = weight
-            energy = _correlate(big, f_energy)
+            if self.settings.local_energy:
+                big[: patch.shape[0], : patch.shape[1]] = weight
+                energy = _correlate(big, f_energy)
+            else:
+                energy = np.full(corr.shape, self.mean_energy * float(weight.sum()), np.float32)
             # Normalised correlation: the patch's energy once, the map's under the patch's support per shift.
             norm = float(np.sqrt((patch * patch).sum())) * np.sqrt(np.maximum(energy, 0.05 * float(weight.sum())))
             ncc = corr / norm

@@ -106,7 +106,7 @@ PAIR_FAILURES = frozenset(
     }
 )
 #: While no pose and no whole tag is found, the map is searched on one pair every this many frames.
-SEARCH_EVERY = 1
+SEARCH_EVERY = 3
 
 
 @dataclass(frozen=True)

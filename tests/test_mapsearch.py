@@ -1,0 +1,134 @@
+"""The whole-map search: a view with no whole tag (tags cut by the border and a drone's shadow) gives the
+pose; a view without the map's signal gives nothing."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+import pytest
+
+from ipt.config.camera_info import CameraInfo
+from ipt.config.models import ArenaConfig, DetectorConfig
+from ipt.geometry import R_BODY_CAM_DOWNWARD, rot_x, rot_y, rot_z
+from ipt.receiver.core.demodulator import PairDifference, binarise_difference, lightness, pair_difference
+from ipt.receiver.core.mapsearch import MapSearch, MapSearchError, level_pose, yaw_mod_90
+from ipt.receiver.core.track import MapEdges, TrackSettings, track_pose
+from ipt.receiver.detect.detector import InlineBackend, c_settings
+from ipt.sender.modulator import PaperModulator
+from ipt.tagmap import arena_to_pixel_matrix, grid_tag_map, pixel_to_arena
+
+U8 = npt.NDArray[np.uint8]
+F64 = npt.NDArray[np.float64]
+
+ARENA = ArenaConfig()
+TAG_MAP = grid_tag_map(ARENA)
+CAMERA = CameraInfo(width_px=640, height_px=360, fx_px=460.0, fy_px=460.0, cx_px=319.5, cy_px=179.5, name="test")
+K = CAMERA.camera_matrix
+#: Low over the floor, yawed, tilted a little (a vibrating drone); its view cut by its shadow.
+POSITION_M = np.array([0.31, -0.22, 0.5])
+R_ARENA_CAM = rot_z(np.deg2rad(127.0)) @ rot_x(np.deg2rad(1.5)) @ rot_y(np.deg2rad(-1.0)) @ R_BODY_CAM_DOWNWARD
+#: The camera's x axis from the arena's, counter-clockwise (the search's yaw).
+YAW_DEG = float(np.rad2deg(np.arctan2(R_ARENA_CAM[1, 0], R_ARENA_CAM[0, 0])))
+
+
+def _rt(position_m: F64, r_arena_cam: F64) -> tuple[F64, F64]:
+    r_cam = r_arena_cam.T
+    rvec, _ = cv2.Rodrigues(r_cam)
+    return np.asarray(rvec, np.float64).reshape(3), -r_cam @ position_m
+
+
+def _render(img: U8) -> U8:
+    rvec, tvec = _rt(POSITION_M, R_ARENA_CAM)
+    r_cam, _ = cv2.Rodrigues(rvec)
+    floor_to_cam = K @ np.column_stack([r_cam[:, 0], r_cam[:, 1], tvec])
+    edge_to_centre = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+    h = floor_to_cam @ np.linalg.inv(arena_to_pixel_matrix(ARENA)) @ edge_to_centre
+    return np.asarray(cv2.warpPerspective(img, h, (640, 360), flags=cv2.INTER_LINEAR), np.uint8)
+
+
+@pytest.fixture(scope="module")
+def shadowed() -> PairDifference:
+    """A pair of opposite phases over busy content, a dark disc (the drone's shadow) over the right centre."""
+    rng = np.random.default_rng(5)
+    w, h = ARENA.projector.width_px, ARENA.projector.height_px
+    coarse = rng.integers(40, 216, (h // 8, w // 8, 3), np.uint8)
+    content = np.asarray(cv2.resize(coarse, (w, h), interpolation=cv2.INTER_CUBIC), np.uint8)
+    plus, minus = PaperModulator(TAG_MAP.render_mask(), ARENA.modulation.delta_l).modulate(content, 0, 2)
+    later, earlier = (lightness(_render(p)) for p in (plus, minus))
+    yy, xx = np.mgrid[0:360, 0:640]
+    disc = (xx - 420) ** 2 + (yy - 140) ** 2 < 170**2
+    lit = np.where(disc, 0, 255).astype(np.uint8)
+    for frame in (later, earlier):
+        frame[disc] = rng.integers(10, 20, int(disc.sum()))
+    return pair_difference(earlier, later, np.eye(3), lit, lit)
+
+
+@pytest.fixture(scope="module")
+def search() -> MapSearch:
+    edges = MapEdges.from_tag_map(TAG_MAP)
+    assert edges.tag_cell_m is not None
+    return MapSearch(TAG_MAP.render_mask(), pixel_to_arena(TAG_MAP), float(np.median(edges.tag_cell_m)))
+
+
+def test_the_view_shows_no_whole_tag(shadowed: PairDifference) -> None:
+    """The premise: AprilTag finds nothing on this difference, in either phase."""
+    backend = InlineBackend(c_settings(DetectorConfig()))
+    try:
+        for sign in (1, -1):
+            assert backend.detect_raw(binarise_difference(shadowed, sign, 3)) == []
+    finally:
+        backend.close()
+
+
+def test_the_yaw_mod_90_comes_from_the_edges(shadowed: PairDifference) -> None:
+    yaw, _ = yaw_mod_90(shadowed.diff, shadowed.valid)
+    error = (np.rad2deg(yaw) - YAW_DEG + 45.0) % 90.0 - 45.0
+    assert abs(error) < 1.5
+
+
+def test_a_view_without_a_whole_tag_gives_the_pose(shadowed: PairDifference, search: MapSearch) -> None:
+    """Among the few placements is the right one (within a few cm and degrees), and the first the track
+    accepts (as the pipeline checks it: inliers and cell agreement) is the pose to the millimetre."""
+    found = search.search(shadowed.diff, shadowed.valid, K)
+    assert 0 < len(found) <= search.settings.hypotheses
+    assert any(
+        np.linalg.norm(h.position_m - POSITION_M) < 0.03
+        and abs((np.rad2deg(h.yaw_rad) - YAW_DEG + 180.0) % 360.0 - 180.0) < 2.0
+        for h in found
+    )
+    edges = MapEdges.from_tag_map(TAG_MAP)
+    accepted = None
+    for h in found:
+        cell_px = K[0, 0] * search.cell_m / float(h.position_m[2])
+        try:
+            tracked = track_pose(
+                shadowed.diff, K, edges, h.rvec, h.tvec, TrackSettings(), None, shadowed.valid, coarse_px=0.6 * cell_px
+            )
+        except np.linalg.LinAlgError:
+            continue
+        if tracked is not None and tracked.inlier_fraction >= 0.35 and tracked.cell_agreement >= 0.75:
+            accepted = tracked
+            break
+    assert accepted is not None
+    assert np.linalg.norm(accepted.estimate().position_m - POSITION_M) < 0.003
+
+
+def test_a_view_without_the_map_gives_nothing(search: MapSearch) -> None:
+    rng = np.random.default_rng(1)
+    noise = np.asarray(cv2.GaussianBlur(rng.normal(0, 2.0, (360, 640)).astype(np.float32), (0, 0), 1.0), np.float32)
+    assert search.search(noise, np.full((360, 640), 255, np.uint8), K) == []
+    assert search.search(np.zeros((360, 640), np.float32), np.zeros((360, 640), np.uint8), K) == []
+
+
+def test_a_level_pose_looks_down_at_its_yaw() -> None:
+    rvec, tvec = level_pose(np.array([0.1, 0.2, 0.7]), np.deg2rad(30.0))
+    r_cam, _ = cv2.Rodrigues(rvec)
+    assert np.allclose(-r_cam.T @ tvec, [0.1, 0.2, 0.7])
+    assert np.allclose(r_cam.T[:, 2], [0.0, 0.0, -1.0])  # the optical axis points down
+    assert np.allclose(r_cam.T[:, 0], [np.cos(np.pi / 6), np.sin(np.pi / 6), 0.0])
+
+
+def test_a_map_without_tags_cannot_be_searched() -> None:
+    with pytest.raises(MapSearchError, match="no tags"):
+        MapSearch(np.zeros((100, 100), np.int8), np.eye(3), 0.02)
