@@ -16,7 +16,7 @@ from ipt.receiver.core.mapsearch import MapSearch, MapSearchError, level_pose, y
 from ipt.receiver.core.track import MapEdges, TrackSettings, track_pose
 from ipt.receiver.detect.detector import InlineBackend, c_settings
 from ipt.sender.modulator import PaperModulator
-from ipt.tagmap import arena_to_pixel_matrix, grid_tag_map, pixel_to_arena
+from ipt.tagmap import arena_to_pixel_matrix, grid_tag_map
 
 U8 = npt.NDArray[np.uint8]
 F64 = npt.NDArray[np.float64]
@@ -66,9 +66,13 @@ def shadowed() -> PairDifference:
 
 @pytest.fixture(scope="module")
 def search() -> MapSearch:
+    return MapSearch.of(TAG_MAP)
+
+
+def test_the_search_works_at_the_grid_s_code_cell(search: MapSearch) -> None:
     edges = MapEdges.from_tag_map(TAG_MAP)
     assert edges.tag_cell_m is not None
-    return MapSearch(TAG_MAP.render_mask(), pixel_to_arena(TAG_MAP), float(np.median(edges.tag_cell_m)))
+    assert search.cell_m == pytest.approx(float(np.median(edges.tag_cell_m)), rel=1e-3)
 
 
 def test_the_view_shows_no_whole_tag(shadowed: PairDifference) -> None:
@@ -100,10 +104,9 @@ def test_a_view_without_a_whole_tag_gives_the_pose(shadowed: PairDifference, sea
     edges = MapEdges.from_tag_map(TAG_MAP)
     accepted = None
     for h in found:
-        cell_px = K[0, 0] * search.cell_m / float(h.position_m[2])
         try:
             tracked = track_pose(
-                shadowed.diff, K, edges, h.rvec, h.tvec, TrackSettings(), None, shadowed.valid, coarse_px=0.6 * cell_px
+                shadowed.diff, K, edges, h.rvec, h.tvec, TrackSettings(), None, shadowed.valid, coarse_px=h.search_px
             )
         except np.linalg.LinAlgError:
             continue

@@ -25,6 +25,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.errors import IptError
+from ipt.tagmap import TAG36H11_CELLS, TagMap, pixel_to_arena
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -53,6 +54,8 @@ class SearchSettings:
     """A placement whose normalised correlation is weaker than this is no hypothesis (noise alone gives ~0.2,
     the right placement 0.6-1)."""
     hypotheses: int = 3
+    search_cells: float = 0.6
+    """A hypothesis may be this many code cells off (:attr:`Hypothesis.search_px`)."""
     local_energy: bool = False
     """Normalise each placement by the map's energy under it (one more transform per placement), rather
     than by the map's mean."""
@@ -71,6 +74,8 @@ class Hypothesis:
     """The camera's x axis from the arena's x axis, counter-clockwise."""
     score: float
     """The normalised correlation (its sign: the difference's phase)."""
+    search_px: float
+    """How far off in the image the map may lie at this pose (from the coarse grid and the tilt), pixels."""
 
 
 def level_pose(position_m: F64, yaw_rad: float) -> tuple[F64, F64]:
@@ -151,6 +156,13 @@ class MapSearch:
         self.mean_energy = float(np.mean(self.map[self.map != 0] ** 2))
         self._spectra: dict[tuple[int, int], tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]] = {}
 
+    @classmethod
+    def of(cls, tag_map: TagMap, settings: SearchSettings = SearchSettings()) -> MapSearch:
+        """The search of ``tag_map``, at the code cell of most of its tags (a landing pad's are smaller)."""
+        sides = [float(np.linalg.norm(np.subtract(t.corners_m[1], t.corners_m[0]))) for t in tag_map.tags]
+        cell_m = float(np.median(sides)) / (TAG36H11_CELLS - 2) if sides else 0.0
+        return cls(tag_map.render_mask(), pixel_to_arena(tag_map), cell_m, settings)
+
     def _spectrum(self, shape: tuple[int, int]) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]:
         """The map's spectrum and its square's, zero-padded to ``shape`` (rows, cols)."""
         if shape not in self._spectra:
@@ -188,7 +200,8 @@ class MapSearch:
                 continue
             position = np.array([xy[0], xy[1], height])
             rvec, tvec = level_pose(position, yaw)
-            out.append(Hypothesis(rvec, tvec, position, yaw, score))
+            search_px = s.search_cells * float(camera_matrix[0, 0]) * self.cell_m / height
+            out.append(Hypothesis(rvec, tvec, position, yaw, score, search_px))
         return out
 
     def _place(

@@ -107,6 +107,8 @@ PAIR_FAILURES = frozenset(
 )
 #: While no pose and no whole tag is found, the map is searched on one pair every this many frames.
 SEARCH_EVERY = 3
+#: ... and while the track fails from its guesses, once the newest pose is older than this.
+SEARCH_AFTER_US = 20_000
 
 
 @dataclass(frozen=True)
@@ -454,6 +456,9 @@ class Pipeline:
                 self._detector_failed = True
                 return
             t0 = self.lap("detect", t0)
+        elif reason == FrameReason.LOST and target.best is None and self._lost(target, SEARCH_AFTER_US):
+            candidate = self._search_map(target, other, diff)  # the track has been failing from its guesses
+            t0 = self.lap("detect", t0)
         if candidate is None:
             target.failure = FrameResult(target.index, target.time_us, None, 0, reason, partner=other.index)
             return
@@ -469,10 +474,10 @@ class Pipeline:
             self.scales.seen_at(float(p.position_m[2]))
             self._guide.add(target.time_us, p.position_m, p.r_arena_cam, float(np.linalg.norm(p.position_std_m)))
 
-    def _lost(self, target: Frame) -> bool:
-        """No recent pose to track from: the newest is more than :data:`LOST_AFTER_US` before ``target``."""
+    def _lost(self, target: Frame, after_us: int = LOST_AFTER_US) -> bool:
+        """No recent pose to track from: the newest is more than ``after_us`` before ``target``."""
         newest = max((f.time_us for f in self.history if f.best is not None), default=None)
-        return newest is None or target.time_us - newest > LOST_AFTER_US
+        return newest is None or target.time_us - newest > after_us
 
     def candidate(self, tracked: TrackResult, partner: int) -> Candidate:
         pose = tracked.estimate()
@@ -582,21 +587,14 @@ class Pipeline:
         if target.index - self._searched_at < SEARCH_EVERY:
             return None
         self._searched_at = target.index
-        if self.map_search is None:
-            assert self.edges is not None
-            cell_m = float(np.median(self.edges.tag_cell_m)) if self.edges.tag_cell_m is not None else self.edges.cell_m
-            self.map_search = MapSearch(self.tag_map.render_mask(), pixel_to_arena(self.tag_map), cell_m)
+        self.map_search = self.map_search or MapSearch.of(self.tag_map)
         lit = diff.valid if target.signal is None else np.minimum(diff.valid, target.signal)
-        k = self.pinhole.camera_matrix
-        for h in self.map_search.search(diff.diff, lit, k):
-            # (a search around the start, not _coarse's: that one lays a level guess's view wrong by a tag)
-            coarse_px = 0.6 * k[0, 0] * self.map_search.cell_m / float(h.position_m[2])
-            try:
-                tracked = self._track_from(diff, (h.rvec, h.tvec), target.signal, coarse_px)
+        for h in self.map_search.search(diff.diff, lit, self.pinhole.camera_matrix):
+            try:  # (a search around the start, not _coarse's: that one lays a level guess's view wrong by a tag)
+                tracked = self._track_from(diff, (h.rvec, h.tvec), target.signal, h.search_px)
             except np.linalg.LinAlgError:  # a wrong placement's samples may all run one way
                 continue
             if tracked is not None:
-                self._since_verify = 0
                 target.phase, other.phase = tracked.sign, -tracked.sign
                 return self.candidate(tracked, other.index)
         return None
