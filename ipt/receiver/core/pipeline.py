@@ -58,7 +58,7 @@ from ipt.receiver.core.mapsearch import MapSearch
 from ipt.receiver.core.motion import MotionTrack, floor_warp
 from ipt.receiver.core.paperway import PaperWay
 from ipt.receiver.core.pose import Pose, pose_of, rt_of, solve_pose
-from ipt.receiver.core.reasons import FrameReason
+from ipt.receiver.core.reasons import PAIR_FAILURES, SHADOWED_SHARE, FrameReason
 from ipt.receiver.core.scales import DetectScale, ScaleChooser
 from ipt.receiver.core.secondlook import SecondLook
 from ipt.receiver.core.track import (
@@ -90,21 +90,6 @@ GOOD_QUALITY = 0.3
 LOST_AFTER_US = 50_000
 #: A coarse search whose normalised correlation peak is weaker than this is not followed.
 MIN_COARSE_SCORE = 0.1
-#: A frame without a pose whose signal mask lights less than this share of the view is ``shadowed``. On the
-#: suite's two take-offs (the camera's own shadow grows as it nears the floor) the frames below it were all
-#: below 0.34 m (open floor, 310 frames) and 0.27 m (landing pad, 152), none of them posed; every posed
-#: frame lit at least 27 % of its view.
-SHADOWED_SHARE = 0.25
-#: The reasons of a frame whose pairs gave no pose: ``shadowed`` instead when most of its view was unlit.
-PAIR_FAILURES = frozenset(
-    {
-        FrameReason.NO_TAGS,
-        FrameReason.NO_ALIGNMENT,
-        FrameReason.LOST,
-        FrameReason.TRACK_DISAGREES,
-        FrameReason.POSE_REJECTED,
-    }
-)
 #: While no pose and no whole tag is found, the map is searched on one pair every this many frames.
 SEARCH_EVERY = 3
 #: ... and while the track fails from its guesses, once the newest pose is older than this.
@@ -176,7 +161,7 @@ class Pipeline:
         """The motion of every frame's best candidate as soon as it is found: the first guesses' source."""
         self._since_verify = 0
         self._detector_failed = False
-        self._view_px: int | None = None
+        self._view_px = max(1, cv2.countNonZero(coverage) if coverage is not None else size[0] * size[1])
         self.reasons: Counter[str] = Counter()
         self.stage_seconds: dict[str, float] = defaultdict(float)
         """Processor time of the pipeline's thread spent per stage (the AprilTag helper process's own time is not
@@ -243,8 +228,8 @@ class Pipeline:
             self._restart()  # a jump in the video, or time going backwards
         assert ready.lum is not None
         new = Frame(index, capture_time_us, ready.lum, ready.signal, ready.features)
-        if ready.signal is not None:
-            new.lit_share = self._lit_share(ready.signal)
+        if ready.signal is not None:  # the share of the view (the undistorted sensor's pixels) it lights
+            new.lit_share = cv2.countNonZero(ready.signal) / self._view_px
         if gap:  # its reason unless a later frame pairs with it
             new.failure = FrameResult(index, capture_time_us, None, 0, FrameReason.TIME_GAP)
         t0 = self.lap("lightness", t0)
@@ -308,20 +293,11 @@ class Pipeline:
         self.bridge.keep_only(live)
         return out
 
-    def _lit_share(self, signal: U8) -> float:
-        """The share of the view (the undistorted sensor's pixels) that ``signal`` lights."""
-        if self._view_px is None:
-            coverage = self.undistort.coverage if self.undistort is not None else None
-            self._view_px = cv2.countNonZero(coverage) if coverage is not None else signal.size
-        return cv2.countNonZero(signal) / max(self._view_px, 1)
-
     def lap(self, stage: str, t0: float) -> float:
         """Count this thread's processor time since ``t0`` to ``stage`` (:attr:`stage_seconds`); the time now."""
         t1 = time.thread_time()
         self.stage_seconds[stage] += t1 - t0
         return t1
-
-    # -- pairing --------------------------------------------------------------------------------------
 
     # -- the ipt way ----------------------------------------------------------------------------------
 
