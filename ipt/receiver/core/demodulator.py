@@ -248,7 +248,10 @@ def signal_mask(lum: U8, coverage: U8 | None = None) -> U8:
     lit = np.asarray(cv2.threshold(smooth, level, 255, cv2.THRESH_BINARY)[1], np.uint8)
     if coverage is not None:
         lit = np.minimum(lit, coverage)
-    margin = max(1, round(DARK_MARGIN_PX * w / REFERENCE_WIDTH_PX))
+    # The average carries the lit level up to half a box into a dark region's soft edge (the shadow's
+    # penumbra, which has no signal): the margin grows by as much. Without that, the held-out flight under a
+    # big shadow (low-fast-big-shadow) fell from 87.0 to 72.1 % (its fits counted penumbra samples as tried).
+    margin = max(1, round((DARK_MARGIN_PX + MASK_BOX_PX // 2) * w / REFERENCE_WIDTH_PX))
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1))
     return np.asarray(cv2.erode(cv2.morphologyEx(lit, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)), kernel), np.uint8)
 
