@@ -51,8 +51,13 @@ RUN_TIMEOUT_S = 120.0
 
 @pytest.fixture
 def dds_domain(monkeypatch: pytest.MonkeyPatch) -> int:
-    """Loopback-only DDS for this test (the one place the tests set CYCLONEDDS_URI) and a domain of its own."""
-    domain = 100 + os.getpid() % 100
+    """Loopback-only DDS for this test (the one place the tests set CYCLONEDDS_URI) and a domain of its own.
+
+    Domains 1-100 only: CycloneDDS's unicast ports for domain d are 7400 + 250·d + 10 + 2·i (participant index
+    i up to MAX_PARTICIPANTS), and with multicast off it sends discovery to each of them on 127.0.0.1. For a
+    domain over 101 those ports lie in Linux's ephemeral range (32768-60999), where a test's own UDP socket
+    (port 0) may sit, and it received RTPS discovery instead of pose packets (seen once in a full run)."""
+    domain = 1 + os.getpid() % 100
     for key, value in loopback_environ({}, domain).items():
         monkeypatch.setenv(key, value)
     return domain
