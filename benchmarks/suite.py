@@ -355,10 +355,13 @@ def whole_process(folder: Path, arena_path: Path, profile: str, receiver: Path |
     with tempfile.TemporaryDirectory(prefix="ipt-suite-") as tmp:
         poses, timing = Path(tmp) / "poses.tum", Path(tmp) / "time.txt"
         cmd = ["taskset", "-c", "0", "/usr/bin/time", "-f", "%U %S", "-o", str(timing), *command, "replay",
-               "--config", str(arena_path), "--camera", str(folder / "camera.yaml"), "--video", str(frames_dir),
-               "--fps", f"{rate:.2f}", "--output", str(poses), "--profile", profile]  # fmt: skip
+               "--config", str(arena_path.resolve()), "--camera", str((folder / "camera.yaml").resolve()),
+               "--video", str(frames_dir.resolve()), "--fps", f"{rate:.2f}", "--output", str(poses),
+               "--profile", profile]  # fmt: skip
         load = os.getloadavg()[0]
-        done = subprocess.run(cmd, capture_output=True, text=True, timeout=3600, check=False, env=env)
+        # In a folder of its own: ``python -m`` puts the working directory first on the path, which in a checkout
+        # would import that checkout's ipt instead of ``receiver``'s.
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=3600, check=False, env=env, cwd=tmp)
         if done.returncode != 0:
             raise SystemExit(f"suite: {' '.join(cmd)} failed: {done.stderr.strip()[-2000:]}")
         user_s, sys_s = (float(v) for v in timing.read_text(encoding="utf-8").split()[-2:])
