@@ -7,6 +7,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 import pytest
+from floorview import render_view
 
 from ipt.config.camera_info import CameraInfo
 from ipt.config.models import ArenaConfig, DetectorConfig
@@ -16,7 +17,7 @@ from ipt.receiver.core.mapsearch import MapSearch, MapSearchError, level_pose, y
 from ipt.receiver.core.track import MapEdges, TrackSettings, track_pose
 from ipt.receiver.detect.detector import InlineBackend, c_settings
 from ipt.sender.modulator import PaperModulator
-from ipt.tagmap import arena_to_pixel_matrix, grid_tag_map
+from ipt.tagmap import grid_tag_map
 
 U8 = npt.NDArray[np.uint8]
 F64 = npt.NDArray[np.float64]
@@ -32,19 +33,8 @@ R_ARENA_CAM = rot_z(np.deg2rad(127.0)) @ rot_x(np.deg2rad(1.5)) @ rot_y(np.deg2r
 YAW_DEG = float(np.rad2deg(np.arctan2(R_ARENA_CAM[1, 0], R_ARENA_CAM[0, 0])))
 
 
-def _rt(position_m: F64, r_arena_cam: F64) -> tuple[F64, F64]:
-    r_cam = r_arena_cam.T
-    rvec, _ = cv2.Rodrigues(r_cam)
-    return np.asarray(rvec, np.float64).reshape(3), -r_cam @ position_m
-
-
 def _render(img: U8) -> U8:
-    rvec, tvec = _rt(POSITION_M, R_ARENA_CAM)
-    r_cam, _ = cv2.Rodrigues(rvec)
-    floor_to_cam = K @ np.column_stack([r_cam[:, 0], r_cam[:, 1], tvec])
-    edge_to_centre = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
-    h = floor_to_cam @ np.linalg.inv(arena_to_pixel_matrix(ARENA)) @ edge_to_centre
-    return np.asarray(cv2.warpPerspective(img, h, (640, 360), flags=cv2.INTER_LINEAR), np.uint8)
+    return render_view(img, ARENA, K, POSITION_M, R_ARENA_CAM)
 
 
 @pytest.fixture(scope="module")

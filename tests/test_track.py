@@ -8,11 +8,13 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 import pytest
+from floorview import render_view
 
 from ipt.config.camera_info import CameraInfo
 from ipt.config.models import ArenaConfig
 from ipt.geometry import R_BODY_CAM_DOWNWARD, rot_x, rot_y, rot_z, rotation_angle_rad
 from ipt.receiver.core.demodulator import PairDifference, lightness, pair_difference
+from ipt.receiver.core.pose import rt_of
 from ipt.receiver.core.track import (
     MapEdges,
     MaskRenderer,
@@ -42,19 +44,8 @@ class Pair:
     tvec: F64
 
 
-def _rt(position_m: F64, r_arena_cam: F64) -> tuple[F64, F64]:
-    r_cam = r_arena_cam.T
-    rvec, _ = cv2.Rodrigues(r_cam)
-    return np.asarray(rvec, np.float64).reshape(3), -r_cam @ position_m
-
-
 def _render(img: U8, position_m: F64, r_arena_cam: F64) -> U8:
-    rvec, tvec = _rt(position_m, r_arena_cam)
-    r_cam, _ = cv2.Rodrigues(rvec)
-    floor_to_cam = K @ np.column_stack([r_cam[:, 0], r_cam[:, 1], tvec])
-    edge_to_centre = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
-    h = floor_to_cam @ np.linalg.inv(arena_to_pixel_matrix(ARENA)) @ edge_to_centre
-    return np.asarray(cv2.warpPerspective(img, h, (640, 360), flags=cv2.INTER_LINEAR), np.uint8)
+    return render_view(img, ARENA, K, position_m, r_arena_cam)
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +61,7 @@ def pair() -> Pair:
     later, earlier = (lightness(_render(p, POSITION_M, R_ARENA_CAM)) for p in (plus, minus))
     lit = np.full(later.shape, 255, np.uint8)
     diff = pair_difference(earlier, later, np.eye(3), lit, lit)
-    return Pair(diff, *_rt(POSITION_M, R_ARENA_CAM))
+    return Pair(diff, *rt_of(POSITION_M, R_ARENA_CAM))
 
 
 @pytest.fixture(scope="module")
@@ -91,7 +82,7 @@ def _errors(rvec: F64, tvec: F64) -> tuple[float, float]:
 def _perturbed(pose_mm: float, tilt_deg: float, seed: int = 0) -> tuple[F64, F64]:
     direction = np.random.default_rng(seed).normal(size=3)
     r = rot_x(np.deg2rad(tilt_deg)) @ rot_y(np.deg2rad(-tilt_deg / 2)) @ R_ARENA_CAM
-    return _rt(POSITION_M + pose_mm / 1000 * direction / np.linalg.norm(direction), r)
+    return rt_of(POSITION_M + pose_mm / 1000 * direction / np.linalg.norm(direction), r)
 
 
 def test_the_map_edges_are_where_the_mask_changes(edges: MapEdges) -> None:
@@ -145,7 +136,7 @@ def test_a_pose_a_cell_off_does_not_pass_for_the_right_one(pair: Pair, edges: Ma
     # the data cells then disagree with the map.
     cell = edges.cell_m
     r_cam, _ = cv2.Rodrigues(pair.rvec)
-    off = _rt(POSITION_M + r_cam.T @ np.array([cell, 0.0, 0.0]), R_ARENA_CAM)
+    off = rt_of(POSITION_M + r_cam.T @ np.array([cell, 0.0, 0.0]), R_ARENA_CAM)
     result = track_pose(pair.diff.diff, K, edges, *off, TrackSettings(search_px=2.0), None, pair.diff.valid)
     assert result is None or _errors(result.rvec, result.tvec)[0] < 1.0 or result.cell_agreement < 0.7
 
@@ -201,7 +192,7 @@ def test_the_covariance_follows_the_fit(pair: Pair, edges: MapEdges) -> None:
 def test_no_map_in_view_gives_no_pose(pair: Pair, edges: MapEdges) -> None:
     flat = np.zeros_like(pair.diff.diff)
     assert track_pose(flat, K, edges, pair.rvec, pair.tvec, TrackSettings(), None, pair.diff.valid) is None
-    away = _rt(np.array([30.0, 30.0, 0.8]), R_ARENA_CAM)  # far off the arena: no tag near the view
+    away = rt_of(np.array([30.0, 30.0, 0.8]), R_ARENA_CAM)  # far off the arena: no tag near the view
     assert track_pose(pair.diff.diff, K, edges, *away, TrackSettings(), None, pair.diff.valid) is None
 
 
