@@ -165,7 +165,7 @@ _MAKERS: Final = {
 }
 
 
-def _fold(x: float, span: float) -> float:
+def fold(x: float, span: float) -> float:
     """``x`` folded into [0, span] like a ball bouncing between two walls."""
     if span <= 0:
         return 0.0
@@ -223,8 +223,8 @@ class PanningPhotoScene:
         direction = heading
         span_x = round(self.width_px * CANVAS_SCALE) - self.width_px
         span_y = round(self.height_px * CANVAS_SCALE) - self.height_px
-        x = _fold(start[0] * span_x + distance * np.cos(direction), span_x)
-        y = _fold(start[1] * span_y + distance * np.sin(direction), span_y)
+        x = fold(start[0] * span_x + distance * np.cos(direction), span_x)
+        y = fold(start[1] * span_y + distance * np.sin(direction), span_y)
         return round(x), round(y)
 
     def frame(self, index: int, rate_hz: float) -> U8:

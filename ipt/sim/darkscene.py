@@ -19,7 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.sender.basemap import PLACES
-from ipt.sender.photos import CANVAS_SCALE, PanningPhotoScene
+from ipt.sender.photos import CANVAS_SCALE, PanningPhotoScene, fold
 
 U8 = npt.NDArray[np.uint8]
 
@@ -60,8 +60,7 @@ class DarkScene:
         for start, d, span in zip(
             self._start, self._direction, (self._canvas_w - self.width_px, self._canvas_h - self.height_px), strict=True
         ):
-            x = (start * span + distance * d) % (2 * span) if span > 0 else 0.0
-            out.append(round(x if x <= span else 2 * span - x))
+            out.append(round(fold(start * span + distance * d, span)))
         return out[0], out[1]
 
     def frame(self, index: int, rate_hz: float) -> U8:
