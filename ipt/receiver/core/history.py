@@ -47,9 +47,9 @@ class Frame:
     """Lightness (undistorted in the ipt profile)."""
     signal: U8 | None = None
     features: F32 | None = None
-    lit_share: float | None = None
-    """The share of the camera's view that its signal mask lights (ipt profile), for the reason of a frame
-    without a pose."""
+    lit_share: float = 1.0
+    """The share of the camera's view that its signal mask lights (measured in the ipt profile; else taken as
+    all), for the reason of a frame without a pose."""
     target: AlignTarget | None = None
     rt: tuple[F64, F64] | None = None
     """OpenCV's (rvec, tvec) of the pose found for this frame."""

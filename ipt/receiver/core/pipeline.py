@@ -281,7 +281,7 @@ class Pipeline:
             result = f.result or FrameResult(
                 f.index, f.time_us, None, 0, FrameReason.FIRST_FRAME if not f.tried else FrameReason.NO_TAGS
             )
-            if result.pose is None and result.reason in PAIR_FAILURES and (f.lit_share or 1.0) < SHADOWED_SHARE:
+            if result.pose is None and result.reason in PAIR_FAILURES and f.lit_share < SHADOWED_SHARE:
                 result = replace(result, reason=FrameReason.SHADOWED)
             if self._detector_failed:
                 result = replace(result, detector_failed=True)
