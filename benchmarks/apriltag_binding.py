@@ -67,17 +67,9 @@ def collect(folders: list[Path], out: Path, frames: int) -> dict[str, int]:
 
 
 def _detector(module_name: str, settings: dict[str, float]) -> Any:
-    module = importlib.import_module(module_name)
-    det = module.Detector(
-        families="tag36h11",
-        nthreads=int(settings["nthreads"]),
-        quad_decimate=settings["quad_decimate"],
-        quad_sigma=settings["quad_sigma"],
-        refine_edges=int(settings["refine_edges"]),
-        decode_sharpening=settings["decode_sharpening"],
-    )
-    det.tag_detector_ptr.contents.decode_sharpening = settings["decode_sharpening"]  # all three store int()
-    return det
+    from ipt.receiver.detect.apriltag_c import make_pupil_detector
+
+    return make_pupil_detector(settings, module_name)
 
 
 def _raw(det: Any, gray: np.ndarray, decimate: float) -> dict[tuple[int, int], tuple[int, float, np.ndarray]]:

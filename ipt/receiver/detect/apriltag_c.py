@@ -52,12 +52,13 @@ def free_pupil_detector(det: Any) -> None:
     det.tag_families = {}
 
 
-def make_pupil_detector(settings: dict[str, float]) -> Any:
+def make_pupil_detector(settings: dict[str, float], binding: str = "dt_apriltags") -> Any:
     """A tag36h11 dt-apriltags detector with ``settings`` (see :func:`ipt.receiver.detect.detector.c_settings`).
-    Free it with :func:`free_pupil_detector`."""
-    import dt_apriltags
+    Free it with :func:`free_pupil_detector`. ``binding``: another module of pupil-apriltags' interface to
+    make it with (``pupil_apriltags``, for ``benchmarks/apriltag_binding.py``'s comparison)."""
+    import importlib
 
-    det = dt_apriltags.Detector(
+    det = importlib.import_module(binding).Detector(
         families="tag36h11",
         nthreads=int(settings["nthreads"]),
         quad_decimate=settings["quad_decimate"],
