@@ -69,7 +69,7 @@ def collect(folders: list[Path], out: Path, frames: int) -> dict[str, int]:
 def _detector(module_name: str, settings: dict[str, float]) -> Any:
     from ipt.receiver.detect.apriltag_c import make_pupil_detector
 
-    return make_pupil_detector(settings, module_name)
+    return make_pupil_detector(settings, importlib.import_module(module_name))
 
 
 def _raw(det: Any, gray: np.ndarray, decimate: float) -> dict[tuple[int, int], tuple[int, float, np.ndarray]]:

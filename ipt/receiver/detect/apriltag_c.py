@@ -52,13 +52,15 @@ def free_pupil_detector(det: Any) -> None:
     det.tag_families = {}
 
 
-def make_pupil_detector(settings: dict[str, float], binding: str = "dt_apriltags") -> Any:
+def make_pupil_detector(settings: dict[str, float], binding: Any = None) -> Any:
     """A tag36h11 dt-apriltags detector with ``settings`` (see :func:`ipt.receiver.detect.detector.c_settings`).
-    Free it with :func:`free_pupil_detector`. ``binding``: another module of pupil-apriltags' interface to
-    make it with (``pupil_apriltags``, for ``benchmarks/apriltag_binding.py``'s comparison)."""
-    import importlib
+    Free it with :func:`free_pupil_detector`. ``binding``: another module of pupil-apriltags' interface to make
+    it with (``pupil_apriltags`` itself, for ``benchmarks/apriltag_binding.py``'s comparison)."""
+    if binding is None:
+        import dt_apriltags
 
-    det = importlib.import_module(binding).Detector(
+        binding = dt_apriltags
+    det = binding.Detector(
         families="tag36h11",
         nthreads=int(settings["nthreads"]),
         quad_decimate=settings["quad_decimate"],
