@@ -31,12 +31,21 @@ from ipt.tagmap import TAG36H11_CELLS, TagMap, tag36h11_bitmap
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
+BOOL = npt.NDArray[np.bool_]
 
 #: Where along each cell edge it is sampled (fractions of the edge).
 SAMPLE_FRACTIONS = (0.25, 0.75)
 #: Tags whose cells would be narrower than this in the image are left out: the difference's smoothing
 #: blurs their edges into each other (a landing pad's small tags seen from high up).
 MIN_CELL_PX = 2.5
+#: When fewer of the evenly spread edge samples than this share fall where the image can show them (inside
+#: it, not in the drone's shadow), the samples are spread over the ones that do (:func:`_select`).
+MIN_SEEN_SHARE = 0.5
+#: With at least this many clear data cells in view, their agreement with the map (a fraction) is the check.
+MANY_CELLS = 20
+#: With fewer (a low view mostly in the drone's shadow: ~10-20 data cells lit), down to this many, more of
+#: them must agree (:meth:`TrackResult.cells_confirm`); with fewer still, the cells cannot confirm a pose.
+FEW_CELLS = 10
 
 
 @dataclass(frozen=True)
@@ -156,7 +165,26 @@ class TrackResult:
     """Rows (first, last) where the sign was the other one (a rolling shutter's flip inside the frame)."""
     cell_agreement: float = 1.0
     """Of the data cells in view whose difference is clearly positive or negative, the fraction whose sign
-    is the map's at this pose: near 1 when the pose is right, near one half when it is off by a cell."""
+    is the map's at this pose: near 1 when the pose is right, near one half when it is off by a cell; 0 when
+    fewer than :data:`MANY_CELLS` are clear (see :meth:`cells_confirm`)."""
+    cells_clear: int = 0
+    """How many data cells in view were clearly positive or negative."""
+    cells_agreeing: int = 0
+    """How many of those had the map's sign at this pose."""
+
+    def cells_confirm(self, min_agreement: float) -> bool:
+        """The data cells confirm the pose: with :data:`MANY_CELLS` or more clear, at least ``min_agreement``
+        of them agree with the map; with fewer (down to :data:`FEW_CELLS`), fewer may disagree: from none
+        of :data:`FEW_CELLS` to the fraction ``1 - min_agreement`` of :data:`MANY_CELLS`. A pose a tag off
+        (the map's tags differ only in their data cells) agrees with ~50-70 % of them: the fewer cells
+        are counted, the likelier it reaches a given fraction by chance, so the fewer may disagree."""
+        n = self.cells_clear
+        if n >= MANY_CELLS:
+            return self.cells_agreeing / n >= min_agreement
+        if n < FEW_CELLS:
+            return False
+        allowed = int((1.0 - min_agreement) * MANY_CELLS * (n - FEW_CELLS) / (MANY_CELLS - FEW_CELLS) + 1e-9)
+        return n - self.cells_agreeing <= allowed
 
     @property
     def inlier_fraction(self) -> float:
@@ -203,8 +231,20 @@ class TrackSettings:
 CONVERGED_PX = 0.05
 
 
-def _select(edges: MapEdges, camera_matrix: F64, r: F64, t: F64, size: tuple[int, int], most: int) -> I64:
-    """Indices of the edge samples of the tags that may be in view, at most ``most`` of them, spread evenly."""
+def _select(
+    edges: MapEdges,
+    camera_matrix: F64,
+    r: F64,
+    t: F64,
+    size: tuple[int, int],
+    most: int,
+    visible: npt.NDArray[np.uint8] | None = None,
+    border_px: float = 0.0,
+) -> I64:
+    """Indices of the edge samples of the tags that may be in view, at most ``most`` of them, spread evenly.
+    When they are too many and few of the evenly spread ones would be seen (inside the image by
+    ``border_px``, on a pixel of ``visible``: a low view mostly in the drone's shadow, whose tags reach far
+    out of the image), they are spread over the seen ones instead."""
     w, h = size
     centres = edges.tag_centres_m @ r.T + t
     depth = centres[:, 2]
@@ -217,9 +257,35 @@ def _select(edges: MapEdges, camera_matrix: F64, r: F64, t: F64, size: tuple[int
     if edges.tag_cell_m is not None:
         near &= k[0, 0] * edges.tag_cell_m / np.maximum(depth, 0.05) >= MIN_CELL_PX
     chosen = np.flatnonzero(near[edges.tag])
+    if len(chosen) <= most:
+        return chosen
+    spread = np.linspace(0, len(chosen) - 1, most).astype(np.int64)
+    if visible is None:
+        return chosen[spread]
+    seen = _seen(edges.points_m[chosen], k, r, t, visible, border_px)
+    if seen[spread].mean() >= MIN_SEEN_SHARE:
+        return chosen[spread]
+    chosen = chosen[seen]
     if len(chosen) > most:
         chosen = chosen[np.linspace(0, len(chosen) - 1, most).astype(np.int64)]
     return chosen
+
+
+def _seen(points_m: F64, k: F64, r: F64, t: F64, visible: npt.NDArray[np.uint8], border_px: float) -> BOOL:
+    """Which arena points project inside the image by ``border_px`` onto a non-zero pixel of ``visible``."""
+    h, w = visible.shape
+    cam = points_m @ r.T + t
+    z = cam[:, 2]
+    ahead = z > 1e-6
+    safe = np.where(ahead, z, 1.0)
+    u = k[0, 0] * cam[:, 0] / safe + k[0, 2]
+    v = k[1, 1] * cam[:, 1] / safe + k[1, 2]
+    inside = ahead & (u > border_px) & (u < w - 1 - border_px) & (v > border_px) & (v < h - 1 - border_px)
+    seen = np.zeros(len(points_m), np.bool_)
+    ui = (u[inside] + 0.5).astype(np.int64)
+    vi = (v[inside] + 0.5).astype(np.int64)
+    seen[inside] = visible[vi, ui] > 0
+    return seen
 
 
 def fast_median(values: npt.NDArray[np.floating[Any]]) -> float:
@@ -251,18 +317,21 @@ def track_pose(
     valid: npt.NDArray[np.uint8] | None = None,
     coarse_px: float = 0.0,
     noise: float | None = None,
+    seen_first: bool = False,
 ) -> TrackResult | None:
     """Refine the pose (``rvec``, ``tvec``: arena → camera) so that the map's edges sit on the steps of
     ``diff`` (the signed difference of an undistorted pair in this frame's geometry: this frame minus the
     other, smoothed; ``camera_matrix`` a pinhole). ``sign`` is the difference's polarity if known; without
     it each band of rows decides its own from the data. ``valid`` (0/255) marks the pixels that carry
     signal. With ``coarse_px`` > 0 a first pass searches that far on a blurred copy of ``diff`` (for a
-    guess that may be several pixels off). ``noise`` is :func:`slope_noise` of ``diff`` if known. None if
-    too few edges agree."""
+    guess that may be several pixels off). ``noise`` is :func:`slope_noise` of ``diff`` if known. With
+    ``seen_first`` the edge samples are chosen among those the image can show (inside it, on ``valid``)
+    when the even spread would mostly miss them (:func:`_select`). None if too few edges agree."""
     h, w = diff.shape
     rot, _ = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3, 1))
     r, t = np.asarray(rot, np.float64), np.asarray(tvec, np.float64).reshape(3)
-    chosen = _select(edges, camera_matrix, r, t, (w, h), settings.max_samples)
+    seen = valid if seen_first and valid is not None and valid.shape == diff.shape else None
+    chosen = _select(edges, camera_matrix, r, t, (w, h), settings.max_samples, seen, settings.border_px)
     if len(chosen) < settings.min_inliers:
         return None
     fit = _Fit(edges, chosen, camera_matrix, (w, h), settings, valid)
@@ -413,7 +482,7 @@ class _Fit:
         # (the tags present, by bincount: np.unique's sort costs ten times more)
         tags = tuple(sorted({self.edges.tag_ids[t] for t in np.flatnonzero(np.bincount(self.owner[self.idx][inl]))}))
         present = np.flatnonzero(np.bincount(self.owner))
-        agreement = _cell_agreement(diff, self.k, self.edges, self.r, self.t, present, band_sign, valid)
+        agreeing, clear = _cell_agreement(diff, self.k, self.edges, self.r, self.t, present, band_sign, valid)
         rvec, _ = cv2.Rodrigues(self.r)
         return TrackResult(
             np.asarray(rvec, np.float64).reshape(3),
@@ -425,7 +494,9 @@ class _Fit:
             cov,
             main,
             flipped,
-            agreement,
+            agreeing / clear if clear >= MANY_CELLS else 0.0,
+            clear,
+            agreeing,
         )
 
 
@@ -438,24 +509,24 @@ def _cell_agreement(
     tags: I64,
     band_sign: F64,
     valid: npt.NDArray[np.uint8] | None,
-) -> float:
-    """How many of the visible data cells' centres have the sign the map gives them at this pose."""
+) -> tuple[int, int]:
+    """How many of the visible data cells' centres are clear, and how many of those have the sign the map
+    gives them at this pose: (agreeing, clear)."""
     tag_on = np.zeros(len(edges.tag_ids), np.bool_)
     tag_on[tags] = True
-    return float(
-        cell_agreement(
-            diff,
-            camera_matrix,
-            r,
-            t,
-            edges.cells_m,
-            edges.cell_tag,
-            edges.cell_value,
-            tag_on,
-            band_sign,
-            valid if valid is not None else _NO_MASK,
-        )
+    agreeing, clear = cell_agreement(
+        diff,
+        camera_matrix,
+        r,
+        t,
+        edges.cells_m,
+        edges.cell_tag,
+        edges.cell_value,
+        tag_on,
+        band_sign,
+        valid if valid is not None else _NO_MASK,
     )
+    return int(agreeing), int(clear)
 
 
 class MaskRenderer:

@@ -219,11 +219,11 @@ def cell_agreement(
     tag_on: npt.NDArray[np.bool_],
     band_sign: F64,
     valid: U8,
-) -> float:
+) -> tuple[int, int]:
     """Of the data cells of the tags marked in ``tag_on`` whose centres (``cells_m``) fall inside the image
-    on a valid pixel (``valid`` empty: all are), the fraction whose difference has the sign the map gives
-    them (``cell_value``, ±1, under the band's sign), counting only clear cells (more than 0.3 × the median
-    magnitude); 0 when fewer than 20 cells can say."""
+    on a valid pixel (``valid`` empty: all are), how many are clear (their difference more than 0.3 × the
+    median magnitude) and how many of those have the sign the map gives them (``cell_value``, ±1, under the
+    band's sign): (agreeing, clear)."""
     h, w = diff.shape
     use_valid = valid.shape[0] == h and valid.shape[1] == w
     bands = band_sign.shape[0]
@@ -250,8 +250,8 @@ def cell_agreement(
         values[count] = diff[vi, ui] * band_sign[b]
         expected[count] = cell_value[i]
         count += 1
-    if count < 20:
-        return 0.0
+    if count == 0:
+        return 0, 0
     magnitude = np.abs(values[:count])
     limit = 0.3 * np.median(magnitude)
     clear = 0
@@ -261,7 +261,7 @@ def cell_agreement(
             clear += 1
             if (values[i] > 0) == (expected[i] > 0):
                 agree += 1
-    return agree / clear if clear >= 20 else 0.0
+    return agree, clear
 
 
 def slopes_sampled(diff: F32, valid: U8) -> F32:
