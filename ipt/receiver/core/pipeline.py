@@ -485,7 +485,7 @@ class Pipeline:
         t = self.cfg.pose.track
         if result is None or result.inlier_fraction < t.min_inlier_fraction:
             return None
-        if result.cell_agreement < t.min_cell_agreement:
+        if not result.cells_confirm(t.min_cell_agreement):  # (few clear cells: fewer may disagree)
             return None
         if len(result.tags) < self.cfg.pose.min_tags:
             return None
