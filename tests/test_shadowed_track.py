@@ -19,7 +19,7 @@ from ipt.geometry import R_BODY_CAM_DOWNWARD, rot_x, rot_y, rot_z
 from ipt.receiver.core.demodulator import PairDifference, lightness, pair_difference
 from ipt.receiver.core.pipeline import Pipeline
 from ipt.receiver.core.pose import rt_of
-from ipt.receiver.core.track import FEW_CELLS, MANY_CELLS, MapEdges, TrackResult, TrackSettings, track_pose
+from ipt.receiver.core.track import FEW_CELLS, MANY_CELLS, MapEdges, TrackResult
 from ipt.receiver.detect.detector import pipeline_detector
 from ipt.sender.modulator import PaperModulator
 from ipt.tagmap import grid_tag_map
@@ -83,21 +83,6 @@ def test_the_true_pose_of_a_shadowed_low_view_is_tracked(
     assert tracked is not None
     assert FEW_CELLS <= tracked.cells_clear < MANY_CELLS
     assert np.linalg.norm(_position_m(tracked.rvec, tracked.tvec) - POSITION_M) < 0.001
-
-
-def test_choosing_the_seen_samples_measures_more_of_them(shadowed: tuple[PairDifference, U8]) -> None:
-    """Spread over every tag near the view, most samples fall out of the image or in the shadow; chosen among
-    the seen ones, several times more are measured, and the pose is the same."""
-    diff, lit = shadowed
-    start = rt_of(POSITION_M, R_ARENA_CAM)
-    valid = np.minimum(diff.valid, lit)
-    settings = TrackSettings(min_inliers=30)
-    spread = track_pose(diff.diff, K, EDGES, *start, settings, None, valid)
-    seen = track_pose(diff.diff, K, EDGES, *start, settings, None, valid, seen_first=True)
-    assert spread is not None
-    assert seen is not None
-    assert seen.tried > 2 * spread.tried
-    assert np.linalg.norm(_position_m(seen.rvec, seen.tvec) - POSITION_M) < 0.001
 
 
 def _with_cells(agreeing: int, clear: int) -> TrackResult:

@@ -31,16 +31,12 @@ from ipt.tagmap import TAG36H11_CELLS, TagMap, tag36h11_bitmap
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
-BOOL = npt.NDArray[np.bool_]
 
 #: Where along each cell edge it is sampled (fractions of the edge).
 SAMPLE_FRACTIONS = (0.25, 0.75)
 #: Tags whose cells would be narrower than this in the image are left out: the difference's smoothing
 #: blurs their edges into each other (a landing pad's small tags seen from high up).
 MIN_CELL_PX = 2.5
-#: When fewer of the evenly spread edge samples than this share fall where the image can show them (inside
-#: it, not in the drone's shadow), the samples are spread over the ones that do (:func:`_select`).
-MIN_SEEN_SHARE = 0.5
 #: With at least this many clear data cells in view, their agreement with the map (a fraction) is the check.
 MANY_CELLS = 20
 #: With fewer (a low view mostly in the drone's shadow: ~10-20 data cells lit), down to this many, more of
@@ -231,20 +227,8 @@ class TrackSettings:
 CONVERGED_PX = 0.05
 
 
-def _select(
-    edges: MapEdges,
-    camera_matrix: F64,
-    r: F64,
-    t: F64,
-    size: tuple[int, int],
-    most: int,
-    visible: npt.NDArray[np.uint8] | None = None,
-    border_px: float = 0.0,
-) -> I64:
-    """Indices of the edge samples of the tags that may be in view, at most ``most`` of them, spread evenly.
-    When they are too many and few of the evenly spread ones would be seen (inside the image by
-    ``border_px``, on a pixel of ``visible``: a low view mostly in the drone's shadow, whose tags reach far
-    out of the image), they are spread over the seen ones instead."""
+def _select(edges: MapEdges, camera_matrix: F64, r: F64, t: F64, size: tuple[int, int], most: int) -> I64:
+    """Indices of the edge samples of the tags that may be in view, at most ``most`` of them, spread evenly."""
     w, h = size
     centres = edges.tag_centres_m @ r.T + t
     depth = centres[:, 2]
@@ -257,35 +241,9 @@ def _select(
     if edges.tag_cell_m is not None:
         near &= k[0, 0] * edges.tag_cell_m / np.maximum(depth, 0.05) >= MIN_CELL_PX
     chosen = np.flatnonzero(near[edges.tag])
-    if len(chosen) <= most:
-        return chosen
-    spread = np.linspace(0, len(chosen) - 1, most).astype(np.int64)
-    if visible is None:
-        return chosen[spread]
-    seen = _seen(edges.points_m[chosen], k, r, t, visible, border_px)
-    if seen[spread].mean() >= MIN_SEEN_SHARE:
-        return chosen[spread]
-    chosen = chosen[seen]
     if len(chosen) > most:
         chosen = chosen[np.linspace(0, len(chosen) - 1, most).astype(np.int64)]
     return chosen
-
-
-def _seen(points_m: F64, k: F64, r: F64, t: F64, visible: npt.NDArray[np.uint8], border_px: float) -> BOOL:
-    """Which arena points project inside the image by ``border_px`` onto a non-zero pixel of ``visible``."""
-    h, w = visible.shape
-    cam = points_m @ r.T + t
-    z = cam[:, 2]
-    ahead = z > 1e-6
-    safe = np.where(ahead, z, 1.0)
-    u = k[0, 0] * cam[:, 0] / safe + k[0, 2]
-    v = k[1, 1] * cam[:, 1] / safe + k[1, 2]
-    inside = ahead & (u > border_px) & (u < w - 1 - border_px) & (v > border_px) & (v < h - 1 - border_px)
-    seen = np.zeros(len(points_m), np.bool_)
-    ui = (u[inside] + 0.5).astype(np.int64)
-    vi = (v[inside] + 0.5).astype(np.int64)
-    seen[inside] = visible[vi, ui] > 0
-    return seen
 
 
 def fast_median(values: npt.NDArray[np.floating[Any]]) -> float:
@@ -317,24 +275,18 @@ def track_pose(
     valid: npt.NDArray[np.uint8] | None = None,
     coarse_px: float = 0.0,
     noise: float | None = None,
-    seen_first: bool = False,
 ) -> TrackResult | None:
     """Refine the pose (``rvec``, ``tvec``: arena → camera) so that the map's edges sit on the steps of
     ``diff`` (the signed difference of an undistorted pair in this frame's geometry: this frame minus the
     other, smoothed; ``camera_matrix`` a pinhole). ``sign`` is the difference's polarity if known; without
     it each band of rows decides its own from the data. ``valid`` (0/255) marks the pixels that carry
     signal. With ``coarse_px`` > 0 a first pass searches that far on a blurred copy of ``diff`` (for a
-    guess that may be several pixels off). ``noise`` is :func:`slope_noise` of ``diff`` if known. With
-    ``seen_first`` the edge samples are chosen among those the image can show (inside it, on ``valid``)
-    when the even spread would mostly miss them (:func:`_select`): about three times as many are measured on a low
-    shadowed view, but the pipeline does not ask for it, because on the take-off flight's descent the extra
-    poses it gives are often ~1 cm off and the track then breaks (descent 0.8-0.4 m 91.6 % without it,
-    86-90 % with it as a retry, in-process replay). None if too few edges agree."""
+    guess that may be several pixels off). ``noise`` is :func:`slope_noise` of ``diff`` if known. None if
+    too few edges agree."""
     h, w = diff.shape
     rot, _ = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3, 1))
     r, t = np.asarray(rot, np.float64), np.asarray(tvec, np.float64).reshape(3)
-    seen = valid if seen_first and valid is not None and valid.shape == diff.shape else None
-    chosen = _select(edges, camera_matrix, r, t, (w, h), settings.max_samples, seen, settings.border_px)
+    chosen = _select(edges, camera_matrix, r, t, (w, h), settings.max_samples)
     if len(chosen) < settings.min_inliers:
         return None
     fit = _Fit(edges, chosen, camera_matrix, (w, h), settings, valid)
