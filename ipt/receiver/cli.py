@@ -137,8 +137,19 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _run_daemon(args: argparse.Namespace) -> int:
-    # Before anything else: the daemon's first pose waits for the kernels above all (the paper profile, a
-    # research setting whose pipeline does not use them, pays for their load on that thread).
+    # Before anything else, while this process is lean and runs one thread: fork the AprilTag helper. Then the
+    # kernels, which the daemon's first pose waits for above all (the paper profile, a research setting whose
+    # pipeline does not use them, pays for their load on that thread).
+    from ipt.receiver.detect import tagworker
+
+    tagworker.prestart()
+    try:
+        return _run_daemon_started(args)
+    finally:
+        tagworker.drop_prestarted()  # not adopted: AprilTag runs inline, or the start failed
+
+
+def _run_daemon_started(args: argparse.Namespace) -> int:
     _warm_kernels_in_background()
     from ipt.config.models import shipped_config_path
     from ipt.config.receiver import load_receiver_config, with_overrides
@@ -167,6 +178,10 @@ def _run_daemon(args: argparse.Namespace) -> int:
     if updates:
         cfg = with_overrides(cfg, **updates)
     setup = load_setup(cfg)
+    if cfg.pipeline.detector.isolation != "process":
+        from ipt.receiver.detect.tagworker import drop_prestarted
+
+        drop_prestarted()  # AprilTag runs in this process: the forked helper has nothing to do
     capture_stop = threading.Event()
     source = _simulated_camera(cfg, capture_stop) if cfg.source_spec.kind == "sim" else None
     frame_log = _frame_log(cfg, args)

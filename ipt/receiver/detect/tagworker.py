@@ -22,6 +22,12 @@ A helper ends when its stdin closes: when the parent closes it, exits, or is kil
 when it ends, and can finish the frame in hand: the helper has a session of its own, so a terminal's
 Ctrl-C does not reach it, and it ignores SIGINT and SIGTERM, which systemd sends to every process of the
 unit. Linux only (``memfd_create``); elsewhere detection runs inline.
+
+A daemon's first helper is best forked (:func:`prestart`) at the very start, once numpy is loaded and before
+any thread or other library: a fork of that lean process costs a few hundredths of a second of processor
+time where a new interpreter (``python -m ipt.receiver.detect.tagworker``) costs a tenth, which a restarted
+daemon's first pose waits for. The forked helper is given its settings as its first message (u32 n, n bytes of
+JSON) when :class:`ProcessBackend` adopts it; helpers started later (replacements) are new interpreters.
 """
 
 from __future__ import annotations
@@ -36,10 +42,12 @@ import signal
 import struct
 import subprocess
 import sys
+import threading
 import time
+import traceback
 import weakref
 from dataclasses import dataclass, field
-from typing import Final
+from typing import Final, NoReturn
 
 import numpy as np
 import numpy.typing as npt
@@ -51,6 +59,7 @@ from ipt.receiver.detect.apriltag_c import (
     pupil_detect,
     pupil_settings,
 )
+from ipt.receiver.detect.helperprocs import Forked, os_threads, rss_anon_kb
 
 MAGIC: Final = b"IPTW"
 _U32: Final = struct.Struct("<I")
@@ -73,18 +82,6 @@ RETIRE_WAIT_S: Final = 5.0
 def process_isolation_available() -> bool:
     """Whether :class:`ProcessBackend` can run here (Linux, with ``memfd_create``)."""
     return sys.platform.startswith("linux") and hasattr(os, "memfd_create")
-
-
-def rss_anon_kb(pid: int) -> int | None:
-    """A process's own resident memory (``RssAnon`` in ``/proc/PID/status``), or None if it is gone."""
-    try:
-        with open(f"/proc/{pid}/status", encoding="ascii") as f:
-            for line in f:
-                if line.startswith("RssAnon:"):
-                    return int(line.split()[1])
-    except (OSError, ValueError):
-        return None
-    return None
 
 
 def _read_exact(fd: int, n: int, deadline: float | None) -> bytes:
@@ -173,12 +170,95 @@ def main(argv: list[str] | None = None) -> int:
     os._exit(0)
 
 
+# -- a helper forked from a lean parent ----------------------------------------------------------------
+
+
+def _forked_main(shm_fd: int, requests: int, replies: int, parent_ends: tuple[int, int]) -> NoReturn:
+    """The forked helper: what :func:`main` does in a new interpreter, the settings read from ``requests``."""
+    code = 1
+    try:
+        for fd in parent_ends:
+            os.close(fd)
+        os.setsid()  # a session of its own, as main()'s helper: the terminal's Ctrl-C is the parent's
+        signal.set_wakeup_fd(-1)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        signal.signal(signal.SIGHUP, signal.SIG_DFL)
+        signal.pthread_sigmask(signal.SIG_SETMASK, set())  # the parent may hold its stop signals (ipt.launch)
+        os.dup2(2, 1)  # what a library prints goes to stderr
+        (n,) = _U32.unpack(_read_exact(requests, _U32.size, None))
+        settings = json.loads(_read_exact(requests, n, None))
+        with contextlib.suppress(BrokenPipeError):
+            serve(shm_fd, settings, requests, replies)
+        code = 0
+    except EOFError:  # the parent went away, or had no use for this helper
+        code = 0
+    except BaseException:
+        traceback.print_exc()
+    finally:
+        os._exit(code)  # never back into the parent's code; no destructors (see main)
+
+
+@dataclass
+class _Prestarted:
+    helper: _Helper
+    shm_fd: int
+
+
+_prestarted: _Prestarted | None = None
+"""The helper :func:`prestart` forked, until a :class:`ProcessBackend` adopts it (:func:`drop_prestarted`)."""
+
+
+def prestart() -> bool:
+    """Fork the detector's first helper process now, to be adopted by the next :class:`ProcessBackend` of this
+    process. Only while this process runs one thread (a fork copies no other thread, and whatever lock one
+    held stays held in the child): call it first thing, before the threads and heavy libraries of a daemon.
+    Whether a helper was forked (not where the helper process is unavailable, or already done)."""
+    global _prestarted
+    if _prestarted is not None or not process_isolation_available() or os_threads() != 1:
+        return False
+    if threading.active_count() != 1:
+        return False
+    sys.stdout.flush()  # nothing buffered is written twice
+    sys.stderr.flush()
+    shm_fd = os.memfd_create("ipt-tag-image", os.MFD_CLOEXEC)
+    requests_r, requests_w = os.pipe()
+    replies_r, replies_w = os.pipe()
+    try:
+        pid = os.fork()
+    except OSError:
+        for fd in (shm_fd, requests_r, requests_w, replies_r, replies_w):
+            os.close(fd)
+        return False
+    if pid == 0:
+        _forked_main(shm_fd, requests_r, replies_w, (requests_w, replies_r))
+    os.close(requests_r)
+    os.close(replies_w)
+    _prestarted = _Prestarted(_Helper(Forked(pid), requests_w, replies_r), shm_fd)
+    return True
+
+
+def _take_prestarted() -> _Prestarted | None:
+    global _prestarted
+    taken, _prestarted = _prestarted, None
+    return taken
+
+
+def drop_prestarted() -> None:
+    """End the helper :func:`prestart` forked if no backend adopted it (the configuration runs AprilTag inline)."""
+    taken = _take_prestarted()
+    if taken is None:
+        return
+    helpers = _Helpers([taken.helper], taken.shm_fd)
+    helpers.end()
+
+
 # -- the parent's side -------------------------------------------------------------------------------
 
 
 @dataclass
 class _Helper:
-    proc: subprocess.Popen[bytes]
+    proc: subprocess.Popen[bytes] | Forked
     requests: int
     """Our end of the helper's stdin."""
     replies: int
@@ -255,12 +335,16 @@ class ProcessBackend:
         """Helpers replaced because they crashed, hung or failed to start."""
         self._helpers = _Helpers()
         self._finalizer = weakref.finalize(self, self._helpers.end)
-        self._helpers.shm_fd = os.memfd_create("ipt-tag-image", os.MFD_CLOEXEC)
         self._mapped: mmap.mmap | None = None
         self._pixels: npt.NDArray[np.uint8] = np.zeros(0, dtype=np.uint8)
         self._current: _Helper | None = None
         self._spare: _Helper | None = None
-        self._current = self._start()
+        prestarted = _take_prestarted()
+        if prestarted is not None:
+            self._current = self._adopt(prestarted)
+        if self._current is None:
+            self._helpers.shm_fd = os.memfd_create("ipt-tag-image", os.MFD_CLOEXEC)
+            self._current = self._start()
         if wait:
             self._wait_ready(self._current)
 
@@ -270,6 +354,20 @@ class ProcessBackend:
             self._wait_ready(self._current)
 
     # -- helpers' lives ------------------------------------------------------------------------------
+
+    def _adopt(self, prestarted: _Prestarted) -> _Helper | None:
+        """The helper :func:`prestart` forked, given its settings (None if it is gone: a new one is started)."""
+        helper = prestarted.helper
+        self._helpers.live.append(helper)
+        settings = json.dumps(self._settings).encode()
+        try:
+            _write_all(helper.requests, _U32.pack(len(settings)) + settings)
+        except OSError:
+            self._end(helper, kill=True)
+            os.close(prestarted.shm_fd)
+            return None
+        self._helpers.shm_fd = prestarted.shm_fd
+        return helper
 
     def _start(self) -> _Helper:
         fd = self._helpers.shm_fd
