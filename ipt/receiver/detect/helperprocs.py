@@ -23,7 +23,8 @@ def rss_anon_kb(pid: int) -> int | None:
 
 
 class Forked:
-    """A helper forked by :func:`ipt.receiver.detect.tagworker.prestart`, with the part of ``subprocess.Popen``'s interface the backend uses."""
+    """A helper forked by :func:`ipt.receiver.detect.tagworker.prestart`, with the part of ``subprocess.Popen``'s
+    interface the backend uses."""
 
     def __init__(self, pid: int) -> None:
         self.pid = pid
