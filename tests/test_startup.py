@@ -4,6 +4,9 @@ of the start). Real subprocesses; ``python -X importtime`` lists every module a 
 
 from __future__ import annotations
 
+import json
+import os
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -57,3 +60,90 @@ def test_replay_of_images_imports_no_video_camera_loop_or_output_modules(tmp_pat
     modules = _imported(proc.stderr)
     assert "ipt.receiver.replay" in modules, "importtime listed no modules"
     assert _heavy(modules) == [], "a replay of image frames imported what only videos, cameras or outputs need"
+
+
+def _frames(tmp_path: Path, count: int) -> tuple[Path, Path]:
+    camera = tmp_path / "camera.yaml"
+    save_camera_info(CAMERA, camera)
+    frames = tmp_path / "bmp"
+    frames.mkdir()
+    for i in range(count):
+        cv2.imwrite(str(frames / f"{i:06d}.bmp"), np.full((48, 64, 3), 90 + 20 * i, np.uint8))
+    return camera, frames
+
+
+def test_the_daemon_starts_one_interpreter_its_apriltag_helper_is_forked(tmp_path: Path) -> None:
+    # A new interpreter for the AprilTag helper (python -m ipt.receiver.detect.tagworker) imports numpy and the
+    # rest again: a tenth of a second of processor time before a restarted daemon's first pose. Forked from the
+    # daemon at its start, it imports nothing of that. PYTHONPROFILEIMPORTTIME makes every interpreter, a
+    # helper's too, list its imports on the stderr they share.
+    camera, frames = _frames(tmp_path, 3)
+    sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sink.bind(("127.0.0.1", 0))
+    try:
+        command = [sys.executable, "-m", "ipt.receiver.cli", "run", "--camera", str(camera)]
+        command += ["--source", f"images:{frames}", "--fps", "120", "--max-frames", "3"]
+        command += ["--send", f"127.0.0.1:{sink.getsockname()[1]}"]
+        env = dict(os.environ, PYTHONPROFILEIMPORTTIME="1")
+        env.pop("OPENBLAS_NUM_THREADS", None)  # the receiver sets it itself (a BLAS thread would forbid the fork)
+        proc = subprocess.run(command, capture_output=True, text=True, timeout=120, check=False, cwd=tmp_path, env=env)
+    finally:
+        sink.close()
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "final: 3 frames" in proc.stderr, proc.stderr[-3000:]
+    assert "0 for memory and 0 after failures" in proc.stderr, "the helper started and answered"
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("import time:")]
+    numpy_imports = [line for line in lines if line.rsplit("|", 1)[1].strip() == "numpy"]
+    assert len(numpy_imports) == 1, "numpy imported by more than one interpreter: the helper was not forked"
+    assert any(line.rsplit("|", 1)[1].strip() == "dt_apriltags" for line in lines), "the C detector was loaded"
+
+
+FORKED_HELPER = """
+import json, os, sys
+from ipt.receiver.detect import tagworker
+from ipt.receiver.detect.tagworker import ProcessBackend
+
+forked = tagworker.prestart()
+pid = tagworker._prestarted.helper.proc.pid if forked else None
+view = json.loads(sys.stdin.readline())
+import numpy as np
+from ipt.receiver.detect.apriltag_c import make_pupil_detector, pupil_detect
+image = np.asarray(view["image"], np.uint8)
+backend = ProcessBackend(view["settings"])
+found = backend.detect_raw(image)
+inline = pupil_detect(make_pupil_detector(view["settings"]), image, view["settings"]["quad_decimate"])
+same = [(a[0], a[1], a[2], a[3].tolist()) for a in found] == [(b[0], b[1], b[2], b[3].tolist()) for b in inline]
+out = {"forked": forked, "adopted": backend.helper_pids == [pid], "ids": sorted(d[0] for d in found), "same": same}
+backend.close()
+out["reaped"] = not os.path.exists(f"/proc/{pid}")
+tagworker.prestart()  # a second one, not adopted: dropped (the configuration runs AprilTag inline)
+second = tagworker._prestarted.helper.proc.pid
+tagworker.drop_prestarted()
+out["dropped"] = not os.path.exists(f"/proc/{second}")
+print(json.dumps(out), flush=True)
+"""
+
+
+def test_a_forked_helper_is_adopted_detects_as_inline_and_is_reaped(tmp_path: Path) -> None:
+    from ipt.config.models import DetectorConfig, load_arena_config, shipped_config_path
+    from ipt.receiver.detect.detector import c_settings
+    from ipt.tagmap import grid_tag_map
+
+    floor = grid_tag_map(load_arena_config(shipped_config_path("arena.yaml"))).render_image()
+    src = np.array([[100, 150], [800, 170], [790, 550], [90, 540]], np.float32)
+    dst = np.array([[0, 0], [640, 0], [640, 360], [0, 360]], np.float32)
+    view = cv2.warpPerspective(floor, cv2.getPerspectiveTransform(src, dst), (640, 360), flags=cv2.INTER_AREA)
+    request = json.dumps({"image": view.tolist(), "settings": c_settings(DetectorConfig())}) + "\n"
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")  # one thread: the fork is allowed
+    done = subprocess.run(
+        [sys.executable, "-c", FORKED_HELPER], input=request, capture_output=True, text=True, timeout=120,
+        check=False, cwd=tmp_path, env=env,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    out = json.loads(done.stdout.splitlines()[-1])
+    assert out["forked"], out
+    assert out["adopted"], out
+    assert out["ids"], out
+    assert out["same"], "the forked helper's detections differ from the C detector's in this process"
+    assert out["reaped"], out
+    assert out["dropped"], out
