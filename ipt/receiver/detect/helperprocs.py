@@ -6,7 +6,6 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
-import subprocess
 import time
 
 
@@ -42,7 +41,8 @@ class Forked:
         return self.returncode
 
     def wait(self, timeout: float | None = None) -> int:
-        """Its exit status, once it ended; ``subprocess.TimeoutExpired`` after ``timeout`` seconds."""
+        """Its exit status, once it ended; ``TimeoutError`` after ``timeout`` seconds (where ``Popen.wait`` raises
+        ``subprocess.TimeoutExpired``)."""
         if timeout is None and self.returncode is None:
             with contextlib.suppress(ChildProcessError):
                 _, status = os.waitpid(self.pid, 0)
@@ -50,7 +50,7 @@ class Forked:
         deadline = time.monotonic() + (timeout or 0.0)
         while (code := self.poll()) is None:
             if time.monotonic() >= deadline:
-                raise subprocess.TimeoutExpired(f"helper {self.pid}", timeout or 0.0)
+                raise TimeoutError(f"helper {self.pid} still runs after {timeout or 0.0:g} s")
             time.sleep(0.002)
         return code
 

@@ -297,7 +297,7 @@ class _Helpers:
         for h in self.live:
             try:
                 h.proc.wait(max(0.0, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
+            except (subprocess.TimeoutExpired, TimeoutError):  # a new interpreter's, a forked one's
                 h.proc.kill()
                 h.proc.wait()
             h.close_replies()
