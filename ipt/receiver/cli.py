@@ -8,6 +8,7 @@ SIGHUP at any moment, also while starting, prints its final statistics line and 
 from __future__ import annotations
 
 import argparse
+import gc
 import math
 import os
 import sys
@@ -24,6 +25,7 @@ if TYPE_CHECKING:
     from ipt.config.receiver import ReceiverConfig
     from ipt.receiver.capture import CaptureSource
     from ipt.receiver.capture.framelog import FrameLogWriter
+    from ipt.receiver.core.frameresult import FrameResult
 
 PROFILES = ("ipt", "paper")
 """The processing profiles of ``replay --profile`` (:meth:`ipt.config.models.PipelineConfig.profile`)."""
@@ -140,16 +142,52 @@ def _run_daemon(args: argparse.Namespace) -> int:
     # Before anything else, while this process is lean and runs one thread: fork the AprilTag helper. Then the
     # kernels, which the daemon's first pose waits for above all (the paper profile, a research setting whose
     # pipeline does not use them, pays for their load on that thread).
+    hold = GcHeldForStartUp()
     from ipt.receiver.detect import tagworker
 
     tagworker.prestart()
     try:
-        return _run_daemon_started(args)
+        return _run_daemon_started(args, hold)
     finally:
         tagworker.drop_prestarted()  # not adopted: AprilTag runs inline, or the start failed
 
 
-def _run_daemon_started(args: argparse.Namespace) -> int:
+START_UP_RESULTS = 240
+"""Frames' results (2 s of a 120 FPS camera) after which :class:`GcHeldForStartUp` lets go without a pose."""
+
+
+class GcHeldForStartUp:
+    """Python's cyclic garbage collector, held off from the daemon's start to its first pose.
+
+    The start-up makes a few hundred thousand objects that live as long as the process (the modules of numba,
+    pydantic, OpenCV and ipt, the configuration, the pipeline), and the collector's passes over them, two of
+    them full, cost 0.05-0.1 s of processor time before the first pose here. At the first pose (or after
+    :data:`START_UP_RESULTS` results without one) everything alive is frozen (``gc.freeze``: left out of every
+    later pass, as Python's documentation advises after a start-up) and collection resumes for what is made
+    from then on. What cyclic garbage the start-up left stays frozen with it."""
+
+    def __init__(self) -> None:
+        self.held = gc.isenabled()
+        self.results = 0
+        if self.held:
+            gc.disable()
+
+    def on_result(self, frame: object, result: FrameResult | None, sent: int) -> None:
+        """The daemon's ``on_result`` hook (:class:`~ipt.receiver.options.ReceiverOptions`)."""
+        if not self.held:
+            return
+        self.results += 1
+        if (result is not None and result.pose is not None) or self.results >= START_UP_RESULTS:
+            self.release()
+
+    def release(self) -> None:
+        if self.held:
+            self.held = False
+            gc.freeze()
+            gc.enable()
+
+
+def _run_daemon_started(args: argparse.Namespace, hold: GcHeldForStartUp) -> int:
     _warm_kernels_in_background()
     from ipt.config.models import shipped_config_path
     from ipt.config.receiver import load_receiver_config, with_overrides
@@ -185,7 +223,13 @@ def _run_daemon_started(args: argparse.Namespace) -> int:
     capture_stop = threading.Event()
     source = _simulated_camera(cfg, capture_stop) if cfg.source_spec.kind == "sim" else None
     frame_log = _frame_log(cfg, args)
-    options = ReceiverOptions(max_frames=args.max_frames, source=source, capture_stop=capture_stop, frame_log=frame_log)
+    options = ReceiverOptions(
+        max_frames=args.max_frames,
+        source=source,
+        capture_stop=capture_stop,
+        frame_log=frame_log,
+        on_result=hold.on_result,
+    )
     try:
         stats = run(setup, options)
     except OutputError as exc:

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import gc
 import json
 import mmap
 import os
@@ -186,6 +187,7 @@ def _forked_main(shm_fd: int, requests: int, replies: int, parent_ends: tuple[in
         signal.signal(signal.SIGHUP, signal.SIG_DFL)
         signal.pthread_sigmask(signal.SIG_SETMASK, set())  # the parent may hold its stop signals (ipt.launch)
         os.dup2(2, 1)  # what a library prints goes to stderr
+        gc.enable()  # the parent may hold it off while it starts (ipt.receiver.cli.GcHeldForStartUp)
         (n,) = _U32.unpack(_read_exact(requests, _U32.size, None))
         settings = json.loads(_read_exact(requests, n, None))
         with contextlib.suppress(BrokenPipeError):
@@ -221,6 +223,7 @@ def prestart() -> bool:
         return False
     sys.stdout.flush()  # nothing buffered is written twice
     sys.stderr.flush()
+    gc.freeze()  # what exists now lives on in both: no collection of either process scans (and copies) it
     shm_fd = os.memfd_create("ipt-tag-image", os.MFD_CLOEXEC)
     requests_r, requests_w = os.pipe()
     replies_r, replies_w = os.pipe()
