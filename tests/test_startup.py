@@ -115,6 +115,7 @@ found = backend.detect_raw(image)
 inline = pupil_detect(make_pupil_detector(view["settings"]), image, view["settings"]["quad_decimate"])
 same = [(a[0], a[1], a[2], a[3].tolist()) for a in found] == [(b[0], b[1], b[2], b[3].tolist()) for b in inline]
 out = {"forked": forked, "adopted": backend.helper_pids == [pid], "ids": sorted(d[0] for d in found), "same": same}
+out["comm"] = open(f"/proc/{pid}/comm").read().strip()
 backend.close()
 out["reaped"] = not os.path.exists(f"/proc/{pid}")
 tagworker.prestart()  # a second one, not adopted: dropped (the configuration runs AprilTag inline)
@@ -144,6 +145,7 @@ def test_a_forked_helper_is_adopted_detects_as_inline_and_is_reaped(tmp_path: Pa
     out = json.loads(done.stdout.splitlines()[-1])
     assert out["forked"], out
     assert out["adopted"], out
+    assert out["comm"] == "ipt-tagworker", "its name in top (its command line is the daemon's)"
     assert out["ids"], out
     assert out["same"], "the forked helper's detections differ from the C detector's in this process"
     assert out["reaped"], out

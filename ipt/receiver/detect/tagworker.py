@@ -187,6 +187,8 @@ def _forked_main(shm_fd: int, requests: int, replies: int, parent_ends: tuple[in
         signal.signal(signal.SIGHUP, signal.SIG_DFL)
         signal.pthread_sigmask(signal.SIG_SETMASK, set())  # the parent may hold its stop signals (ipt.launch)
         os.dup2(2, 1)  # what a library prints goes to stderr
+        with contextlib.suppress(OSError), open("/proc/self/comm", "w", encoding="ascii") as comm:
+            comm.write("ipt-tagworker")  # its name in top and ps -o comm (its command line is the daemon's)
         gc.enable()  # the parent may hold it off while it starts (ipt.receiver.cli.GcHeldForStartUp)
         (n,) = _U32.unpack(_read_exact(requests, _U32.size, None))
         settings = json.loads(_read_exact(requests, n, None))
