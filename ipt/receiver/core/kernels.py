@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from ipt.receiver.core import alignkernels, diffkernels, trackkernels
+from ipt.receiver.core import alignkernels, diffkernels, sparsekernels, trackkernels
 
 COMPILED = True
 """Whether the kernels below are compiled (False: numba is unavailable and they run as Python, or as numpy
@@ -115,6 +115,32 @@ slopes_sampled = _Kernel(trackkernels.slopes_sampled)
 align_system = _Kernel(alignkernels.align_system, alignkernels.align_system_numpy)
 sample_pair = _Kernel(diffkernels.sample_pair, diffkernels.sample_pair_numpy)
 difference_pass = _Kernel(diffkernels.difference_pass, diffkernels.difference_pass_numpy)
+
+
+class _SparseKernel(_Kernel):
+    """The sparse tracker's kernel (a prototype, :mod:`ipt.receiver.core.sparse`): compiled apart from the
+    others on its first use, so that it adds nothing to a daemon's start-up."""
+
+    def __call__(self, *args: Any) -> Any:
+        if self.compiled is None:
+            ensure()  # (numba's availability is known from here on)
+            with _lock:
+                if self.compiled is None:
+                    # Each helper before its callers, as sparsekernels' global when they compile.
+                    sparsekernels.distort = _jit(sparsekernels.distort_py)
+                    sparsekernels.bilinear_u8 = _jit(sparsekernels.bilinear_u8_py)
+                    sparsekernels.project_floor = _jit(sparsekernels.project_floor_py)
+                    sparsekernels.read_profile = _jit(sparsekernels.read_profile_py)
+                    sparsekernels.edge_row = _jit(sparsekernels.edge_row_py)
+                    for kernel in (sparse_profiles, sparse_moments, sparse_normal, sparse_residuals):
+                        kernel.compiled = _jit(kernel.py_func)
+        return self.compiled(*args)
+
+
+sparse_profiles = _SparseKernel(sparsekernels.profiles)
+sparse_moments = _SparseKernel(sparsekernels.moments)
+sparse_normal = _SparseKernel(sparsekernels.normal)
+sparse_residuals = _SparseKernel(sparsekernels.residuals)
 
 
 def warm() -> None:

@@ -1,0 +1,347 @@
+"""A sparse tracker (a prototype for issue 29): a frame's pose from two raw frames read only along the map's edges.
+
+:mod:`ipt.receiver.core.track` fits the pose to the steps of a difference image that the dense stages make
+(undistortion of both frames, their content homography, their brightness-matched difference). Once the
+partner frame's pose is known roughly, none of that is needed: the floor points on both sides of each edge
+sample of the hidden map are projected into this frame ``k`` (at its current estimate) and into its partner
+``j`` (at its estimate), through the camera's own lens model, and the two raw frames are read there.
+
+Two traps shape the fit. The floor's content does not cancel in I_k − g·I_j unless the two readings are
+registered: a pixel of misregistration leaves the content's slope (tens of levels a pixel) against a map step
+of a few levels. And ``j`` carries the map too, with the other sign: read at ``j``'s pose its step sits at
+o = 0 of each profile while ``k``'s sits at its error δ, so a peak finder on the difference finds about their
+midpoint (or o = 0). So the fit is direct, on the profiles' values: this frame's profile is modelled as the
+partner's with its step turned over, I_k ≈ g·I_j + c·M (M the map's blurred step, c = 2ΔL signed by the
+phase), each shifted by its frame's pose change (Gauss-Newton in both poses, the gain and c; the content
+ties the two poses together, the map's step places them on the map; the partner's pose is held near its own
+by a prior, so a flat floor still fits). Profiles whose residual is far above the typical one (content that
+changed between the frames, the shadow's edge) are left out. The first iterations smooth the profiles, for
+a guess a few pixels off.
+
+Pure: two 8-bit lightness frames, the camera model, the partner's pose and a guess in; a pose out, or why not.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from ipt.receiver.core import kernels
+from ipt.receiver.core.pose import PoseEstimate, pose_of
+from ipt.receiver.core.track import MIN_CELL_PX, MapEdges, fast_median
+
+F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
+U8 = npt.NDArray[np.uint8]
+
+#: The fit has converged when its last step moved no inlier by more than this (pixels).
+CONVERGED_PX = 0.05
+
+
+@dataclass(frozen=True)
+class SparseSettings:
+    """How the profiles are read and the pose fitted (pixels at the camera's own resolution)."""
+
+    radius_px: int = 6
+    """Profile half-length of the coarse iterations."""
+    fine_radius_px: int = 4
+    """Profile half-length of the later iterations."""
+    coarse_iterations: int = 2
+    """The first iterations smooth the profiles (a wider reach for a guess a few pixels off)."""
+    coarse_smooth_px: float = 1.5
+    iterations: int = 6
+    max_samples: int = 700
+    min_inliers: int = 60
+    min_tags: int = 2
+    min_inlier_fraction: float = 0.5
+    """Fewer of the samples in view kept than this: refused (content changed, or the pose is lost)."""
+    blur_px: float = 1.0
+    """The Gaussian blur (σ) of a step in the camera's image: the model of the map's step."""
+    border_px: float = 3.0
+    outlier_factor: float = 2.5
+    """A profile whose RMS residual exceeds this many times the median one is left out."""
+    other_sigma_px: float = 1.0
+    """How far the partner's known pose may be off (pixels): its prior."""
+    max_partner_px: float = 1.5
+    """A fit that moves the partner's pose by more than this (pixels, at any sample) is refused."""
+    min_step_sigmas: float = 8.0
+    """The map's step must stand this many standard errors clear of zero."""
+    min_amplitude: float = 0.5
+    """... and be at least this many lightness levels per unit of the map's step."""
+
+
+@dataclass(frozen=True)
+class SparseResult:
+    """The frame's pose fitted from its pair."""
+
+    rvec: F64
+    """Rotation arena → camera (Rodrigues)."""
+    tvec: F64
+    inliers: int
+    tried: int
+    rms_px: float
+    sign: int
+    """The frame's projector phase: +1 if the map's white cells are brighter in it than in its partner."""
+    amplitude: float
+    """The pair's step, lightness levels per unit of the map's step (ΔL seen by the camera, both phases)."""
+    gain: float
+    iterations: int
+    tags: tuple[int, ...]
+
+    def estimate(self) -> PoseEstimate:
+        position, r_arena_cam = pose_of(self.rvec, self.tvec)
+        return PoseEstimate(position, r_arena_cam, self.tags, self.rms_px)
+
+
+@dataclass(frozen=True)
+class SparseCamera:
+    """The camera as the sparse tracker projects through it."""
+
+    camera_matrix: F64
+    dist_coeffs: F64
+    """k1, k2, p1, p2, k3 (OpenCV's order)."""
+    size: tuple[int, int]
+    """(width, height) pixels."""
+
+    @classmethod
+    def of(cls, camera_matrix: F64, dist_coeffs: F64, size: tuple[int, int]) -> SparseCamera:
+        dist = np.zeros(5)
+        given = np.asarray(dist_coeffs, np.float64).ravel()[:5]
+        dist[: len(given)] = given
+        return cls(np.asarray(camera_matrix, np.float64), dist, size)
+
+
+def select(edges: MapEdges, camera: SparseCamera, r: F64, t: F64, most: int) -> I64:
+    """Indices of the edge samples of the tags that may be in view at (r, t), at most ``most``, spread evenly
+    (the tags' centres through the pinhole: the lens moves them by less than the margin of a tag's reach)."""
+    w, h = camera.size
+    k = camera.camera_matrix
+    centres = edges.tag_centres_m @ r.T + t
+    depth = np.maximum(centres[:, 2], 0.05)
+    uv = (k[:2, :2] @ (centres[:, :2] / depth[:, None]).T).T + k[:2, 2]
+    reach = k[0, 0] * edges.tag_radius_m / depth
+    near = (centres[:, 2] > 0.05) & (uv[:, 0] > -reach) & (uv[:, 0] < w + reach)
+    near &= (uv[:, 1] > -reach) & (uv[:, 1] < h + reach)
+    cell = edges.tag_cell_m if edges.tag_cell_m is not None else np.full(len(depth), edges.cell_m)
+    near &= k[0, 0] * cell / depth >= MIN_CELL_PX
+    chosen = np.flatnonzero(near[edges.tag])
+    if len(chosen) > most:
+        chosen = chosen[np.linspace(0, len(chosen) - 1, most).astype(np.int64)]
+    return chosen
+
+
+#: Unknowns of the fit: the pair's brightness ratio's change, the map's step in the difference, this frame's
+#: pose change (δ rotation, Δt) and the partner's.
+_GAIN, _STEP, _THIS, _OTHER = 0, 1, slice(2, 8), slice(8, 14)
+
+
+@dataclass
+class _State:
+    """The fit's running estimate."""
+
+    r: F64
+    t: F64
+    r_other: F64
+    t_other: F64
+    gain: float
+    step: float
+    """The map's step in the difference I_k − gain·I_j, lightness levels per unit of the map's step: 2ΔL
+    seen by the camera, signed by this frame's phase."""
+    other_moved: F64
+    """The partner's pose change so far (δ rotation, Δt), which its prior holds near zero."""
+
+
+def _smooth(profiles: F32, sigma_px: float) -> F32:
+    if sigma_px <= 0:
+        return profiles
+    size = 2 * math.ceil(2.5 * sigma_px) + 1
+    return np.asarray(cv2.GaussianBlur(profiles, (size, 1), sigma_px, borderType=cv2.BORDER_REPLICATE), np.float32)
+
+
+@dataclass
+class _Moments:
+    """One iteration's profiles, reduced to what the fit needs (:func:`~ipt.receiver.core.sparsekernels.moments`)."""
+
+    gram: F64
+    uy: F64
+    yy: F64
+    a_rows: F64
+    """(n, 12): the rows of this frame's displacement, then the partner's."""
+
+
+def _moments(pk: F32, pj: F32, a_rows: F64, sv: F64, st: _State, blur_px: float) -> _Moments:
+    """The linearised model of this frame's profiles from the partner's and the map's (per profile, centred:
+    each sample's own brightness level drops out): I_k − g·I_j − c·M = Δg·I_j + Δc·M − F′·δ + g·I_j′·ε, with
+    F = g·I_j + c·M the partner's profile with its step turned over (what this frame shows when registered),
+    δ and ε the displacements (profile steps) that this frame's and the partner's pose changes make."""
+    width = pk.shape[1]
+    o = (np.arange(width, dtype=np.float64) - width // 2) / blur_px
+    cdf = 0.5 * (1.0 + np.array([math.erf(x / math.sqrt(2.0)) for x in o]))
+    pdf = np.exp(-0.5 * o * o) / (math.sqrt(2.0 * math.pi) * blur_px)
+    gram, uy, yy = kernels.sparse_moments(pk, pj, sv, st.gain, st.step, cdf, pdf)
+    return _Moments(gram, uy, yy, a_rows)
+
+
+def _solve(m: _Moments, keep: npt.NDArray[np.bool_], st: _State, s: SparseSettings) -> tuple[F64, F64, F64]:
+    """The least-squares change of the 14 unknowns from the kept profiles, the partner's pose held near its
+    own by its prior; also each profile's RMS residual (per profile sample) and the normal matrix."""
+    normal, rhs, held = kernels.sparse_normal(m.gram, m.uy, m.a_rows, keep)
+    width = 2 * s.fine_radius_px + 1
+    sigma2 = max(float(m.yy[keep].sum()) / max(int(keep.sum()) * width, 1), 1.0)  # the residual's scale (a bound)
+    prior = (sigma2 / s.other_sigma_px**2) * held
+    normal[_OTHER, _OTHER] += prior
+    rhs[_OTHER] -= prior @ st.other_moved
+    try:
+        sol = np.asarray(np.linalg.solve(normal, rhs), np.float64)
+    except np.linalg.LinAlgError:
+        return np.zeros(14), np.full(len(keep), np.inf), normal
+    rss = kernels.sparse_residuals(m.gram, m.uy, m.yy, m.a_rows, sol)
+    return sol, np.sqrt(rss / width), normal
+
+
+def _update(st: _State, sol: F64) -> None:
+    rot, _ = cv2.Rodrigues(sol[2:5].reshape(3, 1))
+    st.r, st.t = np.asarray(rot, np.float64) @ st.r, st.t + sol[5:8]
+    rot, _ = cv2.Rodrigues(sol[8:11].reshape(3, 1))
+    st.r_other, st.t_other = np.asarray(rot, np.float64) @ st.r_other, st.t_other + sol[11:14]
+    st.other_moved = st.other_moved + sol[_OTHER]
+    st.gain += float(sol[_GAIN])
+    st.step += float(sol[_STEP])
+
+
+def _initial(image: U8, other: U8, other_rt: tuple[F64, F64], guess_rt: tuple[F64, F64], step: float) -> _State:
+    rot, _ = cv2.Rodrigues(np.asarray(guess_rt[0], np.float64).reshape(3, 1))
+    rot_o, _ = cv2.Rodrigues(np.asarray(other_rt[0], np.float64).reshape(3, 1))
+    return _State(
+        np.asarray(rot, np.float64),
+        np.asarray(guess_rt[1], np.float64).reshape(3).copy(),
+        np.asarray(rot_o, np.float64),
+        np.asarray(other_rt[1], np.float64).reshape(3).copy(),
+        1.0,
+        step,
+        np.zeros(6),
+    )
+
+
+def fit_sparse(
+    image: U8,
+    other: U8,
+    camera: SparseCamera,
+    edges: MapEdges,
+    other_rt: tuple[F64, F64],
+    guess_rt: tuple[F64, F64],
+    settings: SparseSettings = SparseSettings(),
+    step_hint: float = 0.0,
+) -> tuple[SparseResult | None, str]:
+    """The pose of the frame ``image`` (raw 8-bit lightness, as the camera sees it: not undistorted) from its
+    pair with ``other`` (opposite projector phase) whose pose ``other_rt`` (rvec, tvec: arena → camera) is
+    known, starting from ``guess_rt``; ``step_hint``: the pair's step if known (the last pair's, signed for
+    this frame). The result, or None and why ("few_samples", "few_in_view", "few_kept", "few_tags",
+    "not_converged", "weak_step", "partner_moved")."""
+    s = settings
+    st = _initial(image, other, other_rt, guess_rt, step_hint)
+    chosen = select(edges, camera, st.r, st.t, s.max_samples)
+    if len(chosen) < s.min_inliers:
+        return None, "few_samples"
+    obj, nrm, steps = edges.points_m[chosen], edges.normals_m[chosen], edges.step[chosen]
+    k, dist = camera.camera_matrix, camera.dist_coeffs
+    moved, it, gain_set = np.inf, 0, False
+    kept = np.ones(len(chosen), np.bool_)  # per chosen sample: its profile was not an outlier last time
+    for it in range(s.iterations):
+        coarse = it < s.coarse_iterations
+        radius = s.radius_px if coarse else s.fine_radius_px
+        idx, pk, pj, a_rows = kernels.sparse_profiles(
+            obj, nrm, st.r, st.t, st.r_other, st.t_other, k, dist, image, other, radius, s.border_px
+        )
+        if len(idx) < s.min_inliers:
+            return None, "few_in_view"
+        if not gain_set:
+            st.gain, gain_set = fast_median(pk.mean(axis=1) / np.maximum(pj.mean(axis=1), 1.0)), True
+        smooth = s.coarse_smooth_px if coarse else 0.0
+        pk, pj = _smooth(pk, smooth), _smooth(pj, smooth)
+        blur = math.hypot(s.blur_px, smooth)
+        m = _moments(pk, pj, a_rows, steps[idx], st, blur)
+        keep = kept[idx]
+        for _ in range(2 if it == 0 else 1):  # robust: drop profiles far worse than the typical one
+            if keep.sum() < s.min_inliers:
+                return None, "few_kept"
+            sol, rms, normal = _solve(m, keep, st, s)
+            keep = rms < s.outlier_factor * max(fast_median(rms[keep]), 0.5)
+        kept[idx] = keep
+        _update(st, sol)
+        moved = float(np.abs(a_rows[keep, :6] @ sol[_THIS]).max())
+        if not coarse and moved < CONVERGED_PX:
+            break
+    return _finish(st, edges, chosen, idx, keep, rms, normal, moved, it, a_rows[:, 6:], s)
+
+
+def _finish(
+    st: _State,
+    edges: MapEdges,
+    chosen: I64,
+    idx: I64,
+    keep: npt.NDArray[np.bool_],
+    rms: F64,
+    normal: F64,
+    moved: float,
+    it: int,
+    other_rows: F64,
+    s: SparseSettings,
+) -> tuple[SparseResult | None, str]:
+    """The checks on the last iteration's fit, and the result."""
+    present = np.flatnonzero(np.bincount(edges.tag[chosen][idx][keep]))
+    if len(present) < s.min_tags:
+        return None, "few_tags"
+    if moved > 4 * CONVERGED_PX:
+        return None, "not_converged"
+    sigma = float(np.sqrt(np.mean(rms[keep] ** 2)))
+    try:
+        step_var = float(np.linalg.inv(normal)[_STEP, _STEP])
+    except np.linalg.LinAlgError:
+        return None, "weak_step"
+    if abs(st.step) < s.min_step_sigmas * sigma * math.sqrt(step_var) or abs(st.step) < s.min_amplitude:
+        return None, "weak_step"
+    if float(np.abs(other_rows[keep] @ st.other_moved).max()) > s.max_partner_px:
+        return None, "partner_moved"
+    if keep.sum() < s.min_inlier_fraction * len(idx):
+        return None, "inlier_fraction"
+    rvec, _ = cv2.Rodrigues(st.r)
+    tags = tuple(sorted(edges.tag_ids[i] for i in present))
+    sign = 1 if st.step > 0 else -1
+    return SparseResult(
+        np.asarray(rvec, np.float64).reshape(3),
+        st.t.copy(),
+        int(keep.sum()),
+        len(idx),
+        sigma,
+        sign,
+        abs(st.step),
+        st.gain,
+        it + 1,
+        tags,
+    ), ""
+
+
+def extrapolate(
+    older: tuple[F64, F64], older_us: int, newer: tuple[F64, F64], newer_us: int, at_us: int
+) -> tuple[F64, F64]:
+    """The pose (rvec, tvec) at ``at_us`` moving on from ``newer`` as it moved from ``older``: constant linear and
+    angular velocity of the camera."""
+    if newer_us == older_us:
+        return newer
+    f = (at_us - newer_us) / (newer_us - older_us)
+    ra, _ = cv2.Rodrigues(np.asarray(older[0], np.float64).reshape(3, 1))
+    rb, _ = cv2.Rodrigues(np.asarray(newer[0], np.float64).reshape(3, 1))
+    pa = -ra.T @ np.asarray(older[1], np.float64).reshape(3)
+    pb = -rb.T @ np.asarray(newer[1], np.float64).reshape(3)
+    turn, _ = cv2.Rodrigues(rb @ ra.T)  # arena → camera side: R_b = turn · R_a
+    step, _ = cv2.Rodrigues(np.asarray(turn, np.float64) * f)
+    r = np.asarray(step, np.float64) @ rb
+    p = pb + f * (pb - pa)
+    rvec, _ = cv2.Rodrigues(r)
+    return np.asarray(rvec, np.float64).reshape(3), -r @ p

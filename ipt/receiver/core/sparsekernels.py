@@ -1,0 +1,302 @@
+"""The sparse tracker's inner loop (:mod:`ipt.receiver.core.sparse`), as plain Python that
+:mod:`ipt.receiver.core.kernels` compiles (numba): the map's edge samples projected through the camera's own
+lens model (OpenCV's k1, k2, p1, p2, k3: the points are distorted, the image never undistorted) and the two raw
+frames of a pair read along each sample's floor normal.
+
+:func:`profiles` calls :data:`edge_row` and :data:`read_profile` (which call :data:`project_floor`,
+:data:`distort` and :data:`bilinear_u8`): the module's globals, which
+:func:`ipt.receiver.core.kernels.ensure` replaces by their compiled versions before it compiles their caller.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
+U8 = npt.NDArray[np.uint8]
+
+
+def distort_py(x: float, y: float, dist: F64, jac: F64) -> tuple[float, float]:
+    """The normalised image point (x, y) = (X/Z, Y/Z) through OpenCV's lens model (``dist``: k1, k2, p1, p2,
+    k3): the distorted normalised point, and its 2x2 Jacobian d(xd, yd)/d(x, y) into ``jac``."""
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    slope = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
+    cross = 2.0 * x * y * slope + 2.0 * p1 * x + 2.0 * p2 * y
+    jac[0, 0] = radial + 2.0 * x * x * slope + 2.0 * p1 * y + 6.0 * p2 * x
+    jac[0, 1] = cross
+    jac[1, 0] = cross
+    jac[1, 1] = radial + 2.0 * y * y * slope + 6.0 * p1 * y + 2.0 * p2 * x
+    return xd, yd
+
+
+distort: Any = distort_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+
+
+def bilinear_u8_py(image: U8, x: float, y: float) -> float:
+    """``image`` (8-bit) at (x, y), bilinear; the caller keeps (x, y) at least a pixel inside."""
+    x0 = int(x)
+    y0 = int(y)
+    fx = x - x0
+    fy = y - y0
+    top = image[y0, x0] * (1.0 - fx) + image[y0, x0 + 1] * fx
+    bottom = image[y0 + 1, x0] * (1.0 - fx) + image[y0 + 1, x0 + 1] * fx
+    return float(top * (1.0 - fy) + bottom * fy)
+
+
+bilinear_u8: Any = bilinear_u8_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+
+
+def project_floor_py(r: F64, t: F64, k: F64, dist: F64, px: float, py: float, jac: F64, out: F64) -> bool:
+    """The image place of the floor point (px, py, 0) seen at the pose (r, t) into ``out`` (2); False behind
+    the camera. ``jac`` is scratch (2x2)."""
+    z = r[2, 0] * px + r[2, 1] * py + t[2]
+    if z <= 1e-6:
+        return False
+    xd, yd = distort((r[0, 0] * px + r[0, 1] * py + t[0]) / z, (r[1, 0] * px + r[1, 1] * py + t[1]) / z, dist, jac)
+    out[0] = k[0, 0] * xd + k[0, 1] * yd + k[0, 2]
+    out[1] = k[1, 1] * yd + k[1, 2]
+    return True
+
+
+project_floor: Any = project_floor_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+
+
+def read_profile_py(
+    image: U8, r: F64, t: F64, k: F64, dist: F64, ox: float, oy: float, dx: float, dy: float, jac: F64, out: F32
+) -> bool:
+    """``image`` at the ``len(out)`` floor points (ox, oy) + o·(dx, dy), o = −radius..radius, seen at the pose
+    (r, t): three points projected exactly (the ends and the middle), the others placed on the parabola
+    through them (the lens and the perspective bend a few pixels' profile by far less than a hundredth of a
+    pixel), bilinear. False where the profile leaves the image or the floor is behind the camera."""
+    h, w = image.shape
+    radius = len(out) // 2
+    ends = np.empty((3, 2))
+    for e in range(3):
+        s = (e - 1) * radius
+        if not project_floor(r, t, k, dist, ox + s * dx, oy + s * dy, jac, ends[e]):
+            return False
+    for c in range(2):  # the parabola's coefficients in each coordinate: p(λ) = p0 + λ·b + λ²·a
+        lo, mid, hi = ends[0, c], ends[1, c], ends[2, c]
+        jac[c, 0] = 0.5 * (hi - lo)
+        jac[c, 1] = 0.5 * (hi + lo) - mid
+    for o in range(len(out)):
+        lam = (o - radius) / radius
+        u = ends[1, 0] + lam * (jac[0, 0] + lam * jac[0, 1])
+        v = ends[1, 1] + lam * (jac[1, 0] + lam * jac[1, 1])
+        if not (0.0 <= u < w - 1.0 and 0.0 <= v < h - 1.0):
+            return False
+        out[o] = bilinear_u8(image, u, v)
+    return True
+
+
+read_profile: Any = read_profile_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+
+
+def edge_row_py(
+    r: F64, t: F64, k: F64, dist: F64, ox: float, oy: float, mx: float, my: float, out: F64, res: F64, jac: F64
+) -> None:
+    """The floor point (ox, oy, 0) with floor normal (mx, my) seen at the pose (r, t) through ``k`` and lens
+    ``dist``: its image place (u, v), the image length of one metre along the normal, and into ``out`` the row
+    of the linear system, d(displacement along the image normal, pixels)/d(δ rotation, Δt), the rotation
+    applied on the arena → camera side. (u, v, length) into ``res``, length 0 when the point is behind the
+    camera; ``jac`` is scratch (2x2)."""
+    res[2] = 0.0
+    p0 = r[0, 0] * ox + r[0, 1] * oy
+    p1 = r[1, 0] * ox + r[1, 1] * oy
+    p2 = r[2, 0] * ox + r[2, 1] * oy
+    x0, x1, z = p0 + t[0], p1 + t[1], p2 + t[2]
+    if z <= 1e-6:
+        return
+    xn, yn = x0 / z, x1 / z
+    xd, yd = distort(xn, yn, dist, jac)
+    res[0] = k[0, 0] * xd + k[0, 1] * yd + k[0, 2]
+    res[1] = k[1, 1] * yd + k[1, 2]
+    # d(u, v)/d(camera point) = diag(fx, fy) · jac · d(x, y)/d(X, Y, Z)
+    a00, a01 = k[0, 0] * jac[0, 0], k[0, 0] * jac[0, 1]
+    a10, a11 = k[1, 1] * jac[1, 0], k[1, 1] * jac[1, 1]
+    d00, d01, d02 = a00 / z, a01 / z, -(a00 * xn + a01 * yn) / z
+    d10, d11, d12 = a10 / z, a11 / z, -(a10 * xn + a11 * yn) / z
+    m0 = r[0, 0] * mx + r[0, 1] * my
+    m1 = r[1, 0] * mx + r[1, 1] * my
+    m2 = r[2, 0] * mx + r[2, 1] * my
+    gx = d00 * m0 + d01 * m1 + d02 * m2
+    gy = d10 * m0 + d11 * m1 + d12 * m2
+    length = math.sqrt(gx * gx + gy * gy)
+    if length < 1e-9:
+        return
+    nx, ny = gx / length, gy / length
+    g0 = nx * d00 + ny * d10
+    g1 = nx * d01 + ny * d11
+    g2 = nx * d02 + ny * d12
+    out[0] = p1 * g2 - p2 * g1
+    out[1] = p2 * g0 - p0 * g2
+    out[2] = p0 * g1 - p1 * g0
+    out[3] = g0
+    out[4] = g1
+    out[5] = g2
+    res[2] = length
+
+
+edge_row: Any = edge_row_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+
+
+def profiles(
+    obj: F64,
+    nrm: F64,
+    r: F64,
+    t: F64,
+    r_other: F64,
+    t_other: F64,
+    k: F64,
+    dist: F64,
+    image: U8,
+    other: U8,
+    radius: int,
+    border_px: float,
+) -> tuple[I64, F32, F32, F64]:
+    """For the edge samples (floor points ``obj``, floor normals ``nrm``) seen in ``image`` at the pose
+    (``r``, ``t``: arena → camera) through the camera ``k`` with lens ``dist``: which samples are in view
+    (inside by ``border_px``, in front of the camera), and both frames read at the same ``2·radius + 1`` floor
+    points along the normal, spaced one pixel of ``image`` apart at the sample: ``image`` at the pose (r, t),
+    ``other`` at (``r_other``, ``t_other``). Also, per sample, the rows of the linear system of both frames
+    (12: d(displacement along the image normal, in profile steps)/d(δ rotation, Δt) of this frame, then of
+    the other). A sample whose profile leaves either image is dropped."""
+    n = obj.shape[0]
+    h, w = image.shape
+    width = 2 * radius + 1
+    idx = np.empty(n, np.int64)
+    pk = np.empty((n, width), np.float32)
+    pj = np.empty((n, width), np.float32)
+    a_rows = np.empty((n, 12))
+    scratch = np.empty((2, 2))
+    here = np.empty(3)
+    there = np.empty(3)
+    count = 0
+    for i in range(n):
+        ox, oy, mx, my = obj[i, 0], obj[i, 1], nrm[i, 0], nrm[i, 1]
+        edge_row(r, t, k, dist, ox, oy, mx, my, a_rows[count, :6], here, scratch)
+        u, v, length = here[0], here[1], here[2]
+        if length <= 0.0 or not (border_px < u < w - 1 - border_px and border_px < v < h - 1 - border_px):
+            continue
+        edge_row(r_other, t_other, k, dist, ox, oy, mx, my, a_rows[count, 6:], there, scratch)
+        if there[2] <= 0.0:
+            continue
+        step_m = 1.0 / length  # floor metres per pixel of ``image`` along the normal
+        scale = 1.0 / (step_m * there[2])  # the other frame's pixels → profile steps
+        for c in range(6, 12):
+            a_rows[count, c] *= scale
+        dx, dy = step_m * mx, step_m * my
+        if not read_profile(image, r, t, k, dist, ox, oy, dx, dy, scratch, pk[count]):
+            continue
+        if not read_profile(other, r_other, t_other, k, dist, ox, oy, dx, dy, scratch, pj[count]):
+            continue
+        idx[count] = i
+        count += 1
+    return idx[:count], pk[:count], pj[:count], a_rows[:count]
+
+
+def moments(pk: F32, pj: F32, sv: F64, gain: float, step: float, cdf: F64, pdf: F64) -> tuple[F64, F64, F64]:
+    """Per profile, the moments of the linearised pair model that the fit needs (the profiles centred, so
+    that each sample's own brightness level drops out): with the four basis profiles u = (I_j, M, −F′, g·I_j′)
+    (M = ``sv``·``cdf`` the map's blurred step, F = g·I_j + c·M, c = ``step``) and the target
+    y = I_k − g·I_j − c·M, their Gram matrix Σ u uᵀ (4x4), Σ u y and Σ y²."""
+    n, width = pk.shape
+    gram = np.zeros((n, 4, 4))
+    uy = np.zeros((n, 4))
+    yy = np.zeros(n)
+    u = np.empty((width, 4))
+    y = np.empty(width)
+    mean_u = np.empty(4)
+    for i in range(n):
+        mean_u[:] = 0.0
+        mean_y = 0.0
+        for o in range(width):
+            lo = o - 1 if o > 0 else 0
+            hi = o + 1 if o < width - 1 else width - 1
+            slope = (pj[i, hi] - pj[i, lo]) / (hi - lo)
+            m = sv[i] * cdf[o]
+            u[o, 0] = pj[i, o]
+            u[o, 1] = m
+            u[o, 2] = -(gain * slope + step * sv[i] * pdf[o])
+            u[o, 3] = gain * slope
+            y[o] = pk[i, o] - gain * pj[i, o] - step * m
+            for c in range(4):
+                mean_u[c] += u[o, c]
+            mean_y += y[o]
+        mean_y /= width
+        for c in range(4):
+            mean_u[c] /= width
+        for o in range(width):
+            yc = y[o] - mean_y
+            yy[i] += yc * yc
+            for a in range(4):
+                ua = u[o, a] - mean_u[a]
+                uy[i, a] += ua * yc
+                for b in range(a, 4):
+                    gram[i, a, b] += ua * (u[o, b] - mean_u[b])
+        for a in range(4):
+            for b in range(a):
+                gram[i, a, b] = gram[i, b, a]
+    return gram, uy, yy
+
+
+def normal(gram: F64, uy: F64, a_rows: F64, keep: npt.NDArray[np.bool_]) -> tuple[F64, F64, F64]:
+    """The normal equations (14x14, and the right-hand side) of the kept profiles from their moments: the
+    unknowns are the gain's change, the step's, this frame's pose change (6, through its rows ``a_rows[:, :6]``)
+    and the partner's (6, ``a_rows[:, 6:]``). Also Σ a_j a_jᵀ of the partner's rows (its prior's shape)."""
+    n = gram.shape[0]
+    big = np.zeros((14, 14))
+    rhs = np.zeros(14)
+    held = np.zeros((6, 6))
+    col = np.array([0, 1, 2, 2, 2, 2, 2, 2, 3, 3, 3, 3, 3, 3])  # each unknown's basis profile
+    v = np.ones(14)  # and its factor there
+    for i in range(n):
+        if not keep[i]:
+            continue
+        for p in range(6):
+            v[2 + p] = a_rows[i, p]
+            v[8 + p] = a_rows[i, 6 + p]
+        for p in range(14):
+            rhs[p] += v[p] * uy[i, col[p]]
+            for q in range(p, 14):
+                big[p, q] += v[p] * v[q] * gram[i, col[p], col[q]]
+        for p in range(6):
+            for q in range(6):
+                held[p, q] += a_rows[i, 6 + p] * a_rows[i, 6 + q]
+    for p in range(14):
+        for q in range(p):
+            big[p, q] = big[q, p]
+    return big, rhs, held
+
+
+def residuals(gram: F64, uy: F64, yy: F64, a_rows: F64, sol: F64) -> F64:
+    """Each profile's sum of squared residuals after the change ``sol`` of the 14 unknowns (from its moments:
+    Σ(y − u·c)² = Σy² − 2c·Σuy + cᵀ(Σuuᵀ)c, c the profile's coefficients of its four basis profiles)."""
+    n = gram.shape[0]
+    out = np.empty(n)
+    coef = np.empty(4)
+    for i in range(n):
+        coef[0] = sol[0]
+        coef[1] = sol[1]
+        coef[2] = 0.0
+        coef[3] = 0.0
+        for p in range(6):
+            coef[2] += a_rows[i, p] * sol[2 + p]
+            coef[3] += a_rows[i, 6 + p] * sol[8 + p]
+        total = yy[i]
+        for a in range(4):
+            total -= 2.0 * coef[a] * uy[i, a]
+            for b in range(4):
+                total += coef[a] * gram[i, a, b] * coef[b]
+        out[i] = max(total, 0.0)
+    return out

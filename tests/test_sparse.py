@@ -1,0 +1,184 @@
+"""The sparse tracker prototype (ipt/receiver/core/sparse.py) on pairs rendered from known poses: two raw frames of
+opposite phase, the partner's pose known, this frame's guessed some pixels off."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+import pytest
+from floorview import render_view
+
+from ipt.config.models import ArenaConfig
+from ipt.geometry import R_BODY_CAM_DOWNWARD, rot_x, rot_y, rot_z, rotation_angle_rad
+from ipt.receiver.core.demodulator import lightness
+from ipt.receiver.core.pose import pose_of, rt_of
+from ipt.receiver.core.sparse import SparseCamera, SparseResult, SparseSettings, extrapolate, fit_sparse
+from ipt.receiver.core.track import MapEdges
+from ipt.sender.modulator import PaperModulator
+from ipt.tagmap import grid_tag_map
+
+U8 = npt.NDArray[np.uint8]
+F64 = npt.NDArray[np.float64]
+
+ARENA = ArenaConfig()
+TAG_MAP = grid_tag_map(ARENA)
+SIZE = (640, 360)
+K = np.array([[450.0, 0.0, 319.5], [0.0, 450.0, 179.5], [0.0, 0.0, 1.0]])
+#: A lens like the realcam flight's (barrel, some tangential): 9 px at the corners of a 640x360 image.
+LENS = np.array([-0.14, 0.06, 0.0005, -0.0004, -0.008])
+POSITION_M = np.array([0.07, -0.12, 0.8])
+R_ARENA_CAM = rot_z(np.deg2rad(11.0)) @ rot_x(np.deg2rad(2.0)) @ R_BODY_CAM_DOWNWARD
+#: The partner frame's own pose: the camera moved 6 mm and turned a little between the two frames.
+OTHER_POSITION_M = POSITION_M + np.array([0.004, -0.003, 0.003])
+R_OTHER = rot_y(np.deg2rad(0.3)) @ R_ARENA_CAM
+
+
+@dataclass(frozen=True)
+class Pair:
+    image: U8
+    other: U8
+    camera: SparseCamera
+
+
+def _distorted_view(img: U8, position_m: F64, r_arena_cam: F64, lens: F64) -> U8:
+    """The view through a camera with ``lens``: each sensor pixel takes the undistorted view at the pinhole
+    pixel its ray hits (rendered larger than the sensor, as the barrel lens sees more)."""
+    margin = 64
+    k_big = K.copy()
+    k_big[:2, 2] += margin
+    big = render_view(img, ARENA, k_big, position_m, r_arena_cam, (SIZE[0] + 2 * margin, SIZE[1] + 2 * margin))
+    if not np.any(lens):
+        return np.ascontiguousarray(big[margin:-margin, margin:-margin])
+    u, v = np.meshgrid(np.arange(SIZE[0], dtype=np.float64), np.arange(SIZE[1], dtype=np.float64))
+    pts = np.stack([u.ravel(), v.ravel()], axis=1)[:, None, :]
+    ideal = cv2.undistortPoints(pts, K, lens, P=k_big).reshape(SIZE[1], SIZE[0], 2).astype(np.float32)
+    return np.asarray(cv2.remap(big, ideal[..., 0], ideal[..., 1], cv2.INTER_LINEAR), np.uint8)
+
+
+def _pair(lens: F64) -> Pair:
+    rng = np.random.default_rng(3)
+    coarse = rng.integers(40, 216, (ARENA.projector.height_px // 8, ARENA.projector.width_px // 8, 3), np.uint8)
+    content = np.asarray(
+        cv2.resize(coarse, (ARENA.projector.width_px, ARENA.projector.height_px), interpolation=cv2.INTER_CUBIC),
+        np.uint8,
+    )
+    plus, minus = PaperModulator(TAG_MAP.render_mask(), ARENA.modulation.delta_l).modulate(content, 0, 2)
+    image = lightness(_distorted_view(plus, POSITION_M, R_ARENA_CAM, lens))
+    other = lightness(_distorted_view(minus, OTHER_POSITION_M, R_OTHER, lens))
+    return Pair(image, other, SparseCamera.of(K, lens, SIZE))
+
+
+@pytest.fixture(scope="module")
+def pinhole_pair() -> Pair:
+    return _pair(np.zeros(5))
+
+
+@pytest.fixture(scope="module")
+def lens_pair() -> Pair:
+    return _pair(LENS)
+
+
+@pytest.fixture(scope="module")
+def edges() -> MapEdges:
+    return MapEdges.from_tag_map(TAG_MAP)
+
+
+def _errors(rvec: F64, tvec: F64) -> tuple[float, float]:
+    """(position error mm, rotation error deg) against the frame's true pose."""
+    position, r_arena_cam = pose_of(rvec, tvec)
+    return (
+        1000 * float(np.linalg.norm(position - POSITION_M)),
+        float(np.rad2deg(rotation_angle_rad(r_arena_cam.T @ R_ARENA_CAM))),
+    )
+
+
+def _image_error_px(rvec: F64, tvec: F64) -> float:
+    """The largest distance (pixels, pinhole) between where the pose and the true pose put the floor under a
+    grid over the image."""
+    true_r, true_t = rt_of(POSITION_M, R_ARENA_CAM)
+    grid = np.stack(np.meshgrid(np.linspace(40, 600, 8), np.linspace(40, 320, 5)), axis=-1).reshape(-1, 2)
+    r_true, _ = cv2.Rodrigues(true_r)
+    rays = (np.linalg.inv(K) @ np.column_stack([grid, np.ones(len(grid))]).T).T @ r_true  # arena directions
+    centre = -r_true.T @ true_t
+    floor = centre + (-centre[2] / rays[:, 2])[:, None] * rays
+    seen, _ = cv2.projectPoints(floor, rvec, tvec, K, None)
+    return float(np.linalg.norm(seen.reshape(-1, 2) - grid, axis=1).max())
+
+
+def _guess_off_by(pixels: float) -> tuple[F64, F64]:
+    """The true pose moved sideways so that the image moves by ``pixels``, and turned a little."""
+    shift_m = pixels * POSITION_M[2] / K[0, 0]
+    r = rot_z(np.deg2rad(0.15)) @ R_ARENA_CAM
+    return rt_of(POSITION_M + np.array([shift_m * 0.8, shift_m * 0.6, 0.002]), r)
+
+
+DEFAULT = SparseSettings()
+
+
+def _fit(
+    pair: Pair, edges: MapEdges, start: tuple[F64, F64], settings: SparseSettings = DEFAULT
+) -> tuple[SparseResult | None, str]:
+    return fit_sparse(pair.image, pair.other, pair.camera, edges, rt_of(OTHER_POSITION_M, R_OTHER), start, settings)
+
+
+def test_a_guess_3px_off_converges_to_a_fraction_of_a_pixel(pinhole_pair: Pair, edges: MapEdges) -> None:
+    start = _guess_off_by(3.0)
+    assert _image_error_px(*start) > 2.9
+    result, why = _fit(pinhole_pair, edges, start)
+    assert result is not None, why
+    assert _image_error_px(result.rvec, result.tvec) < 0.2
+    mm, deg = _errors(result.rvec, result.tvec)
+    assert mm < 1.0
+    assert deg < 0.05
+    assert result.sign == 1  # this frame showed the + phase
+    assert result.inliers > 0.6 * result.tried
+
+
+def test_an_error_of_the_partners_pose_is_not_inherited(pinhole_pair: Pair, edges: MapEdges) -> None:
+    """The partner's pose given 1 px off: registering the content alone would carry that error over to this
+    frame; the map's steps in both frames place both poses on the map."""
+    shift_m = 1.0 * OTHER_POSITION_M[2] / K[0, 0]
+    partner = rt_of(OTHER_POSITION_M + np.array([-0.6 * shift_m, 0.8 * shift_m, 0.0]), R_OTHER)
+    result, why = fit_sparse(
+        pinhole_pair.image, pinhole_pair.other, pinhole_pair.camera, edges, partner, _guess_off_by(2.0)
+    )
+    assert result is not None, why
+    assert _image_error_px(result.rvec, result.tvec) < 0.25
+
+
+def test_a_distorted_camera_is_fitted_through_its_lens(lens_pair: Pair, edges: MapEdges) -> None:
+    start = _guess_off_by(3.0)
+    result, why = _fit(lens_pair, edges, start)
+    assert result is not None, why
+    assert _image_error_px(result.rvec, result.tvec) < 0.25
+    assert _errors(result.rvec, result.tvec)[0] < 1.0
+    # The same frames taken for a pinhole's: the lens's 9 px at the corners pull the fit off, or it fails.
+    naive = SparseCamera.of(K, np.zeros(5), SIZE)
+    wrong, _ = fit_sparse(
+        lens_pair.image, lens_pair.other, naive, edges, rt_of(OTHER_POSITION_M, R_OTHER), start, SparseSettings()
+    )
+    assert wrong is None or _image_error_px(wrong.rvec, wrong.tvec) > 0.5
+
+
+def test_the_other_phase_is_found_from_the_pair(lens_pair: Pair, edges: MapEdges) -> None:
+    """The partner as this frame and this as the partner: the phase comes out the other way round."""
+    start = rt_of(OTHER_POSITION_M + np.array([0.002, 0.001, 0.0]), R_OTHER)
+    result, why = fit_sparse(
+        lens_pair.other, lens_pair.image, lens_pair.camera, edges, rt_of(POSITION_M, R_ARENA_CAM), start
+    )
+    assert result is not None, why
+    assert result.sign == -1
+    position, _ = pose_of(result.rvec, result.tvec)
+    assert 1000 * np.linalg.norm(position - OTHER_POSITION_M) < 1.0
+
+
+def test_extrapolation_continues_a_steady_motion() -> None:
+    a = rt_of(np.array([0.0, 0.0, 1.0]), R_ARENA_CAM)
+    b = rt_of(np.array([0.01, 0.0, 1.0]), rot_z(np.deg2rad(1.0)) @ R_ARENA_CAM)
+    rvec, tvec = extrapolate(a, 0, b, 1000, 2000)
+    position, r_arena_cam = pose_of(rvec, tvec)
+    assert np.allclose(position, [0.02, 0.0, 1.0], atol=1e-9)
+    assert rotation_angle_rad(r_arena_cam.T @ rot_z(np.deg2rad(2.0)) @ R_ARENA_CAM) < 1e-9
