@@ -132,6 +132,7 @@ class _SparseKernel(_Kernel):
                     sparsekernels.project_floor = _jit(sparsekernels.project_floor_py)
                     sparsekernels.read_profile = _jit(sparsekernels.read_profile_py)
                     sparsekernels.edge_row = _jit(sparsekernels.edge_row_py)
+                    sparsekernels.detrend = _jit(sparsekernels.detrend_py)
                     for kernel in (sparse_profiles, sparse_moments, sparse_normal, sparse_residuals):
                         kernel.compiled = _jit(kernel.py_func)
         return self.compiled(*args)

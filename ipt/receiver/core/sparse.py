@@ -39,9 +39,6 @@ F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
 U8 = npt.NDArray[np.uint8]
 
-#: The fit has converged when its last step moved no inlier by more than this (pixels).
-CONVERGED_PX = 0.05
-
 
 @dataclass(frozen=True)
 class SparseSettings:
@@ -51,10 +48,17 @@ class SparseSettings:
     """Profile half-length of the coarse iterations."""
     fine_radius_px: int = 4
     """Profile half-length of the later iterations."""
-    coarse_iterations: int = 2
+    coarse_iterations: int = 0
     """The first iterations smooth the profiles (a wider reach for a guess a few pixels off)."""
     coarse_smooth_px: float = 1.5
-    iterations: int = 6
+    smooth_px: float = 0.0
+    """The later iterations' smoothing of the profiles (σ, pixels): the camera's noise is several times the
+    map's step, and the fit's slopes come from the partner's profile."""
+    iterations: int = 4
+    converged_px: float = 0.1
+    """The fit stops when its last step moved no kept sample by more than this (pixels)."""
+    settled_px: float = 0.4
+    """... and is refused if, after the last iteration, that step was larger than this."""
     max_samples: int = 700
     min_inliers: int = 60
     min_tags: int = 2
@@ -71,6 +75,9 @@ class SparseSettings:
     """A fit that moves the partner's pose by more than this (pixels, at any sample) is refused."""
     min_step_sigmas: float = 8.0
     """The map's step must stand this many standard errors clear of zero."""
+    fit_gain: bool = False
+    """Fit the pair's brightness ratio too (False: keep the ratio of the profiles' means). Over a flat floor
+    the partner's centred profile is its (turned over) step, and the gain and the step are one unknown."""
     min_amplitude: float = 0.5
     """... and be at least this many lightness levels per unit of the map's step."""
 
@@ -174,7 +181,9 @@ class _Moments:
     """(n, 12): the rows of this frame's displacement, then the partner's."""
 
 
-def _moments(pk: F32, pj: F32, a_rows: F64, sv: F64, st: _State, blur_px: float) -> _Moments:
+def _moments(
+    pk: F32, pj: F32, a_rows: F64, sv: F64, st: _State, blur_px: float, weights: F64, noise2: float
+) -> _Moments:
     """The linearised model of this frame's profiles from the partner's and the map's (per profile, centred:
     each sample's own brightness level drops out): I_k − g·I_j − c·M = Δg·I_j + Δc·M − F′·δ + g·I_j′·ε, with
     F = g·I_j + c·M the partner's profile with its step turned over (what this frame shows when registered),
@@ -183,7 +192,7 @@ def _moments(pk: F32, pj: F32, a_rows: F64, sv: F64, st: _State, blur_px: float)
     o = (np.arange(width, dtype=np.float64) - width // 2) / blur_px
     cdf = 0.5 * (1.0 + np.array([math.erf(x / math.sqrt(2.0)) for x in o]))
     pdf = np.exp(-0.5 * o * o) / (math.sqrt(2.0 * math.pi) * blur_px)
-    gram, uy, yy = kernels.sparse_moments(pk, pj, sv, st.gain, st.step, cdf, pdf)
+    gram, uy, yy = kernels.sparse_moments(pk, pj, sv, st.gain, st.step, cdf, pdf, noise2, weights)
     return _Moments(gram, uy, yy, a_rows)
 
 
@@ -194,6 +203,8 @@ def _solve(m: _Moments, keep: npt.NDArray[np.bool_], st: _State, s: SparseSettin
     width = 2 * s.fine_radius_px + 1
     sigma2 = max(float(m.yy[keep].sum()) / max(int(keep.sum()) * width, 1), 1.0)  # the residual's scale (a bound)
     prior = (sigma2 / s.other_sigma_px**2) * held
+    if not s.fit_gain:  # the ratio of the profiles' means stays: over a flat floor the gain is the step's twin
+        normal[_GAIN, :], normal[:, _GAIN], normal[_GAIN, _GAIN], rhs[_GAIN] = 0.0, 0.0, 1.0, 0.0
     normal[_OTHER, _OTHER] += prior
     rhs[_OTHER] -= prior @ st.other_moved
     try:
@@ -251,7 +262,9 @@ def fit_sparse(
     obj, nrm, steps = edges.points_m[chosen], edges.normals_m[chosen], edges.step[chosen]
     k, dist = camera.camera_matrix, camera.dist_coeffs
     moved, it, gain_set = np.inf, 0, False
-    kept = np.ones(len(chosen), np.bool_)  # per chosen sample: its profile was not an outlier last time
+    kept = np.ones(len(chosen), np.bool_)  # per chosen sample: its profile is not an outlier
+    weights = np.full((len(chosen), 2), -1.0)  # per chosen sample: its frames' own weights (-1: not yet)
+    noise2 = -1.0
     for it in range(s.iterations):
         coarse = it < s.coarse_iterations
         radius = s.radius_px if coarse else s.fine_radius_px
@@ -262,10 +275,15 @@ def fit_sparse(
             return None, "few_in_view"
         if not gain_set:
             st.gain, gain_set = fast_median(pk.mean(axis=1) / np.maximum(pj.mean(axis=1), 1.0)), True
-        smooth = s.coarse_smooth_px if coarse else 0.0
+        smooth = s.coarse_smooth_px if coarse else s.smooth_px
         pk, pj = _smooth(pk, smooth), _smooth(pj, smooth)
         blur = math.hypot(s.blur_px, smooth)
-        m = _moments(pk, pj, a_rows, steps[idx], st, blur)
+        if noise2 < 0:  # a frame's pixel noise (variance): second differences (white noise: 6σ²), robustly
+            curvature = np.abs(pk[:, 2:] - 2 * pk[:, 1:-1] + pk[:, :-2])
+            noise2 = max((1.4826 * fast_median(curvature)) ** 2 / 6.0, 0.01)
+        frame_weights = weights[idx]
+        m = _moments(pk, pj, a_rows, steps[idx], st, blur, frame_weights, noise2)
+        weights[idx] = frame_weights
         keep = kept[idx]
         for _ in range(2 if it == 0 else 1):  # robust: drop profiles far worse than the typical one
             if keep.sum() < s.min_inliers:
@@ -275,7 +293,7 @@ def fit_sparse(
         kept[idx] = keep
         _update(st, sol)
         moved = float(np.abs(a_rows[keep, :6] @ sol[_THIS]).max())
-        if not coarse and moved < CONVERGED_PX:
+        if not coarse and moved < s.converged_px:
             break
     return _finish(st, edges, chosen, idx, keep, rms, normal, moved, it, a_rows[:, 6:], s)
 
@@ -297,7 +315,7 @@ def _finish(
     present = np.flatnonzero(np.bincount(edges.tag[chosen][idx][keep]))
     if len(present) < s.min_tags:
         return None, "few_tags"
-    if moved > 4 * CONVERGED_PX:
+    if moved > s.settled_px:
         return None, "not_converged"
     sigma = float(np.sqrt(np.mean(rms[keep] ** 2)))
     try:

@@ -205,11 +205,23 @@ def profiles(
     return idx[:count], pk[:count], pj[:count], a_rows[:count]
 
 
-def moments(pk: F32, pj: F32, sv: F64, gain: float, step: float, cdf: F64, pdf: F64) -> tuple[F64, F64, F64]:
-    """Per profile, the moments of the linearised pair model that the fit needs (the profiles centred, so
-    that each sample's own brightness level drops out): with the four basis profiles u = (I_j, M, −F′, g·I_j′)
-    (M = ``sv``·``cdf`` the map's blurred step, F = g·I_j + c·M, c = ``step``) and the target
-    y = I_k − g·I_j − c·M, their Gram matrix Σ u uᵀ (4x4), Σ u y and Σ y²."""
+def moments(
+    pk: F32, pj: F32, sv: F64, gain: float, step: float, cdf: F64, pdf: F64, noise2: float, weights: F64
+) -> tuple[F64, F64, F64]:
+    """Per profile, the moments of the linearised model that the fit needs: with basis profiles u (4) whose
+    unknowns are the gain's change, the step's, this frame's displacement δ and the partner's ε, and the
+    targets y, their Gram matrix Σ u uᵀ (4x4), Σ u y and Σ y², summed over two kinds of equations.
+
+    The pair: y = I_k − g·I_j − c·M ≈ Δg·I_j + Δc·M − F′·δ + g·I_j′·ε (M = ``sv``·``cdf`` the map's blurred
+    step, F = g·I_j + c·M, c = ``step``), centred: each sample's own brightness level drops out. It holds
+    whatever the floor shows, but over a flat floor it sees only δ + ε (the two frames' steps together).
+
+    Each frame alone: I_k = content + (c/2)·M(o − δ), I_j = content − (c/2g)·M(o − ε), the content taken for
+    a straight line along the profile (projected out), weighted by how well that holds for this profile:
+    ``noise2`` (a frame's pixel noise variance) over the variance the line leaves, at most 1. Over a flat floor
+    these place each frame's step apart; over busy content they weigh nothing. ``weights`` (n, 2: this
+    frame, the partner) holds them: a negative one is set here, the others kept (a fit whose weights moved
+    with every iteration would never settle)."""
     n, width = pk.shape
     gram = np.zeros((n, 4, 4))
     uy = np.zeros((n, 4))
@@ -217,6 +229,14 @@ def moments(pk: F32, pj: F32, sv: F64, gain: float, step: float, cdf: F64, pdf: 
     u = np.empty((width, 4))
     y = np.empty(width)
     mean_u = np.empty(4)
+    # The straight line's second basis vector (the first is the constant): o − centre, unit length.
+    line = np.empty(width)
+    norm = 0.0
+    for o in range(width):
+        line[o] = o - (width - 1) / 2.0
+        norm += line[o] * line[o]
+    for o in range(width):
+        line[o] /= math.sqrt(norm)
     for i in range(n):
         mean_u[:] = 0.0
         mean_y = 0.0
@@ -227,7 +247,10 @@ def moments(pk: F32, pj: F32, sv: F64, gain: float, step: float, cdf: F64, pdf: 
             m = sv[i] * cdf[o]
             u[o, 0] = pj[i, o]
             u[o, 1] = m
-            u[o, 2] = -(gain * slope + step * sv[i] * pdf[o])
+            # this frame's slope: the model's and its own, averaged (second order, as ESM: a noisy slope
+            # of either alone makes the steps overshoot and swing)
+            own = (pk[i, hi] - pk[i, lo]) / (hi - lo)
+            u[o, 2] = -0.5 * (gain * slope + step * sv[i] * pdf[o] + own)
             u[o, 3] = gain * slope
             y[o] = pk[i, o] - gain * pj[i, o] - step * m
             for c in range(4):
@@ -244,10 +267,51 @@ def moments(pk: F32, pj: F32, sv: F64, gain: float, step: float, cdf: F64, pdf: 
                 uy[i, a] += ua * yc
                 for b in range(a, 4):
                     gram[i, a, b] += ua * (u[o, b] - mean_u[b])
+        for frame in range(2):  # each frame alone: this one (δ, +c/2), then the partner (ε, −c/2g)
+            half = 0.5 * step if frame == 0 else -0.5 * step / gain
+            col = 2 if frame == 0 else 3
+            for o in range(width):
+                value = pk[i, o] if frame == 0 else pj[i, o]
+                m = sv[i] * cdf[o]
+                y[o] = value - half * m
+                u[o, 1] = 0.5 * m if frame == 0 else -0.5 * m / gain
+                u[o, col] = -half * sv[i] * pdf[o]
+            detrend(y, line)
+            detrend(u[:, 1], line)
+            detrend(u[:, col], line)
+            left = 0.0
+            for o in range(width):
+                left += y[o] * y[o]
+            if weights[i, frame] < 0.0:
+                weights[i, frame] = min(1.0, noise2 * width / max(left, 1e-9))
+            weight = weights[i, frame]
+            for o in range(width):
+                yy[i] += weight * y[o] * y[o]
+                uy[i, 1] += weight * u[o, 1] * y[o]
+                uy[i, col] += weight * u[o, col] * y[o]
+                gram[i, 1, 1] += weight * u[o, 1] * u[o, 1]
+                gram[i, 1, col] += weight * u[o, 1] * u[o, col]
+                gram[i, col, col] += weight * u[o, col] * u[o, col]
         for a in range(4):
             for b in range(a):
                 gram[i, a, b] = gram[i, b, a]
     return gram, uy, yy
+
+
+def detrend_py(v: F64, line: F64) -> None:
+    """``v`` less its mean and its component along the unit vector ``line`` (which sums to zero)."""
+    width = len(v)
+    mean = 0.0
+    along = 0.0
+    for o in range(width):
+        mean += v[o]
+        along += v[o] * line[o]
+    mean /= width
+    for o in range(width):
+        v[o] -= mean + along * line[o]
+
+
+detrend: Any = detrend_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
 
 
 def normal(gram: F64, uy: F64, a_rows: F64, keep: npt.NDArray[np.bool_]) -> tuple[F64, F64, F64]:
