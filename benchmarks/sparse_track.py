@@ -151,6 +151,12 @@ def run_sparse(
 
     chain = Chain()
     spent, worked = 0.0, 0
+    first = next((k for k in range(len(lum)) if k in dense and dense[k].pose is not None), None)
+    if first is not None:  # the kernels compiled (or loaded from numba's cache) before the clock starts
+        pose = dense[first].pose
+        assert pose is not None
+        rt = rt_of(pose.position_m, pose.r_arena_cam)
+        fit(lum[first], lum[first], rt, rt, 0.0)
     for k in range(len(lum)):
         result = None
         if chain.rt:

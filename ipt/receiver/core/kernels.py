@@ -63,8 +63,9 @@ class _Kernel:
         return self.compiled(*args)
 
 
-def _jit(fn: Callable[..., Any]) -> Any:
-    """``fn`` compiled by numba (cached on disk where possible), else ``fn`` itself."""
+def _jit(fn: Callable[..., Any], inline: bool = False) -> Any:
+    """``fn`` compiled by numba (cached on disk where possible), else ``fn`` itself; ``inline``: compiled into
+    its callers (a small helper called per pixel: a call that passes arrays costs their reference counts)."""
     global COMPILED, NOT_COMPILED_BECAUSE, NOT_CACHED_BECAUSE
     try:
         import numba
@@ -72,11 +73,12 @@ def _jit(fn: Callable[..., Any]) -> Any:
         COMPILED = False
         NOT_COMPILED_BECAUSE = f"{type(exc).__name__}: {exc}"
         return fn
+    options: dict[str, Any] = {"nogil": True, "inline": "always"} if inline else {"nogil": True}
     try:
-        compiled = numba.njit(nogil=True, cache=True)(fn)
+        compiled = numba.njit(cache=True, **options)(fn)
     except RuntimeError as exc:  # no writable cache location: compile in every process
         NOT_CACHED_BECAUSE = str(exc)
-        compiled = numba.njit(nogil=True)(fn)
+        compiled = numba.njit(**options)(fn)
     _dispatchers.append(compiled)
     return compiled
 
@@ -127,21 +129,23 @@ class _SparseKernel(_Kernel):
             with _lock:
                 if self.compiled is None:
                     # Each helper before its callers, as sparsekernels' global when they compile.
-                    sparsekernels.distort = _jit(sparsekernels.distort_py)
-                    sparsekernels.bilinear_u8 = _jit(sparsekernels.bilinear_u8_py)
-                    sparsekernels.project_floor = _jit(sparsekernels.project_floor_py)
-                    sparsekernels.read_profile = _jit(sparsekernels.read_profile_py)
-                    sparsekernels.edge_row = _jit(sparsekernels.edge_row_py)
-                    sparsekernels.detrend = _jit(sparsekernels.detrend_py)
-                    for kernel in (sparse_profiles, sparse_moments, sparse_normal, sparse_residuals):
+                    sparsekernels.distort = _jit(sparsekernels.distort_py, inline=True)
+                    sparsekernels.bilinear_u8 = _jit(sparsekernels.bilinear_u8_py, inline=True)
+                    sparsekernels.project_floor = _jit(sparsekernels.project_floor_py, inline=True)
+                    sparsekernels.read_profile = _jit(sparsekernels.read_profile_py, inline=True)
+                    sparsekernels.edge_row = _jit(sparsekernels.edge_row_py, inline=True)
+                    sparsekernels.detrend = _jit(sparsekernels.detrend_py, inline=True)
+                    sparsekernels.normal = _jit(sparsekernels.normal_py)
+                    sparsekernels.residuals = _jit(sparsekernels.residuals_py)
+                    sparsekernels.cholesky_solve = _jit(sparsekernels.cholesky_solve_py)
+                    for kernel in (sparse_profiles, sparse_moments, sparse_solve_step):
                         kernel.compiled = _jit(kernel.py_func)
         return self.compiled(*args)
 
 
 sparse_profiles = _SparseKernel(sparsekernels.profiles)
 sparse_moments = _SparseKernel(sparsekernels.moments)
-sparse_normal = _SparseKernel(sparsekernels.normal)
-sparse_residuals = _SparseKernel(sparsekernels.residuals)
+sparse_solve_step = _SparseKernel(sparsekernels.solve_step)
 
 
 def warm() -> None:

@@ -23,6 +23,7 @@ Pure: two 8-bit lightness frames, the camera model, the partner's pose and a gue
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -181,6 +182,15 @@ class _Moments:
     """(n, 12): the rows of this frame's displacement, then the partner's."""
 
 
+@functools.lru_cache(maxsize=16)
+def _step_model(width: int, blur_px: float) -> tuple[F64, F64]:
+    """The map's unit step at the profile's middle, blurred by ``blur_px`` (σ), and its slope, per profile sample."""
+    o = (np.arange(width, dtype=np.float64) - width // 2) / blur_px
+    cdf = 0.5 * (1.0 + np.array([math.erf(x / math.sqrt(2.0)) for x in o]))
+    pdf = np.exp(-0.5 * o * o) / (math.sqrt(2.0 * math.pi) * blur_px)
+    return cdf, pdf
+
+
 def _moments(
     pk: F32, pj: F32, a_rows: F64, sv: F64, st: _State, blur_px: float, weights: F64, noise2: float
 ) -> _Moments:
@@ -188,30 +198,19 @@ def _moments(
     each sample's own brightness level drops out): I_k − g·I_j − c·M = Δg·I_j + Δc·M − F′·δ + g·I_j′·ε, with
     F = g·I_j + c·M the partner's profile with its step turned over (what this frame shows when registered),
     δ and ε the displacements (profile steps) that this frame's and the partner's pose changes make."""
-    width = pk.shape[1]
-    o = (np.arange(width, dtype=np.float64) - width // 2) / blur_px
-    cdf = 0.5 * (1.0 + np.array([math.erf(x / math.sqrt(2.0)) for x in o]))
-    pdf = np.exp(-0.5 * o * o) / (math.sqrt(2.0 * math.pi) * blur_px)
+    cdf, pdf = _step_model(pk.shape[1], blur_px)
     gram, uy, yy = kernels.sparse_moments(pk, pj, sv, st.gain, st.step, cdf, pdf, noise2, weights)
     return _Moments(gram, uy, yy, a_rows)
 
 
 def _solve(m: _Moments, keep: npt.NDArray[np.bool_], st: _State, s: SparseSettings) -> tuple[F64, F64, F64]:
     """The least-squares change of the 14 unknowns from the kept profiles, the partner's pose held near its
-    own by its prior; also each profile's RMS residual (per profile sample) and the normal matrix."""
-    normal, rhs, held = kernels.sparse_normal(m.gram, m.uy, m.a_rows, keep)
+    own by its prior (:func:`~ipt.receiver.core.sparsekernels.solve_step`); also each profile's RMS residual
+    (per profile sample) and the normal matrix."""
     width = 2 * s.fine_radius_px + 1
-    sigma2 = max(float(m.yy[keep].sum()) / max(int(keep.sum()) * width, 1), 1.0)  # the residual's scale (a bound)
-    prior = (sigma2 / s.other_sigma_px**2) * held
-    if not s.fit_gain:  # the ratio of the profiles' means stays: over a flat floor the gain is the step's twin
-        normal[_GAIN, :], normal[:, _GAIN], normal[_GAIN, _GAIN], rhs[_GAIN] = 0.0, 0.0, 1.0, 0.0
-    normal[_OTHER, _OTHER] += prior
-    rhs[_OTHER] -= prior @ st.other_moved
-    try:
-        sol = np.asarray(np.linalg.solve(normal, rhs), np.float64)
-    except np.linalg.LinAlgError:
-        return np.zeros(14), np.full(len(keep), np.inf), normal
-    rss = kernels.sparse_residuals(m.gram, m.uy, m.yy, m.a_rows, sol)
+    sol, rss, normal, _ok = kernels.sparse_solve_step(
+        m.gram, m.uy, m.yy, m.a_rows, keep, st.other_moved, s.other_sigma_px, s.fit_gain, width
+    )
     return sol, np.sqrt(rss / width), normal
 
 

@@ -72,15 +72,26 @@ project_floor: Any = project_floor_py  # compiled by :func:`ipt.receiver.core.ke
 
 
 def read_profile_py(
-    image: U8, r: F64, t: F64, k: F64, dist: F64, ox: float, oy: float, dx: float, dy: float, jac: F64, out: F32
+    image: U8,
+    r: F64,
+    t: F64,
+    k: F64,
+    dist: F64,
+    ox: float,
+    oy: float,
+    dx: float,
+    dy: float,
+    jac: F64,
+    ends: F64,
+    out: F32,
 ) -> bool:
     """``image`` at the ``len(out)`` floor points (ox, oy) + o·(dx, dy), o = −radius..radius, seen at the pose
     (r, t): three points projected exactly (the ends and the middle), the others placed on the parabola
     through them (the lens and the perspective bend a few pixels' profile by far less than a hundredth of a
-    pixel), bilinear. False where the profile leaves the image or the floor is behind the camera."""
+    pixel), bilinear. False where the profile leaves the image or the floor is behind the camera. ``jac``
+    (2x2) and ``ends`` (3x2) are scratch."""
     h, w = image.shape
     radius = len(out) // 2
-    ends = np.empty((3, 2))
     for e in range(3):
         s = (e - 1) * radius
         if not project_floor(r, t, k, dist, ox + s * dx, oy + s * dy, jac, ends[e]):
@@ -179,6 +190,7 @@ def profiles(
     pj = np.empty((n, width), np.float32)
     a_rows = np.empty((n, 12))
     scratch = np.empty((2, 2))
+    ends = np.empty((3, 2))
     here = np.empty(3)
     there = np.empty(3)
     count = 0
@@ -196,9 +208,9 @@ def profiles(
         for c in range(6, 12):
             a_rows[count, c] *= scale
         dx, dy = step_m * mx, step_m * my
-        if not read_profile(image, r, t, k, dist, ox, oy, dx, dy, scratch, pk[count]):
+        if not read_profile(image, r, t, k, dist, ox, oy, dx, dy, scratch, ends, pk[count]):
             continue
-        if not read_profile(other, r_other, t_other, k, dist, ox, oy, dx, dy, scratch, pj[count]):
+        if not read_profile(other, r_other, t_other, k, dist, ox, oy, dx, dy, scratch, ends, pj[count]):
             continue
         idx[count] = i
         count += 1
@@ -314,7 +326,7 @@ def detrend_py(v: F64, line: F64) -> None:
 detrend: Any = detrend_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
 
 
-def normal(gram: F64, uy: F64, a_rows: F64, keep: npt.NDArray[np.bool_]) -> tuple[F64, F64, F64]:
+def normal_py(gram: F64, uy: F64, a_rows: F64, keep: npt.NDArray[np.bool_]) -> tuple[F64, F64, F64]:
     """The normal equations (14x14, and the right-hand side) of the kept profiles from their moments: the
     unknowns are the gain's change, the step's, this frame's pose change (6, through its rows ``a_rows[:, :6]``)
     and the partner's (6, ``a_rows[:, 6:]``). Also Σ a_j a_jᵀ of the partner's rows (its prior's shape)."""
@@ -343,7 +355,10 @@ def normal(gram: F64, uy: F64, a_rows: F64, keep: npt.NDArray[np.bool_]) -> tupl
     return big, rhs, held
 
 
-def residuals(gram: F64, uy: F64, yy: F64, a_rows: F64, sol: F64) -> F64:
+normal: Any = normal_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+
+
+def residuals_py(gram: F64, uy: F64, yy: F64, a_rows: F64, sol: F64) -> F64:
     """Each profile's sum of squared residuals after the change ``sol`` of the 14 unknowns (from its moments:
     Σ(y − u·c)² = Σy² − 2c·Σuy + cᵀ(Σuuᵀ)c, c the profile's coefficients of its four basis profiles)."""
     n = gram.shape[0]
@@ -364,3 +379,80 @@ def residuals(gram: F64, uy: F64, yy: F64, a_rows: F64, sol: F64) -> F64:
                 total += coef[a] * gram[i, a, b] * coef[b]
         out[i] = max(total, 0.0)
     return out
+
+
+residuals: Any = residuals_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+
+
+def cholesky_solve_py(a: F64, b: F64) -> tuple[F64, bool]:
+    """``a``⁻¹·``b`` for a symmetric positive definite ``a`` (small), by Cholesky; False if ``a`` is not."""
+    n = a.shape[0]
+    low = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            total = a[i, j]
+            for p in range(j):
+                total -= low[i, p] * low[j, p]
+            if i == j:
+                if total <= 0.0:
+                    return np.zeros(n), False
+                low[i, i] = math.sqrt(total)
+            else:
+                low[i, j] = total / low[j, j]
+    y = np.empty(n)
+    for i in range(n):
+        total = b[i]
+        for p in range(i):
+            total -= low[i, p] * y[p]
+        y[i] = total / low[i, i]
+    x = np.empty(n)
+    for i in range(n - 1, -1, -1):
+        total = y[i]
+        for p in range(i + 1, n):
+            total -= low[p, i] * x[p]
+        x[i] = total / low[i, i]
+    return x, True
+
+
+cholesky_solve: Any = cholesky_solve_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+
+
+def solve_step(
+    gram: F64,
+    uy: F64,
+    yy: F64,
+    a_rows: F64,
+    keep: npt.NDArray[np.bool_],
+    other_moved: F64,
+    other_sigma_px: float,
+    fit_gain: bool,
+    width: int,
+) -> tuple[F64, F64, F64, bool]:
+    """One Gauss-Newton step of the 14 unknowns from the kept profiles' moments: the normal equations
+    (:func:`normal`), the partner's pose held near its own by a prior (``other_moved`` its change so far, σ
+    ``other_sigma_px`` at each sample), the gain's change held at zero unless ``fit_gain``; solved. Returns
+    the change, each profile's sum of squared residuals after it, the normal matrix, and False if singular."""
+    big, rhs, held = normal(gram, uy, a_rows, keep)
+    count = 0
+    total = 0.0
+    for i in range(len(keep)):
+        if keep[i]:
+            count += 1
+            total += yy[i]
+    scale = max(total / max(count * width, 1), 1.0) / (other_sigma_px * other_sigma_px)
+    for p in range(6):
+        pulled = 0.0
+        for q in range(6):
+            big[8 + p, 8 + q] += scale * held[p, q]
+            pulled += scale * held[p, q] * other_moved[q]
+        rhs[8 + p] -= pulled
+    if not fit_gain:
+        for p in range(14):
+            big[0, p] = 0.0
+            big[p, 0] = 0.0
+        big[0, 0] = 1.0
+        rhs[0] = 0.0
+    sol, ok = cholesky_solve(big, rhs)
+    if not ok:
+        return sol, np.full(len(keep), np.inf), big, False
+    return sol, residuals(gram, uy, yy, a_rows, sol), big, True
