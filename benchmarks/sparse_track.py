@@ -117,12 +117,14 @@ def predict(chain: Chain, k: int, times_us: list[int]) -> tuple[F64, F64] | None
 
 
 def sparse_frame(
-    chain: Chain, k: int, lum: list[U8], phase: dict[int, int], times_us: list[int], fit: Any
+    chain: Chain, k: int, lum: list[U8], phase: dict[int, int], times_us: list[int], fit: Any, best: bool = False
 ) -> SparseResult | None:
-    """Frame ``k``'s sparse fit from its first past partner of the other phase that gives one."""
+    """Frame ``k``'s sparse fit from its first past partner of the other phase that gives one (``best``: from
+    each such partner, the fit with the smallest residual)."""
     guess = predict(chain, k, times_us)
     if guess is None or k not in phase:
         return None
+    found: list[SparseResult] = []
     for back in PAST:
         j = k - back
         if j not in chain.rt or phase.get(j) != -phase[k]:
@@ -130,9 +132,12 @@ def sparse_frame(
         hint = -chain.sign[j] * chain.step[j] if j in chain.step else 0.0
         result, why = fit(lum[k], lum[j], chain.rt[j], guess, hint)
         if result is not None and result.sign == phase[k]:
-            return result
+            if not best:
+                return result
+            found.append(result)
+            continue
         chain.refused[why or "wrong_phase"] += 1
-    return None
+    return min(found, key=lambda r: r.rms_px) if found else None
 
 
 def run_sparse(
@@ -143,6 +148,7 @@ def run_sparse(
     camera: SparseCamera,
     edges: MapEdges,
     settings: SparseSettings,
+    best: bool = False,
 ) -> tuple[Chain, float, int]:
     """The chain over the frames; its processor time (sparse work only) and the frames it worked on."""
 
@@ -162,7 +168,7 @@ def run_sparse(
         if chain.rt:
             worked += 1
             t0 = time.thread_time()
-            result = sparse_frame(chain, k, lum, phase, times_us, fit)
+            result = sparse_frame(chain, k, lum, phase, times_us, fit, best)
             spent += time.thread_time() - t0
         if result is not None:
             chain.rt[k], chain.sign[k], chain.step[k] = (result.rvec, result.tvec), result.sign, result.amplitude

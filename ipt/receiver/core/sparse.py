@@ -68,10 +68,18 @@ class SparseSettings:
     blur_px: float = 1.0
     """The Gaussian blur (σ) of a step in the camera's image: the model of the map's step."""
     border_px: float = 3.0
+    lines: int = 3
+    own_steps: bool = True
+    """Fit each frame's own step beside the pair's, where the floor is flat (False: the pair's alone)."""
+    """Each profile is the mean of this many parallel lines a pixel apart along the edge."""
     outlier_factor: float = 2.5
     """A profile whose RMS residual exceeds this many times the median one is left out."""
     other_sigma_px: float = 1.0
     """How far the partner's known pose may be off (pixels): its prior."""
+    flow_sigma_px: float = 0.0
+    """How far the floor's content may move between the two frames (pixels): its prior (panning video); 0:
+    not fitted. (Fitted, it cost shadow-vibration 7 points of yield and did not take out moving-content's
+    bias: a pan of several pixels a frame is beyond a profile's reach.)"""
     max_partner_px: float = 1.5
     """A fit that moves the partner's pose by more than this (pixels, at any sample) is refused."""
     min_step_sigmas: float = 8.0
@@ -144,8 +152,8 @@ def select(edges: MapEdges, camera: SparseCamera, r: F64, t: F64, most: int) -> 
 
 
 #: Unknowns of the fit: the pair's brightness ratio's change, the map's step in the difference, this frame's
-#: pose change (δ rotation, Δt) and the partner's.
-_GAIN, _STEP, _THIS, _OTHER = 0, 1, slice(2, 8), slice(8, 14)
+#: pose change (δ rotation, Δt), the partner's, and the motion of the floor's content between the two (x, y).
+_GAIN, _STEP, _THIS, _OTHER, _FLOW = 0, 1, slice(2, 8), slice(8, 14), slice(14, 16)
 
 
 @dataclass
@@ -179,7 +187,7 @@ class _Moments:
     uy: F64
     yy: F64
     a_rows: F64
-    """(n, 12): the rows of this frame's displacement, then the partner's."""
+    """(n, 14): the rows of this frame's displacement, the partner's, the content's."""
 
 
 @functools.lru_cache(maxsize=16)
@@ -209,7 +217,7 @@ def _solve(m: _Moments, keep: npt.NDArray[np.bool_], st: _State, s: SparseSettin
     (per profile sample) and the normal matrix."""
     width = 2 * s.fine_radius_px + 1
     sol, rss, normal, _ok = kernels.sparse_solve_step(
-        m.gram, m.uy, m.yy, m.a_rows, keep, st.other_moved, s.other_sigma_px, s.fit_gain, width
+        m.gram, m.uy, m.yy, m.a_rows, keep, st.other_moved, s.other_sigma_px, s.flow_sigma_px, s.fit_gain, width
     )
     return sol, np.sqrt(rss / width), normal
 
@@ -262,13 +270,14 @@ def fit_sparse(
     k, dist = camera.camera_matrix, camera.dist_coeffs
     moved, it, gain_set = np.inf, 0, False
     kept = np.ones(len(chosen), np.bool_)  # per chosen sample: its profile is not an outlier
-    weights = np.full((len(chosen), 2), -1.0)  # per chosen sample: its frames' own weights (-1: not yet)
+    # per chosen sample: the weights of its frames' own steps (-1: not yet known)
+    weights = np.full((len(chosen), 2), -1.0 if s.own_steps else 0.0)
     noise2 = -1.0
     for it in range(s.iterations):
         coarse = it < s.coarse_iterations
         radius = s.radius_px if coarse else s.fine_radius_px
         idx, pk, pj, a_rows = kernels.sparse_profiles(
-            obj, nrm, st.r, st.t, st.r_other, st.t_other, k, dist, image, other, radius, s.border_px
+            obj, nrm, st.r, st.t, st.r_other, st.t_other, k, dist, image, other, radius, s.border_px, s.lines
         )
         if len(idx) < s.min_inliers:
             return None, "few_in_view"
@@ -294,7 +303,7 @@ def fit_sparse(
         moved = float(np.abs(a_rows[keep, :6] @ sol[_THIS]).max())
         if not coarse and moved < s.converged_px:
             break
-    return _finish(st, edges, chosen, idx, keep, rms, normal, moved, it, a_rows[:, 6:], s)
+    return _finish(st, edges, chosen, idx, keep, rms, normal, moved, it, a_rows[:, 6:12], s)
 
 
 def _finish(

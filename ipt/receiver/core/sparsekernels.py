@@ -83,13 +83,15 @@ def read_profile_py(
     dy: float,
     jac: F64,
     ends: F64,
+    lines: int,
     out: F32,
 ) -> bool:
     """``image`` at the ``len(out)`` floor points (ox, oy) + o·(dx, dy), o = −radius..radius, seen at the pose
     (r, t): three points projected exactly (the ends and the middle), the others placed on the parabola
     through them (the lens and the perspective bend a few pixels' profile by far less than a hundredth of a
-    pixel), bilinear. False where the profile leaves the image or the floor is behind the camera. ``jac``
-    (2x2) and ``ends`` (3x2) are scratch."""
+    pixel), bilinear, averaged over ``lines`` parallel lines a pixel apart across the profile (along the edge:
+    the dense difference's smoothing, a camera's noise is several times the map's step). False where the
+    profile leaves the image or the floor is behind the camera. ``jac`` (2x2) and ``ends`` (3x2) are scratch."""
     h, w = image.shape
     radius = len(out) // 2
     for e in range(3):
@@ -100,13 +102,22 @@ def read_profile_py(
         lo, mid, hi = ends[0, c], ends[1, c], ends[2, c]
         jac[c, 0] = 0.5 * (hi - lo)
         jac[c, 1] = 0.5 * (hi + lo) - mid
+    along = math.hypot(jac[0, 0], jac[1, 0])
+    if along <= 0.0:
+        return False
+    tx, ty = -jac[1, 0] / along, jac[0, 0] / along  # a pixel along the edge
+    first = -(lines // 2)
     for o in range(len(out)):
         lam = (o - radius) / radius
         u = ends[1, 0] + lam * (jac[0, 0] + lam * jac[0, 1])
         v = ends[1, 1] + lam * (jac[1, 0] + lam * jac[1, 1])
-        if not (0.0 <= u < w - 1.0 and 0.0 <= v < h - 1.0):
-            return False
-        out[o] = bilinear_u8(image, u, v)
+        total = 0.0
+        for line in range(lines):
+            ul, vl = u + (first + line) * tx, v + (first + line) * ty
+            if not (0.0 <= ul < w - 1.0 and 0.0 <= vl < h - 1.0):
+                return False
+            total += bilinear_u8(image, ul, vl)
+        out[o] = total / lines
     return True
 
 
@@ -174,21 +185,24 @@ def profiles(
     other: U8,
     radius: int,
     border_px: float,
+    lines: int,
 ) -> tuple[I64, F32, F32, F64]:
     """For the edge samples (floor points ``obj``, floor normals ``nrm``) seen in ``image`` at the pose
     (``r``, ``t``: arena → camera) through the camera ``k`` with lens ``dist``: which samples are in view
     (inside by ``border_px``, in front of the camera), and both frames read at the same ``2·radius + 1`` floor
-    points along the normal, spaced one pixel of ``image`` apart at the sample: ``image`` at the pose (r, t),
+    points along the normal, spaced one pixel of ``image`` apart at the sample (each the mean of ``lines``
+    readings along the edge, :func:`read_profile_py`): ``image`` at the pose (r, t),
     ``other`` at (``r_other``, ``t_other``). Also, per sample, the rows of the linear system of both frames
-    (12: d(displacement along the image normal, in profile steps)/d(δ rotation, Δt) of this frame, then of
-    the other). A sample whose profile leaves either image is dropped."""
+    (14: d(displacement along the image normal, in profile steps)/d(δ rotation, Δt) of this frame, then of
+    the other, then d(the content's displacement along the profile)/d(its motion on the floor, x and y)). A
+    sample whose profile leaves either image is dropped."""
     n = obj.shape[0]
     h, w = image.shape
     width = 2 * radius + 1
     idx = np.empty(n, np.int64)
     pk = np.empty((n, width), np.float32)
     pj = np.empty((n, width), np.float32)
-    a_rows = np.empty((n, 12))
+    a_rows = np.empty((n, 14))
     scratch = np.empty((2, 2))
     ends = np.empty((3, 2))
     here = np.empty(3)
@@ -207,10 +221,13 @@ def profiles(
         scale = 1.0 / (step_m * there[2])  # the other frame's pixels → profile steps
         for c in range(6, 12):
             a_rows[count, c] *= scale
+        # The content's own motion on the floor (x, y metres) moves it along the profile by this much.
+        a_rows[count, 12] = mx / step_m
+        a_rows[count, 13] = my / step_m
         dx, dy = step_m * mx, step_m * my
-        if not read_profile(image, r, t, k, dist, ox, oy, dx, dy, scratch, ends, pk[count]):
+        if not read_profile(image, r, t, k, dist, ox, oy, dx, dy, scratch, ends, lines, pk[count]):
             continue
-        if not read_profile(other, r_other, t_other, k, dist, ox, oy, dx, dy, scratch, ends, pj[count]):
+        if not read_profile(other, r_other, t_other, k, dist, ox, oy, dx, dy, scratch, ends, lines, pj[count]):
             continue
         idx[count] = i
         count += 1
@@ -220,12 +237,14 @@ def profiles(
 def moments(
     pk: F32, pj: F32, sv: F64, gain: float, step: float, cdf: F64, pdf: F64, noise2: float, weights: F64
 ) -> tuple[F64, F64, F64]:
-    """Per profile, the moments of the linearised model that the fit needs: with basis profiles u (4) whose
-    unknowns are the gain's change, the step's, this frame's displacement δ and the partner's ε, and the
-    targets y, their Gram matrix Σ u uᵀ (4x4), Σ u y and Σ y², summed over two kinds of equations.
+    """Per profile, the moments of the linearised model that the fit needs: with basis profiles u (5) whose
+    unknowns are the gain's change, the step's, this frame's displacement δ, the partner's ε and the
+    content's own displacement (video that pans), and the targets y, their Gram matrix Σ u uᵀ (5x5), Σ u y
+    and Σ y², summed over two kinds of equations.
 
-    The pair: y = I_k − g·I_j − c·M ≈ Δg·I_j + Δc·M − F′·δ + g·I_j′·ε (M = ``sv``·``cdf`` the map's blurred
-    step, F = g·I_j + c·M, c = ``step``), centred: each sample's own brightness level drops out. It holds
+    The pair: y = I_k − g·I_j − c·M ≈ Δg·I_j + Δc·M − F′·δ + g·I_j′·ε − C′·φ (M = ``sv``·``cdf`` the map's
+    blurred step, F = g·I_j + c·M, c = ``step``, C = g·I_j + (c/2)·M the content, φ its motion), centred:
+    each sample's own brightness level drops out. It holds
     whatever the floor shows, but over a flat floor it sees only δ + ε (the two frames' steps together).
 
     Each frame alone: I_k = content + (c/2)·M(o − δ), I_j = content − (c/2g)·M(o − ε), the content taken for
@@ -235,12 +254,12 @@ def moments(
     frame, the partner) holds them: a negative one is set here, the others kept (a fit whose weights moved
     with every iteration would never settle)."""
     n, width = pk.shape
-    gram = np.zeros((n, 4, 4))
-    uy = np.zeros((n, 4))
+    gram = np.zeros((n, 5, 5))
+    uy = np.zeros((n, 5))
     yy = np.zeros(n)
-    u = np.empty((width, 4))
+    u = np.empty((width, 5))
     y = np.empty(width)
-    mean_u = np.empty(4)
+    mean_u = np.empty(5)
     # The straight line's second basis vector (the first is the constant): o − centre, unit length.
     line = np.empty(width)
     norm = 0.0
@@ -264,20 +283,21 @@ def moments(
             own = (pk[i, hi] - pk[i, lo]) / (hi - lo)
             u[o, 2] = -0.5 * (gain * slope + step * sv[i] * pdf[o] + own)
             u[o, 3] = gain * slope
+            u[o, 4] = -(gain * slope + 0.5 * step * sv[i] * pdf[o])  # the content's slope alone
             y[o] = pk[i, o] - gain * pj[i, o] - step * m
-            for c in range(4):
+            for c in range(5):
                 mean_u[c] += u[o, c]
             mean_y += y[o]
         mean_y /= width
-        for c in range(4):
+        for c in range(5):
             mean_u[c] /= width
         for o in range(width):
             yc = y[o] - mean_y
             yy[i] += yc * yc
-            for a in range(4):
+            for a in range(5):
                 ua = u[o, a] - mean_u[a]
                 uy[i, a] += ua * yc
-                for b in range(a, 4):
+                for b in range(a, 5):
                     gram[i, a, b] += ua * (u[o, b] - mean_u[b])
         for frame in range(2):  # each frame alone: this one (δ, +c/2), then the partner (ε, −c/2g)
             half = 0.5 * step if frame == 0 else -0.5 * step / gain
@@ -304,7 +324,7 @@ def moments(
                 gram[i, 1, 1] += weight * u[o, 1] * u[o, 1]
                 gram[i, 1, col] += weight * u[o, 1] * u[o, col]
                 gram[i, col, col] += weight * u[o, col] * u[o, col]
-        for a in range(4):
+        for a in range(5):
             for b in range(a):
                 gram[i, a, b] = gram[i, b, a]
     return gram, uy, yy
@@ -326,56 +346,64 @@ def detrend_py(v: F64, line: F64) -> None:
 detrend: Any = detrend_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
 
 
-def normal_py(gram: F64, uy: F64, a_rows: F64, keep: npt.NDArray[np.bool_]) -> tuple[F64, F64, F64]:
-    """The normal equations (14x14, and the right-hand side) of the kept profiles from their moments: the
-    unknowns are the gain's change, the step's, this frame's pose change (6, through its rows ``a_rows[:, :6]``)
-    and the partner's (6, ``a_rows[:, 6:]``). Also Σ a_j a_jᵀ of the partner's rows (its prior's shape)."""
+def normal_py(gram: F64, uy: F64, a_rows: F64, keep: npt.NDArray[np.bool_]) -> tuple[F64, F64, F64, F64]:
+    """The normal equations (16x16, and the right-hand side) of the kept profiles from their moments: the
+    unknowns are the gain's change, the step's, this frame's pose change (6, through its rows ``a_rows[:, :6]``),
+    the partner's (6, ``a_rows[:, 6:12]``) and the content's motion on the floor (2, ``a_rows[:, 12:]``). Also
+    Σ aaᵀ of the partner's rows and of the content's (their priors' shapes)."""
     n = gram.shape[0]
-    big = np.zeros((14, 14))
-    rhs = np.zeros(14)
+    big = np.zeros((16, 16))
+    rhs = np.zeros(16)
     held = np.zeros((6, 6))
-    col = np.array([0, 1, 2, 2, 2, 2, 2, 2, 3, 3, 3, 3, 3, 3])  # each unknown's basis profile
-    v = np.ones(14)  # and its factor there
+    flow = np.zeros((2, 2))
+    col = np.array([0, 1, 2, 2, 2, 2, 2, 2, 3, 3, 3, 3, 3, 3, 4, 4])  # each unknown's basis profile
+    v = np.ones(16)  # and its factor there
     for i in range(n):
         if not keep[i]:
             continue
         for p in range(6):
             v[2 + p] = a_rows[i, p]
             v[8 + p] = a_rows[i, 6 + p]
-        for p in range(14):
+        v[14] = a_rows[i, 12]
+        v[15] = a_rows[i, 13]
+        for p in range(16):
             rhs[p] += v[p] * uy[i, col[p]]
-            for q in range(p, 14):
+            for q in range(p, 16):
                 big[p, q] += v[p] * v[q] * gram[i, col[p], col[q]]
         for p in range(6):
             for q in range(6):
                 held[p, q] += a_rows[i, 6 + p] * a_rows[i, 6 + q]
-    for p in range(14):
+        for p in range(2):
+            for q in range(2):
+                flow[p, q] += a_rows[i, 12 + p] * a_rows[i, 12 + q]
+    for p in range(16):
         for q in range(p):
             big[p, q] = big[q, p]
-    return big, rhs, held
+    return big, rhs, held, flow
 
 
 normal: Any = normal_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
 
 
 def residuals_py(gram: F64, uy: F64, yy: F64, a_rows: F64, sol: F64) -> F64:
-    """Each profile's sum of squared residuals after the change ``sol`` of the 14 unknowns (from its moments:
+    """Each profile's sum of squared residuals after the change ``sol`` of the 16 unknowns (from its moments:
     Σ(y − u·c)² = Σy² − 2c·Σuy + cᵀ(Σuuᵀ)c, c the profile's coefficients of its four basis profiles)."""
     n = gram.shape[0]
     out = np.empty(n)
-    coef = np.empty(4)
+    coef = np.empty(5)
     for i in range(n):
         coef[0] = sol[0]
         coef[1] = sol[1]
         coef[2] = 0.0
         coef[3] = 0.0
+        coef[4] = a_rows[i, 12] * sol[14] + a_rows[i, 13] * sol[15]
         for p in range(6):
             coef[2] += a_rows[i, p] * sol[2 + p]
             coef[3] += a_rows[i, 6 + p] * sol[8 + p]
         total = yy[i]
-        for a in range(4):
+        for a in range(5):
             total -= 2.0 * coef[a] * uy[i, a]
-            for b in range(4):
+            for b in range(5):
                 total += coef[a] * gram[i, a, b] * coef[b]
         out[i] = max(total, 0.0)
     return out
@@ -425,33 +453,42 @@ def solve_step(
     keep: npt.NDArray[np.bool_],
     other_moved: F64,
     other_sigma_px: float,
+    flow_sigma_px: float,
     fit_gain: bool,
     width: int,
 ) -> tuple[F64, F64, F64, bool]:
-    """One Gauss-Newton step of the 14 unknowns from the kept profiles' moments: the normal equations
+    """One Gauss-Newton step of the 16 unknowns from the kept profiles' moments: the normal equations
     (:func:`normal`), the partner's pose held near its own by a prior (``other_moved`` its change so far, σ
-    ``other_sigma_px`` at each sample), the gain's change held at zero unless ``fit_gain``; solved. Returns
+    ``other_sigma_px`` at each sample), the content's motion near none (σ ``flow_sigma_px``; 0: held at none),
+    the gain's change held at zero unless ``fit_gain``; solved. Returns
     the change, each profile's sum of squared residuals after it, the normal matrix, and False if singular."""
-    big, rhs, held = normal(gram, uy, a_rows, keep)
+    big, rhs, held, flow = normal(gram, uy, a_rows, keep)
     count = 0
     total = 0.0
     for i in range(len(keep)):
         if keep[i]:
             count += 1
             total += yy[i]
-    scale = max(total / max(count * width, 1), 1.0) / (other_sigma_px * other_sigma_px)
+    sigma2 = max(total / max(count * width, 1), 1.0)
+    scale = sigma2 / (other_sigma_px * other_sigma_px)
+    for p in range(2):
+        for q in range(2):
+            if flow_sigma_px > 0.0:
+                big[14 + p, 14 + q] += sigma2 / (flow_sigma_px * flow_sigma_px) * flow[p, q]
     for p in range(6):
         pulled = 0.0
         for q in range(6):
             big[8 + p, 8 + q] += scale * held[p, q]
             pulled += scale * held[p, q] * other_moved[q]
         rhs[8 + p] -= pulled
-    if not fit_gain:
-        for p in range(14):
-            big[0, p] = 0.0
-            big[p, 0] = 0.0
-        big[0, 0] = 1.0
-        rhs[0] = 0.0
+    for u in (0, 14, 15):  # held at zero: the gain's change unless fitted, the content's motion unless fitted
+        if (u == 0 and fit_gain) or (u > 0 and flow_sigma_px > 0.0):
+            continue
+        for p in range(16):
+            big[u, p] = 0.0
+            big[p, u] = 0.0
+        big[u, u] = 1.0
+        rhs[u] = 0.0
     sol, ok = cholesky_solve(big, rhs)
     if not ok:
         return sol, np.full(len(keep), np.inf), big, False
