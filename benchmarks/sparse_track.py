@@ -38,7 +38,7 @@ from ipt.config.models import load_arena_config
 from ipt.eval import evaluate
 from ipt.receiver.core.demodulator import luminance
 from ipt.receiver.core.pipeline import FrameResult, Pipeline
-from ipt.receiver.core.pose import rt_of
+from ipt.receiver.core.pose import pose_of, rt_of
 from ipt.receiver.core.sparse import SparseCamera, SparseResult, SparseSettings, extrapolate, fit_sparse
 from ipt.receiver.core.track import MapEdges
 from ipt.receiver.detect.detector import pipeline_detector
@@ -53,6 +53,15 @@ U8 = npt.NDArray[np.uint8]
 
 #: Past partners tried for a frame, nearest first.
 PAST = (1, 2, 3)
+#: A fit this far (metres) from the chain's prediction is refused (the dense pipeline's gates do as much).
+MAX_JUMP_M = 0.03
+
+
+def _moved_m(result: SparseResult, guess: tuple[F64, F64]) -> float:
+    """How far the fitted camera is from the predicted one, metres."""
+    fitted, _ = pose_of(result.rvec, result.tvec)
+    predicted, _ = pose_of(*guess)
+    return float(np.linalg.norm(fitted - predicted))
 
 
 @dataclass
@@ -131,6 +140,9 @@ def sparse_frame(
             continue
         hint = -chain.sign[j] * chain.step[j] if j in chain.step else 0.0
         result, why = fit(lum[k], lum[j], chain.rt[j], guess, hint)
+        if result is not None and _moved_m(result, guess) > MAX_JUMP_M:
+            chain.refused["far_from_prediction"] += 1
+            continue
         if result is not None and result.sign == phase[k]:
             if not best:
                 return result

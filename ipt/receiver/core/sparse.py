@@ -55,10 +55,10 @@ class SparseSettings:
     smooth_px: float = 0.0
     """The later iterations' smoothing of the profiles (σ, pixels): the camera's noise is several times the
     map's step, and the fit's slopes come from the partner's profile."""
-    iterations: int = 4
+    iterations: int = 3
     converged_px: float = 0.1
     """The fit stops when its last step moved no kept sample by more than this (pixels)."""
-    settled_px: float = 0.4
+    settled_px: float = 0.6
     """... and is refused if, after the last iteration, that step was larger than this."""
     max_samples: int = 700
     min_inliers: int = 60
