@@ -250,6 +250,16 @@ def flight(folder: Path, frames: int | None, settings: SparseSettings) -> dict[s
         "dense_stage_ms_per_frame": {s: round(1e3 * v / n, 3) for s, v in pipeline.stage_seconds.items()},
         "sparse": errors(truth, [times_us[k] * 1e-6 for k in own], [chain.fitted[k].estimate() for k in own]),
         "dense_same_frames": errors(truth, [times_us[k] * 1e-6 for k in same], [dense[k].pose for k in same]),
+        # By the frame's phase: with a 60 Hz projector showing each 30 Hz video frame as one phase then the
+        # other, the first phase's past partners all show the video frame before (moved, cut).
+        "sparse_by_phase": {
+            f"{p:+d}": errors(
+                truth,
+                [times_us[k] * 1e-6 for k in own if phase.get(k) == p],
+                [chain.fitted[k].estimate() for k in own if phase.get(k) == p],
+            )
+            for p in (1, -1)
+        },
         "sparse_same_frames": errors(
             truth, [times_us[k] * 1e-6 for k in same], [chain.fitted[k].estimate() for k in same]
         ),

@@ -3,7 +3,10 @@ opposite phase, the partner's pose known, this frame's guessed some pixels off."
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -20,6 +23,7 @@ from ipt.receiver.core.track import MapEdges
 from ipt.sender.modulator import PaperModulator
 from ipt.tagmap import grid_tag_map
 
+ROOT = Path(__file__).resolve().parents[1]
 U8 = npt.NDArray[np.uint8]
 F64 = npt.NDArray[np.float64]
 
@@ -182,3 +186,16 @@ def test_extrapolation_continues_a_steady_motion() -> None:
     position, r_arena_cam = pose_of(rvec, tvec)
     assert np.allclose(position, [0.02, 0.0, 1.0], atol=1e-9)
     assert rotation_angle_rad(r_arena_cam.T @ rot_z(np.deg2rad(2.0)) @ R_ARENA_CAM) < 1e-9
+
+
+def test_the_benchmark_names_a_folder_that_is_not_a_rendering(tmp_path: Path) -> None:
+    (tmp_path / "bmp").mkdir()
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "sparse_track.py"), str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert done.returncode == 2
+    assert done.stderr.strip() == f"sparse_track: {tmp_path}: no camera.yaml"

@@ -3,6 +3,14 @@
 lens model (OpenCV's k1, k2, p1, p2, k3: the points are distorted, the image never undistorted) and the two raw
 frames of a pair read along each sample's floor normal.
 
+**The model** (:func:`moments`). The pair: y = I_k − g·I_j − c·M ≈ Δg·I_j + Δc·M − F′·δ + g·I_j′·ε − C′·φ
+(M the map's blurred step, F = g·I_j + c·M, C = g·I_j + (c/2)·M the content, φ its motion), each profile
+centred so that its own brightness level drops out. It holds whatever the floor shows, but over a flat
+floor it sees only δ + ε (the two frames' steps together). Each frame alone: I_k = content + (c/2)·M(o − δ),
+I_j = content − (c/2g)·M(o − ε), the content taken for a straight line along the profile (projected out),
+weighted by a frame's pixel noise variance over the variance the line leaves (at most 1): over a flat floor
+these place each frame's step apart; over busy content they weigh nothing.
+
 :func:`profiles` calls :data:`edge_row` and :data:`read_profile` (which call :data:`project_floor`,
 :data:`distort` and :data:`bilinear_u8`): the module's globals, which
 :func:`ipt.receiver.core.kernels.ensure` replaces by their compiled versions before it compiles their caller.
@@ -239,20 +247,10 @@ def moments(
 ) -> tuple[F64, F64, F64]:
     """Per profile, the moments of the linearised model that the fit needs: with basis profiles u (5) whose
     unknowns are the gain's change, the step's, this frame's displacement δ, the partner's ε and the
-    content's own displacement (video that pans), and the targets y, their Gram matrix Σ u uᵀ (5x5), Σ u y
-    and Σ y², summed over two kinds of equations.
-
-    The pair: y = I_k − g·I_j − c·M ≈ Δg·I_j + Δc·M − F′·δ + g·I_j′·ε − C′·φ (M = ``sv``·``cdf`` the map's
-    blurred step, F = g·I_j + c·M, c = ``step``, C = g·I_j + (c/2)·M the content, φ its motion), centred:
-    each sample's own brightness level drops out. It holds
-    whatever the floor shows, but over a flat floor it sees only δ + ε (the two frames' steps together).
-
-    Each frame alone: I_k = content + (c/2)·M(o − δ), I_j = content − (c/2g)·M(o − ε), the content taken for
-    a straight line along the profile (projected out), weighted by how well that holds for this profile:
-    ``noise2`` (a frame's pixel noise variance) over the variance the line leaves, at most 1. Over a flat floor
-    these place each frame's step apart; over busy content they weigh nothing. ``weights`` (n, 2: this
-    frame, the partner) holds them: a negative one is set here, the others kept (a fit whose weights moved
-    with every iteration would never settle)."""
+    content's own displacement, and the targets y, their Gram matrix Σ u uᵀ (5x5), Σ u y and Σ y², summed
+    over the pair's equations and each frame's own (see the module's notes). ``weights`` (n, 2: this frame,
+    the partner) holds the own equations' weights: a negative one is set here from ``noise2``, the others
+    kept (a fit whose weights moved with every iteration would never settle)."""
     n, width = pk.shape
     gram = np.zeros((n, 5, 5))
     uy = np.zeros((n, 5))
@@ -261,13 +259,8 @@ def moments(
     y = np.empty(width)
     mean_u = np.empty(5)
     # The straight line's second basis vector (the first is the constant): o − centre, unit length.
-    line = np.empty(width)
-    norm = 0.0
-    for o in range(width):
-        line[o] = o - (width - 1) / 2.0
-        norm += line[o] * line[o]
-    for o in range(width):
-        line[o] /= math.sqrt(norm)
+    line = np.arange(width) - (width - 1) / 2.0
+    line /= math.sqrt(np.sum(line * line))
     for i in range(n):
         mean_u[:] = 0.0
         mean_y = 0.0
@@ -300,34 +293,81 @@ def moments(
                 for b in range(a, 5):
                     gram[i, a, b] += ua * (u[o, b] - mean_u[b])
         for frame in range(2):  # each frame alone: this one (δ, +c/2), then the partner (ε, −c/2g)
-            half = 0.5 * step if frame == 0 else -0.5 * step / gain
-            col = 2 if frame == 0 else 3
-            for o in range(width):
-                value = pk[i, o] if frame == 0 else pj[i, o]
-                m = sv[i] * cdf[o]
-                y[o] = value - half * m
-                u[o, 1] = 0.5 * m if frame == 0 else -0.5 * m / gain
-                u[o, col] = -half * sv[i] * pdf[o]
-            detrend(y, line)
-            detrend(u[:, 1], line)
-            detrend(u[:, col], line)
-            left = 0.0
-            for o in range(width):
-                left += y[o] * y[o]
-            if weights[i, frame] < 0.0:
-                weights[i, frame] = min(1.0, noise2 * width / max(left, 1e-9))
-            weight = weights[i, frame]
-            for o in range(width):
-                yy[i] += weight * y[o] * y[o]
-                uy[i, 1] += weight * u[o, 1] * y[o]
-                uy[i, col] += weight * u[o, col] * y[o]
-                gram[i, 1, 1] += weight * u[o, 1] * u[o, 1]
-                gram[i, 1, col] += weight * u[o, 1] * u[o, col]
-                gram[i, col, col] += weight * u[o, col] * u[o, col]
+            profile = pk[i] if frame == 0 else pj[i]
+            per_step = 0.5 if frame == 0 else -0.5 / gain
+            own_step(
+                profile,
+                per_step * step,
+                per_step,
+                2 + frame,
+                sv[i],
+                cdf,
+                pdf,
+                line,
+                noise2,
+                weights[i],
+                frame,
+                u,
+                y,
+                gram[i],
+                uy[i],
+                yy,
+                i,
+            )
         for a in range(5):
             for b in range(a):
                 gram[i, a, b] = gram[i, b, a]
     return gram, uy, yy
+
+
+def own_step_py(
+    profile: F32,
+    half: float,
+    per_step: float,
+    col: int,
+    sv: float,
+    cdf: F64,
+    pdf: F64,
+    line: F64,
+    noise2: float,
+    weights: F64,
+    frame: int,
+    u: F64,
+    y: F64,
+    gram: F64,
+    uy: F64,
+    yy: F64,
+    i: int,
+) -> None:
+    """Add one frame's own equations to a profile's moments (:func:`moments`): the ``profile`` less the
+    frame's step (``half``·M, M = ``sv``·``cdf``; ``per_step`` = d half / d c) is a straight line, the
+    step's change (basis 1) and the frame's displacement (basis ``col``) explaining the rest; weighted by
+    ``weights[frame]`` (set here from ``noise2`` if negative). ``u`` (width x 5), ``y`` (width) are scratch."""
+    width = len(profile)
+    for o in range(width):
+        m = sv * cdf[o]
+        y[o] = profile[o] - half * m
+        u[o, 1] = per_step * m
+        u[o, col] = -half * sv * pdf[o]
+    detrend(y, line)
+    detrend(u[:, 1], line)
+    detrend(u[:, col], line)
+    left = 0.0
+    for o in range(width):
+        left += y[o] * y[o]
+    if weights[frame] < 0.0:
+        weights[frame] = min(1.0, noise2 * width / max(left, 1e-9))
+    weight = weights[frame]
+    for o in range(width):
+        yy[i] += weight * y[o] * y[o]
+        uy[1] += weight * u[o, 1] * y[o]
+        uy[col] += weight * u[o, col] * y[o]
+        gram[1, 1] += weight * u[o, 1] * u[o, 1]
+        gram[1, col] += weight * u[o, 1] * u[o, col]
+        gram[col, col] += weight * u[o, col] * u[o, col]
+
+
+own_step: Any = own_step_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
 
 
 def detrend_py(v: F64, line: F64) -> None:
