@@ -10,6 +10,7 @@ import os
 import socket
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -152,10 +153,25 @@ def test_a_forked_helper_is_adopted_detects_as_inline_and_is_reaped(tmp_path: Pa
     assert out["dropped"], out
 
 
+class _FakeTimer:
+    """A stand-in for threading.Timer: the test calls its function when it chooses (no sleeping)."""
+
+    def __init__(self, seconds: float, fn: Callable[[], None]) -> None:
+        self.seconds, self.fn = seconds, fn
+        self.daemon = False
+        self.started = self.cancelled = False
+
+    def start(self) -> None:
+        self.started = True
+
+    def cancel(self) -> None:
+        self.cancelled = True
+
+
 def test_the_collector_is_held_off_until_the_first_pose_then_the_start_up_is_frozen() -> None:
     # The start-up's long-lived objects (numba, pydantic, OpenCV, the pipeline) cost the cyclic collector
     # 0.05-0.1 s of passes before the first pose; held off, then frozen, they are never scanned again.
-    from ipt.receiver.cli import START_UP_RESULTS, GcHeldForStartUp
+    from ipt.receiver.cli import START_UP_RESULTS, START_UP_SECONDS, GcHeldForStartUp
     from ipt.receiver.core.frameresult import FrameResult
 
     assert gc.isenabled()
@@ -179,6 +195,21 @@ def test_the_collector_is_held_off_until_the_first_pose_then_the_start_up_is_fro
         assert not gc.isenabled()
         late.on_result(None, FrameResult(START_UP_RESULTS, 0, None, 0, "no_tags"), 0)
         assert gc.isenabled()
+        # Without any result (a camera that delivers nothing yet), it ends after START_UP_SECONDS.
+        timers: list[_FakeTimer] = []
+        idle = GcHeldForStartUp()
+        idle.release_after(START_UP_SECONDS, lambda seconds, fn: timers.append(_FakeTimer(seconds, fn)) or timers[-1])
+        assert timers[0].seconds == START_UP_SECONDS
+        assert timers[0].started
+        assert not gc.isenabled()
+        timers[0].fn()  # the time is up
+        assert gc.isenabled()
+        # A pose first: the timer is cancelled.
+        posed = GcHeldForStartUp()
+        posed.release_after(START_UP_SECONDS, lambda seconds, fn: timers.append(_FakeTimer(seconds, fn)) or timers[-1])
+        posed.on_result(None, FrameResult(3, 0, pose, 4, "pose"), 1)  # type: ignore[arg-type]
+        assert gc.isenabled()
+        assert timers[1].cancelled
     finally:
         gc.unfreeze()
         gc.enable()

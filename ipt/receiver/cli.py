@@ -15,7 +15,7 @@ import sys
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from ipt import __version__
 from ipt.cliutil import Parser, positive_float, run_main
@@ -146,6 +146,7 @@ def _run_daemon(args: argparse.Namespace) -> int:
     from ipt.receiver.detect import tagworker
 
     tagworker.prestart()
+    hold.release_after(START_UP_SECONDS)  # (a thread: only once the helper is forked)
     try:
         return _run_daemon_started(args, hold)
     finally:
@@ -154,6 +155,8 @@ def _run_daemon(args: argparse.Namespace) -> int:
 
 START_UP_RESULTS = 240
 """Frames' results (2 s of a 120 FPS camera) after which :class:`GcHeldForStartUp` lets go without a pose."""
+START_UP_SECONDS = 10.0
+"""... and the seconds after which it lets go without any result (a camera that delivers nothing yet)."""
 
 
 class GcHeldForStartUp:
@@ -162,15 +165,25 @@ class GcHeldForStartUp:
     The start-up makes a few hundred thousand objects that live as long as the process (the modules of numba,
     pydantic, OpenCV and ipt, the configuration, the pipeline), and the collector's passes over them, two of
     them full, cost 0.05-0.1 s of processor time before the first pose here. At the first pose (or after
-    :data:`START_UP_RESULTS` results without one) everything alive is frozen (``gc.freeze``: left out of every
-    later pass, as Python's documentation advises after a start-up) and collection resumes for what is made
-    from then on. What cyclic garbage the start-up left stays frozen with it."""
+    :data:`START_UP_RESULTS` results without one, or :data:`START_UP_SECONDS` without any) everything alive
+    is frozen (``gc.freeze``: left out of every later pass, as Python's documentation advises after a
+    start-up) and collection resumes for what is made from then on. What cyclic garbage the start-up left
+    stays frozen with it."""
 
     def __init__(self) -> None:
         self.held = gc.isenabled()
         self.results = 0
+        self._lock = threading.Lock()
+        self._timer: Any = None
         if self.held:
             gc.disable()
+
+    def release_after(self, seconds: float, timer: Callable[..., Any] = threading.Timer) -> None:
+        """Let go after ``seconds`` whatever comes (``timer``: :class:`threading.Timer` or a test's stand-in)."""
+        if self.held:
+            self._timer = timer(seconds, self.release)
+            self._timer.daemon = True
+            self._timer.start()
 
     def on_result(self, frame: object, result: FrameResult | None, sent: int) -> None:
         """The daemon's ``on_result`` hook (:class:`~ipt.receiver.options.ReceiverOptions`)."""
@@ -181,8 +194,12 @@ class GcHeldForStartUp:
             self.release()
 
     def release(self) -> None:
-        if self.held:
+        with self._lock:  # (the timer's thread or the daemon's)
+            if not self.held:
+                return
             self.held = False
+            if self._timer is not None:
+                self._timer.cancel()
             gc.freeze()
             gc.enable()
 
