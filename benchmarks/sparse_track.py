@@ -24,7 +24,7 @@ import os
 import sys
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -55,6 +55,10 @@ U8 = npt.NDArray[np.uint8]
 PAST = (1, 2, 3)
 #: A fit this far (metres) from the chain's prediction is refused (the dense pipeline's gates do as much).
 MAX_JUMP_M = 0.03
+#: Gauss-Newton iterations of a pair fit whose two poses are both only predicted.
+#: Frames between the two poses whose motion a same-content chain's prediction carries on.
+BASELINE = int(os.environ.get("SPARSE_BASELINE", "4"))
+JOINT_ITERATIONS = int(os.environ.get("SPARSE_JOINT_ITERATIONS", "6"))
 
 
 def _moved_m(result: SparseResult, guess: tuple[F64, F64]) -> float:
@@ -72,6 +76,9 @@ class Chain:
     sign: dict[int, int] = field(default_factory=dict)
     step: dict[int, float] = field(default_factory=dict)
     fitted: dict[int, SparseResult] = field(default_factory=dict)
+    emitted: dict[int, int] = field(default_factory=dict)
+    """The frame on whose arrival each sparse pose came out."""
+    last_amplitude: float = 0.0
     reseeds: int = 0
     refused: Counter[str] = field(default_factory=Counter)
 
@@ -114,42 +121,126 @@ def run_dense(
     return {r.index: r for r in results}, phase, spent / len(raw)
 
 
-def predict(chain: Chain, k: int, times_us: list[int]) -> tuple[F64, F64] | None:
-    """The chain's last two poses before ``k`` (within five frames) carried on to ``k``, or its last one."""
+def predict(chain: Chain, k: int, times_us: list[int], baseline: int = 1) -> tuple[F64, F64] | None:
+    """The chain's last pose before ``k`` (within five frames) carried on to ``k`` at the velocity since a pose
+    at least ``baseline`` frames before it (within eight frames; else the nearest before it), or that last pose
+    alone. A longer baseline averages the poses' own noise out of the velocity (which a prediction three frames
+    ahead multiplies)."""
     recent = [j for j in range(k - 1, max(k - 6, -1), -1) if j in chain.rt]
     if not recent:
         return None
-    if len(recent) == 1:
-        return chain.rt[recent[0]]
-    b, a = recent[0], recent[1]
+    b = recent[0]
+    before = [j for j in range(b - 1, max(b - 9, -1), -1) if j in chain.rt]
+    if not before:
+        return chain.rt[b]
+    a = next((j for j in before if j <= b - baseline), before[0])
     return extrapolate(chain.rt[a], times_us[a], chain.rt[b], times_us[b], times_us[k])
 
 
-def sparse_frame(
-    chain: Chain, k: int, lum: list[U8], phase: dict[int, int], times_us: list[int], fit: Any, best: bool = False
-) -> SparseResult | None:
-    """Frame ``k``'s sparse fit from its first past partner of the other phase that gives one (``best``: from
-    each such partner, the fit with the smallest residual)."""
-    guess = predict(chain, k, times_us)
+@dataclass(frozen=True)
+class Pairing:
+    """Which frames show the same video frame: ``waits(k)``: frame k's same-content partner is a later frame
+    (k's pose comes out with it); ``partners(k)``: the earlier frames to pair k with, best first; ``baseline``:
+    of the predictions' velocity (frames)."""
+
+    waits: Any
+    partners: Any
+    baseline: int = BASELINE
+    known_first: bool = False
+    refine: bool = False
+
+
+def past_pairing(phase: dict[int, int]) -> Pairing:
+    """Round one's chain: every frame from its nearest past partner of the other phase."""
+    return Pairing(lambda k: False, lambda k: [k - b for b in PAST if phase.get(k - b) == -phase.get(k, 0)], 1)
+
+
+def oracle_pairing(dense: dict[int, FrameResult], phase: dict[int, int]) -> Pairing:
+    """The dense pipeline's winning partner of each frame (an oracle: it looked at frames ahead)."""
+    chosen = {
+        k: r.partner for k, r in dense.items() if r.partner is not None and phase.get(r.partner) == -phase.get(k, 0)
+    }
+    claims: dict[int, list[int]] = {}
+    for k, j in sorted(chosen.items()):
+        if j > k:
+            claims.setdefault(j, []).append(k)
+
+    def partners(k: int) -> list[int]:
+        own = [chosen[k]] if k in chosen and chosen[k] < k else []
+        return own + [j for j in claims.get(k, []) if j not in own]
+
+    return Pairing(lambda k: k in chosen and chosen[k] > k, partners)
+
+
+def order_pairing(phase: dict[int, int], first: int = 1) -> Pairing:
+    """A rule a live receiver can apply: the sender shows each video frame in the phase ``first`` (+1: IPT's
+    sender starts each input frame on an even output index, its + phase), then the other; so a frame of the
+    first phase waits for a later partner and one of the second pairs with a past one of the first phase, a
+    projector period back first (k−2 at 120 FPS), then k−1, k−3 (all of the same video frame)."""
+    order = (2, 1, 3)
+    return Pairing(
+        lambda k: phase.get(k) == first,
+        lambda k: [k - b for b in order if phase.get(k) == -first and phase.get(k - b) == first],
+    )
+
+
+def _accept(chain: Chain, result: SparseResult | None, why: str, k: int, guess: tuple[F64, F64], want: int) -> bool:
+    if result is not None and _moved_m(result, guess) > MAX_JUMP_M:
+        chain.refused["far_from_prediction"] += 1
+        return False
+    if result is not None and result.sign == want:
+        return True
+    chain.refused[why or "wrong_phase"] += 1
+    return False
+
+
+def pair_frame(
+    chain: Chain, k: int, lum: list[U8], phase: dict[int, int], times_us: list[int], fit: Any, pairing: Pairing
+) -> dict[int, SparseResult]:
+    """Frame ``k``'s fit with its same-content past partner j (``pairing``; with ``known_first``, those with a
+    pose first); when j has no pose yet (it waited for k) both poses are unknowns, j's started from its
+    prediction and held near it by the prediction's uncertainty. With ``refine``, each frame still waiting
+    among k's partners is then fitted on its own against k, k held at its fitted pose. Returns the poses
+    found, by frame."""
+    guess = predict(chain, k, times_us, pairing.baseline)
     if guess is None or k not in phase:
-        return None
-    found: list[SparseResult] = []
-    for back in PAST:
-        j = k - back
-        if j not in chain.rt or phase.get(j) != -phase[k]:
+        return {}
+    candidates = [j for j in pairing.partners(k) if j >= 0 and (j in chain.rt or pairing.waits(j))]
+    if pairing.known_first:
+        candidates.sort(key=lambda j: j not in chain.rt)
+    found: dict[int, SparseResult] = {}
+    for j in candidates:
+        known = j in chain.rt
+        partner_rt = chain.rt[j] if known else predict(chain, j, times_us, pairing.baseline)
+        if partner_rt is None:
             continue
-        hint = -chain.sign[j] * chain.step[j] if j in chain.step else 0.0
-        result, why = fit(lum[k], lum[j], chain.rt[j], guess, hint)
-        if result is not None and _moved_m(result, guess) > MAX_JUMP_M:
-            chain.refused["far_from_prediction"] += 1
+        hint = -chain.sign[j] * chain.step[j] if j in chain.step else 0.0 if known else phase[k] * chain.last_amplitude
+        result, why = fit(lum[k], lum[j], partner_rt, guess, hint, None if known else "predicted")
+        if not _accept(chain, result, why, k, guess, phase[k]):
             continue
-        if result is not None and result.sign == phase[k]:
-            if not best:
-                return result
-            found.append(result)
-            continue
-        chain.refused[why or "wrong_phase"] += 1
-    return min(found, key=lambda r: r.rms_px) if found else None
+        assert result is not None
+        found[k] = result
+        if not known:
+            other = result.partner()
+            if _moved_m(other, partner_rt) > MAX_JUMP_M:
+                chain.refused["partner_far_from_prediction"] += 1
+                found.clear()
+                continue
+            found[j] = other
+        break
+    if k in found and pairing.refine:
+        held = (found[k].rvec, found[k].tvec)
+        for j in candidates:
+            if j in chain.rt or phase.get(j) != -phase[k]:
+                continue
+            start = (found[j].rvec, found[j].tvec) if j in found else predict(chain, j, times_us, pairing.baseline)
+            if start is None:
+                continue
+            result, why = fit(lum[j], lum[k], held, start, -found[k].sign * found[k].amplitude, None)
+            if _accept(chain, result, why, j, start, phase[j]):
+                assert result is not None
+                found[j] = result
+    return found
 
 
 def run_sparse(
@@ -160,12 +251,18 @@ def run_sparse(
     camera: SparseCamera,
     edges: MapEdges,
     settings: SparseSettings,
-    best: bool = False,
+    pairing: Pairing,
+    partner_sigma_px: float,
 ) -> tuple[Chain, float, int]:
-    """The chain over the frames; its processor time (sparse work only) and the frames it worked on."""
+    """The chain over the frames; its processor time (sparse work only) and the frames it worked on. A frame
+    that waits for a later partner (``pairing``) gets its pose with that partner's; if none has given it one
+    by three frames later, the chain takes its dense pose then (a re-seed)."""
+    predicted = replace(
+        settings, other_sigma_px=partner_sigma_px, max_partner_px=3.0 * partner_sigma_px, iterations=JOINT_ITERATIONS
+    )
 
-    def fit(image: U8, other: U8, other_rt: tuple[F64, F64], guess: tuple[F64, F64], hint: float) -> Any:
-        return fit_sparse(image, other, camera, edges, other_rt, guess, settings, hint)
+    def fit(image: U8, other: U8, other_rt: tuple[F64, F64], guess: tuple[F64, F64], hint: float, mode: Any) -> Any:
+        return fit_sparse(image, other, camera, edges, other_rt, guess, predicted if mode else settings, hint)
 
     chain = Chain()
     spent, worked = 0.0, 0
@@ -174,24 +271,45 @@ def run_sparse(
         pose = dense[first].pose
         assert pose is not None
         rt = rt_of(pose.position_m, pose.r_arena_cam)
-        fit(lum[first], lum[first], rt, rt, 0.0)
+        fit(lum[first], lum[first], rt, rt, 0.0, None)
+    pending: list[int] = []
     for k in range(len(lum)):
-        result = None
-        if chain.rt:
+        out: dict[int, SparseResult] = {}
+        started = bool(chain.rt)
+        if started:
             worked += 1
             t0 = time.thread_time()
-            result = sparse_frame(chain, k, lum, phase, times_us, fit, best)
+            if not pairing.waits(k):
+                out = pair_frame(chain, k, lum, phase, times_us, fit, pairing)
             spent += time.thread_time() - t0
-        if result is not None:
-            chain.rt[k], chain.sign[k], chain.step[k] = (result.rvec, result.tvec), result.sign, result.amplitude
-            chain.fitted[k] = result
-        elif k in dense and dense[k].pose is not None and k in phase:
-            pose = dense[k].pose
-            assert pose is not None
-            chain.rt[k], chain.sign[k] = rt_of(pose.position_m, pose.r_arena_cam), phase[k]
-            chain.step.pop(k, None)
-            chain.reseeds += 1 if chain.fitted or len(chain.rt) > 1 else 0
+        for j, result in out.items():
+            _take(chain, j, result, k)
+        if k in out:
+            pass
+        elif started and pairing.waits(k):
+            pending.append(k)
+        else:
+            _reseed(chain, k, dense, phase)
+        for j in [j for j in pending if j <= k - 3 or k == len(lum) - 1]:
+            pending.remove(j)
+            if j not in chain.rt:
+                _reseed(chain, j, dense, phase)
     return chain, spent, worked
+
+
+def _take(chain: Chain, k: int, result: SparseResult, out_at: int) -> None:
+    chain.rt[k], chain.sign[k], chain.step[k] = (result.rvec, result.tvec), result.sign, result.amplitude
+    chain.fitted[k], chain.emitted[k], chain.last_amplitude = result, out_at, result.amplitude
+
+
+def _reseed(chain: Chain, k: int, dense: dict[int, FrameResult], phase: dict[int, int]) -> None:
+    """The dense pose of ``k`` into the chain, if it has one."""
+    if k in dense and dense[k].pose is not None and k in phase:
+        pose = dense[k].pose
+        assert pose is not None
+        chain.rt[k], chain.sign[k] = rt_of(pose.position_m, pose.r_arena_cam), phase[k]
+        chain.step.pop(k, None)
+        chain.reseeds += 1 if chain.fitted or len(chain.rt) > 1 else 0
 
 
 def errors(truth: Trajectory, times_s: list[float], poses: list[Any]) -> dict[str, Any]:
@@ -206,7 +324,21 @@ def errors(truth: Trajectory, times_s: list[float], poses: list[Any]) -> dict[st
     }
 
 
-def flight(folder: Path, frames: int | None, settings: SparseSettings) -> dict[str, Any]:
+#: The chains the benchmark can run: which frames are paired (``--pairs``).
+PAIRINGS = ("past", "oracle", "order", "order2")
+
+
+def _pairing(name: str, dense: dict[int, FrameResult], phase: dict[int, int]) -> Pairing:
+    if name == "oracle":
+        return oracle_pairing(dense, phase)
+    if name == "order2":
+        return replace(order_pairing(phase), known_first=True, refine=True)
+    return order_pairing(phase) if name == "order" else past_pairing(phase)
+
+
+def flight(
+    folder: Path, frames: int | None, settings: SparseSettings, pairings: list[str], partner_sigma_px: float
+) -> dict[str, Any]:
     try:
         arena = load_arena_config(folder / "arena.yaml")
     except (ConfigError, OSError) as exc:
@@ -217,6 +349,7 @@ def flight(folder: Path, frames: int | None, settings: SparseSettings) -> dict[s
     raw, lum, lightness_s = load_frames(folder, frames, cfg.demodulation.lightness)
     times_us = [round(float(truth.times_s[k]) * 1e6) for k in range(len(raw))]
     tag_map = grid_tag_map(arena)
+    out: dict[str, Any] = {"frames": len(raw), "lightness_ms_per_frame": round(1e3 * lightness_s, 3)}
     with one_core():
         pipeline = Pipeline(
             tag_map, camera, cfg, arena.projector.rate_hz, pipeline_detector(cfg.detector, tag_map.by_id)
@@ -225,29 +358,52 @@ def flight(folder: Path, frames: int | None, settings: SparseSettings) -> dict[s
             dense, phase, dense_s = run_dense(pipeline, raw, times_us)
         finally:
             pipeline.close()
+        out["dense_yield_pct"] = round(100.0 * sum(1 for r in dense.values() if r.pose is not None) / len(raw), 1)
+        out["dense_ms_per_frame"] = round(1e3 * dense_s, 3)
+        out["dense_stage_ms_per_frame"] = {s: round(1e3 * v / len(raw), 3) for s, v in pipeline.stage_seconds.items()}
         scale = camera.width_px / 640
-        settings = SparseSettings(
-            **{**settings.__dict__, "blur_px": settings.blur_px * scale, "border_px": settings.border_px * scale}
-        )
+        settings = replace(settings, blur_px=settings.blur_px * scale, border_px=settings.border_px * scale)
         sparse_camera = SparseCamera.of(camera.camera_matrix, camera.dist_coeffs, (camera.width_px, camera.height_px))
-        chain, sparse_s, worked = run_sparse(
-            lum, dense, phase, times_us, sparse_camera, MapEdges.from_tag_map(tag_map), settings
-        )
+        edges = MapEdges.from_tag_map(tag_map)
+        for name in pairings:
+            chain, sparse_s, worked = run_sparse(
+                lum,
+                dense,
+                phase,
+                times_us,
+                sparse_camera,
+                edges,
+                settings,
+                _pairing(name, dense, phase),
+                partner_sigma_px * scale,
+            )
+            out[name] = chain_report(chain, sparse_s, worked, dense, phase, truth, times_us)
+    return out
+
+
+def chain_report(
+    chain: Chain,
+    sparse_s: float,
+    worked: int,
+    dense: dict[int, FrameResult],
+    phase: dict[int, int],
+    truth: Trajectory,
+    times_us: list[int],
+) -> dict[str, Any]:
+    """A chain's yield, re-seeds, processor time, errors (its own and the dense pipeline's on the same frames)
+    and latency (from the frame's capture to the arrival of the frame whose fit gave its pose)."""
     own = sorted(chain.fitted)
     same = [k for k in own if dense.get(k) is not None and dense[k].pose is not None]
-    n = len(raw)
+    waited_ms = [(times_us[chain.emitted[k]] - times_us[k]) * 1e-3 for k in own]
     return {
-        "frames": n,
-        "sparse_yield_pct": round(100.0 * len(own) / n, 1),
-        "dense_yield_pct": round(100.0 * sum(1 for r in dense.values() if r.pose is not None) / n, 1),
+        "sparse_yield_pct": round(100.0 * len(own) / len(times_us), 1),
         "reseeds": chain.reseeds,
         "refused": dict(sorted(chain.refused.items())),
         "sparse_ms_per_frame": round(1e3 * sparse_s / max(worked, 1), 3),
-        "sparse_ms_per_fit": round(1e3 * sparse_s / max(len(own), 1), 3),
+        "sparse_ms_per_pose": round(1e3 * sparse_s / max(len(own), 1), 3),
         "iterations_mean": round(float(np.mean([chain.fitted[k].iterations for k in own])), 2) if own else None,
-        "lightness_ms_per_frame": round(1e3 * lightness_s, 3),
-        "dense_ms_per_frame": round(1e3 * dense_s, 3),
-        "dense_stage_ms_per_frame": {s: round(1e3 * v / n, 3) for s, v in pipeline.stage_seconds.items()},
+        "frames_waited": dict(sorted(Counter(chain.emitted[k] - k for k in own).items())),
+        "wait_ms_p50_p99": [round(float(np.percentile(waited_ms, q)), 1) for q in (50, 99)] if own else None,
         "sparse": errors(truth, [times_us[k] * 1e-6 for k in own], [chain.fitted[k].estimate() for k in own]),
         "dense_same_frames": errors(truth, [times_us[k] * 1e-6 for k in same], [dense[k].pose for k in same]),
         # By the frame's phase: with a 60 Hz projector showing each 30 Hz video frame as one phase then the
@@ -273,6 +429,15 @@ def main() -> int:
     )
     parser.add_argument("--frames", type=int, default=None, help="only the first N frames")
     parser.add_argument("--blur-px", type=float, default=SparseSettings.blur_px, help="step blur σ at 640 px wide")
+    parser.add_argument(
+        "--pairs",
+        default="past,order",
+        help="chains to run, comma-separated: past (round one: each frame from its nearest past partner), "
+        "oracle (the dense pipeline's partner), order (the same video frame's partner by the phase order)",
+    )
+    parser.add_argument(
+        "--partner-sigma-px", type=float, default=3.0, help="a predicted partner's uncertainty, px at 640 wide"
+    )
     args = parser.parse_args()
     if args.frames is not None and args.frames < 10:
         print(f"sparse_track: --frames {args.frames}: need at least 10", file=sys.stderr)
@@ -282,8 +447,18 @@ def main() -> int:
             if not (d / need).exists():
                 print(f"sparse_track: {d}: no {need}", file=sys.stderr)
                 return 2
+    pairings = args.pairs.split(",")
+    if not pairings or any(p not in PAIRINGS for p in pairings):
+        print(f"sparse_track: --pairs {args.pairs}: each must be one of {', '.join(PAIRINGS)}", file=sys.stderr)
+        return 2
+    if args.partner_sigma_px <= 0:
+        print(f"sparse_track: --partner-sigma-px {args.partner_sigma_px}: must be positive", file=sys.stderr)
+        return 2
     settings = SparseSettings(blur_px=args.blur_px)
-    out = {"load": os.getloadavg()[0], "flights": {d.name: flight(d, args.frames, settings) for d in args.dirs}}
+    out = {
+        "load": os.getloadavg()[0],
+        "flights": {d.name: flight(d, args.frames, settings, pairings, args.partner_sigma_px) for d in args.dirs},
+    }
     out["load_after"] = os.getloadavg()[0]
     print(json.dumps(out, indent=1))
     return 0

@@ -23,6 +23,7 @@ Pure: two 8-bit lightness frames, the camera model, the partner's pose and a gue
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -108,10 +109,25 @@ class SparseResult:
     gain: float
     iterations: int
     tags: tuple[int, ...]
+    other_rvec: F64
+    """The partner's pose as the fit left it (its prior held it near the one given): a pose of its own when
+    the partner's given pose was only a prediction (a pair of which neither frame had a pose)."""
+    other_tvec: F64
 
     def estimate(self) -> PoseEstimate:
         position, r_arena_cam = pose_of(self.rvec, self.tvec)
         return PoseEstimate(position, r_arena_cam, self.tags, self.rms_px)
+
+    def partner(self) -> SparseResult:
+        """The partner frame's pose from the same fit, as a result of its own (its phase the other)."""
+        return dataclasses.replace(
+            self,
+            rvec=self.other_rvec,
+            tvec=self.other_tvec,
+            sign=-self.sign,
+            other_rvec=self.rvec,
+            other_tvec=self.tvec,
+        )
 
 
 @dataclass(frozen=True)
@@ -337,6 +353,7 @@ def _finish(
     if keep.sum() < s.min_inlier_fraction * len(idx):
         return None, "inlier_fraction"
     rvec, _ = cv2.Rodrigues(st.r)
+    other_rvec, _ = cv2.Rodrigues(st.r_other)
     tags = tuple(sorted(edges.tag_ids[i] for i in present))
     sign = 1 if st.step > 0 else -1
     return SparseResult(
@@ -350,6 +367,8 @@ def _finish(
         st.gain,
         it + 1,
         tags,
+        np.asarray(other_rvec, np.float64).reshape(3),
+        st.t_other.copy(),
     ), ""
 
 
