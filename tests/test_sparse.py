@@ -24,6 +24,9 @@ from ipt.sender.modulator import PaperModulator
 from ipt.tagmap import grid_tag_map
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import sparse_track  # noqa: E402
+
 U8 = npt.NDArray[np.uint8]
 F64 = npt.NDArray[np.float64]
 
@@ -199,3 +202,64 @@ def test_the_benchmark_names_a_folder_that_is_not_a_rendering(tmp_path: Path) ->
     )
     assert done.returncode == 2
     assert done.stderr.strip() == f"sparse_track: {tmp_path}: no camera.yaml"
+
+
+#: The frame before the pair, of the partner's phase, showing the previous video frame: the photograph panned
+#: by this many projector pixels (moving-content's pans are 3-10 a video frame).
+PAN_PX = 8
+PREVIOUS_POSITION_M = POSITION_M - np.array([0.004, -0.003, 0.003])
+
+
+@pytest.fixture(scope="module")
+def panned() -> tuple[Pair, U8]:
+    """The pair of one video frame (this frame in its first phase, the later partner in the second) and a
+    frame of the previous video frame in the second phase, its content panned."""
+    rng = np.random.default_rng(5)
+    coarse = rng.integers(40, 216, (ARENA.projector.height_px // 8, ARENA.projector.width_px // 8, 3), np.uint8)
+    size = (ARENA.projector.width_px, ARENA.projector.height_px)
+    content = np.asarray(cv2.resize(coarse, size, interpolation=cv2.INTER_CUBIC), np.uint8)
+    modulator = PaperModulator(TAG_MAP.render_mask(), ARENA.modulation.delta_l)
+    plus, minus = modulator.modulate(content, 0, 2)
+    _, minus_before = modulator.modulate(np.ascontiguousarray(np.roll(content, PAN_PX, axis=1)), 0, 2)
+    pair = Pair(
+        lightness(_distorted_view(plus, POSITION_M, R_ARENA_CAM, LENS)),
+        lightness(_distorted_view(minus, OTHER_POSITION_M, R_OTHER, LENS)),
+        SparseCamera.of(K, LENS, SIZE),
+    )
+    return pair, lightness(_distorted_view(minus_before, PREVIOUS_POSITION_M, R_ARENA_CAM, LENS))
+
+
+def test_a_first_phase_frame_is_fitted_with_its_later_same_content_partner(
+    panned: tuple[Pair, U8], edges: MapEdges
+) -> None:
+    """With its past partner (the previous video frame, panned) the fit is pulled along the pan or refused;
+    with the later partner of the same video frame, both frames' poses only predicted (each 2 px off), the
+    joint fit gives this frame's pose."""
+    pair, before = panned
+    start = _guess_off_by(2.0)
+    past, _ = fit_sparse(pair.image, before, pair.camera, edges, rt_of(PREVIOUS_POSITION_M, R_ARENA_CAM), start)
+    assert past is None or _image_error_px(past.rvec, past.tvec) > 2.0  # 5 px here, accepted by its checks
+    shift_m = 2.0 * OTHER_POSITION_M[2] / K[0, 0]
+    predicted_partner = rt_of(OTHER_POSITION_M + np.array([-0.8 * shift_m, 0.6 * shift_m, 0.0]), R_OTHER)
+    loose = SparseSettings(other_sigma_px=3.0, max_partner_px=9.0, iterations=6)
+    # The later frame is the one fitted; this frame is its partner, whose pose the fit solves too.
+    later, why = fit_sparse(pair.other, pair.image, pair.camera, edges, start, predicted_partner, loose)
+    assert later is not None, why
+    this = later.partner()
+    assert this.sign == 1
+    assert _image_error_px(this.rvec, this.tvec) < 0.3
+    assert _errors(this.rvec, this.tvec)[0] < 1.0
+    position, _ = pose_of(later.rvec, later.tvec)
+    assert 1000 * np.linalg.norm(position - OTHER_POSITION_M) < 1.0
+
+
+def test_the_phase_order_pairs_each_frame_within_its_video_frame() -> None:
+    """Four camera frames a video frame, [+, +, -, -] (IPT's sender shows each input frame's + phase first): a
+    + frame waits for a later partner, a - frame pairs with the + frames before it, a period back first, never
+    with the previous video frame's."""
+    phase = {k: (1 if k % 4 in (0, 1) else -1) for k in range(12)}
+    pairing = sparse_track.order_pairing(phase)
+    assert [pairing.waits(k) for k in range(4, 8)] == [True, True, False, False]
+    assert pairing.partners(6) == [4, 5]
+    assert pairing.partners(7) == [5, 4]
+    assert pairing.partners(4) == []
