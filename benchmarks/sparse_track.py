@@ -58,7 +58,9 @@ MAX_JUMP_M = 0.03
 #: Gauss-Newton iterations of a pair fit whose two poses are both only predicted.
 #: Frames between the two poses whose motion a same-content chain's prediction carries on.
 BASELINE = int(os.environ.get("SPARSE_BASELINE", "4"))
-JOINT_ITERATIONS = int(os.environ.get("SPARSE_JOINT_ITERATIONS", "6"))
+JOINT_ITERATIONS = int(os.environ.get("SPARSE_JOINT_ITERATIONS", "8"))
+#: ... and the largest last step (pixels) with which such a fit is taken as settled.
+JOINT_SETTLED_PX = float(os.environ.get("SPARSE_JOINT_SETTLED_PX", "0.6"))
 
 
 def _moved_m(result: SparseResult, guess: tuple[F64, F64]) -> float:
@@ -258,7 +260,11 @@ def run_sparse(
     that waits for a later partner (``pairing``) gets its pose with that partner's; if none has given it one
     by three frames later, the chain takes its dense pose then (a re-seed)."""
     predicted = replace(
-        settings, other_sigma_px=partner_sigma_px, max_partner_px=3.0 * partner_sigma_px, iterations=JOINT_ITERATIONS
+        settings,
+        other_sigma_px=partner_sigma_px,
+        max_partner_px=3.0 * partner_sigma_px,
+        iterations=JOINT_ITERATIONS,
+        settled_px=JOINT_SETTLED_PX,
     )
 
     def fit(image: U8, other: U8, other_rt: tuple[F64, F64], guess: tuple[F64, F64], hint: float, mode: Any) -> Any:
@@ -436,7 +442,15 @@ def main() -> int:
         "oracle (the dense pipeline's partner), order (the same video frame's partner by the phase order)",
     )
     parser.add_argument(
-        "--partner-sigma-px", type=float, default=3.0, help="a predicted partner's uncertainty, px at 640 wide"
+        "--partner-sigma-px", type=float, default=10.0, help="a predicted partner's uncertainty, px at 640 wide"
+    )
+    parser.add_argument(
+        "--esm-partner",
+        action="store_true",
+        help="the partner's slope averaged with this frame's (SparseSettings.esm_partner)",
+    )
+    parser.add_argument(
+        "--known-sigma-px", type=float, default=SparseSettings.other_sigma_px, help="a fitted partner's, px"
     )
     args = parser.parse_args()
     if args.frames is not None and args.frames < 10:
@@ -454,7 +468,12 @@ def main() -> int:
     if args.partner_sigma_px <= 0:
         print(f"sparse_track: --partner-sigma-px {args.partner_sigma_px}: must be positive", file=sys.stderr)
         return 2
-    settings = SparseSettings(blur_px=args.blur_px)
+    settings = SparseSettings(
+        blur_px=args.blur_px,
+        esm_partner=args.esm_partner,
+        other_sigma_px=args.known_sigma_px,
+        max_partner_px=max(SparseSettings.max_partner_px, 3.0 * args.known_sigma_px),
+    )
     out = {
         "load": os.getloadavg()[0],
         "flights": {d.name: flight(d, args.frames, settings, pairings, args.partner_sigma_px) for d in args.dirs},

@@ -90,6 +90,10 @@ class SparseSettings:
     the partner's centred profile is its (turned over) step, and the gain and the step are one unknown."""
     min_amplitude: float = 0.5
     """... and be at least this many lightness levels per unit of the map's step."""
+    esm_partner: bool = False
+    """The partner's displacement's slope averaged, as this frame's is, with the slope where it will be
+    (this frame's profile less the step's): then a move of both frames together (where the pair sits on the
+    map) sees the map's step alone, not the two frames' content slopes' difference."""
 
 
 @dataclass(frozen=True)
@@ -216,14 +220,14 @@ def _step_model(width: int, blur_px: float) -> tuple[F64, F64]:
 
 
 def _moments(
-    pk: F32, pj: F32, a_rows: F64, sv: F64, st: _State, blur_px: float, weights: F64, noise2: float
+    pk: F32, pj: F32, a_rows: F64, sv: F64, st: _State, blur_px: float, weights: F64, noise2: float, esm: bool
 ) -> _Moments:
     """The linearised model of this frame's profiles from the partner's and the map's (per profile, centred:
     each sample's own brightness level drops out): I_k − g·I_j − c·M = Δg·I_j + Δc·M − F′·δ + g·I_j′·ε, with
     F = g·I_j + c·M the partner's profile with its step turned over (what this frame shows when registered),
     δ and ε the displacements (profile steps) that this frame's and the partner's pose changes make."""
     cdf, pdf = _step_model(pk.shape[1], blur_px)
-    gram, uy, yy = kernels.sparse_moments(pk, pj, sv, st.gain, st.step, cdf, pdf, noise2, weights)
+    gram, uy, yy = kernels.sparse_moments(pk, pj, sv, st.gain, st.step, cdf, pdf, noise2, weights, esm)
     return _Moments(gram, uy, yy, a_rows)
 
 
@@ -306,7 +310,7 @@ def fit_sparse(
             curvature = np.abs(pk[:, 2:] - 2 * pk[:, 1:-1] + pk[:, :-2])
             noise2 = max((1.4826 * fast_median(curvature)) ** 2 / 6.0, 0.01)
         frame_weights = weights[idx]
-        m = _moments(pk, pj, a_rows, steps[idx], st, blur, frame_weights, noise2)
+        m = _moments(pk, pj, a_rows, steps[idx], st, blur, frame_weights, noise2, s.esm_partner)
         weights[idx] = frame_weights
         keep = kept[idx]
         for _ in range(2 if it == 0 else 1):  # robust: drop profiles far worse than the typical one

@@ -243,7 +243,16 @@ def profiles(
 
 
 def moments(
-    pk: F32, pj: F32, sv: F64, gain: float, step: float, cdf: F64, pdf: F64, noise2: float, weights: F64
+    pk: F32,
+    pj: F32,
+    sv: F64,
+    gain: float,
+    step: float,
+    cdf: F64,
+    pdf: F64,
+    noise2: float,
+    weights: F64,
+    esm_partner: bool,
 ) -> tuple[F64, F64, F64]:
     """Per profile, the moments of the linearised model that the fit needs: with basis profiles u (5) whose
     unknowns are the gain's change, the step's, this frame's displacement δ, the partner's ε and the
@@ -275,7 +284,9 @@ def moments(
             # of either alone makes the steps overshoot and swing)
             own = (pk[i, hi] - pk[i, lo]) / (hi - lo)
             u[o, 2] = -0.5 * (gain * slope + step * sv[i] * pdf[o] + own)
-            u[o, 3] = gain * slope
+            # the partner's: its slope and, where it will be, this frame's less the step's (ESM as above), so
+            # that both frames moved together see the map's step alone (the content's slopes cancel)
+            u[o, 3] = 0.5 * (gain * slope + own - step * sv[i] * pdf[o]) if esm_partner else gain * slope
             u[o, 4] = -(gain * slope + 0.5 * step * sv[i] * pdf[o])  # the content's slope alone
             y[o] = pk[i, o] - gain * pj[i, o] - step * m
             for c in range(5):
