@@ -1,19 +1,27 @@
 """The sparse tracker prototype (issue 29, :mod:`ipt.receiver.core.sparse`) on rendered flights, against the dense
 pipeline on the same frames.
 
-    python benchmarks/sparse_track.py DIR [DIR ...] [--frames N]
+    python benchmarks/sparse_track.py DIR [DIR ...] [--frames N] [--pairs past,order,...] [--esm-partner]
 
 ``DIR`` is a rendering (``bmp/`` frames, ``camera.yaml``, ``arena.yaml``, ``groundtruth.tum``; read only). The
 dense :class:`~ipt.receiver.core.pipeline.Pipeline` runs first, in process, for its poses and each frame's
-projector phase. Then the sparse tracker runs as a chain: it starts from the dense pose of the first posed
-frame; each later frame k is fitted from one of its past partners k−1…k−3 of the other phase that has a pose
-of the chain (its own output), starting from the chain's last two poses carried on at constant velocity.
-When no partner gives a fit that its checks accept, the chain takes the dense pose of k (a re-seed, counted);
-frames without one stay unposed. Prints JSON per flight: the sparse fit's yield, its re-seeds, its processor
-time per frame (``time.thread_time`` of everything the fit does: selection, sampling through the lens, the
-fit; frames preloaded as lightness, not timed, the lightness's own cost given apart), the errors against the
-ground truth of the sparse poses and of the dense poses of the same frames, and the dense pipeline's own
-processor time per frame and per stage in the same run.
+projector phase. Then the sparse tracker runs as a chain, once for each ``--pairs``: it starts from the dense
+pose of the first posed frame, and each later frame is fitted with a partner of the other phase, starting from
+the chain's poses carried on at constant velocity. ``past`` (round one): each frame k from one of its past
+partners k−1…k−3 that has a pose of the chain. ``order``: the partner that shows the same video frame (IPT's
+sender shows each one in its + phase, then its −): a + frame waits; a − frame is fitted with a + frame before
+it (k−2, k−1, k−3), and when that one has no pose yet both poses are fitted (the partner's held near its
+prediction by ``--partner-sigma-px``); the + frame's pose comes out then. ``order2``: the same, partners with
+a pose first, and each + frame still waiting then fitted on its own against the − frame's new pose.
+``oracle``: the dense pipeline's chosen partner instead of the rule. ``still``: ``order2``, but a + frame
+first tries its past partner and takes that fit at once if its residual is as small as the same-content pairs'.
+When no partner gives a fit that its checks accept, the chain takes the dense pose (a re-seed, counted; a
+waiting frame three frames later); frames without one stay unposed. Prints JSON per flight and chain: the
+sparse yield, re-seeds, processor time per frame (``time.thread_time`` of everything the fits do: selection,
+sampling through the lens, the fit; frames preloaded as lightness, not timed, the lightness's own cost given
+apart), the frames each pose waited for and that wait in ms (p50, p99), the errors against the ground truth of
+the sparse poses and of the dense poses of the same frames, and the dense pipeline's own processor time per
+frame and per stage in the same run.
 """
 
 from __future__ import annotations
@@ -57,7 +65,7 @@ PAST = (1, 2, 3)
 MAX_JUMP_M = 0.03
 #: Gauss-Newton iterations of a pair fit whose two poses are both only predicted.
 #: Frames between the two poses whose motion a same-content chain's prediction carries on.
-BASELINE = int(os.environ.get("SPARSE_BASELINE", "4"))
+BASELINE = int(os.environ.get("SPARSE_BASELINE", "1"))
 JOINT_ITERATIONS = int(os.environ.get("SPARSE_JOINT_ITERATIONS", "8"))
 #: ... and the largest last step (pixels) with which such a fit is taken as settled.
 JOINT_SETTLED_PX = float(os.environ.get("SPARSE_JOINT_SETTLED_PX", "0.6"))
@@ -81,6 +89,8 @@ class Chain:
     emitted: dict[int, int] = field(default_factory=dict)
     """The frame on whose arrival each sparse pose came out."""
     last_amplitude: float = 0.0
+    same_rms: list[float] = field(default_factory=list)
+    """The residuals of the fits with a same-content partner, in order."""
     reseeds: int = 0
     refused: Counter[str] = field(default_factory=Counter)
 
@@ -150,6 +160,8 @@ class Pairing:
     baseline: int = BASELINE
     known_first: bool = False
     refine: bool = False
+    past_first: bool = False
+    """A waiting frame first tries its past partners and takes the fit at once if the content held still."""
 
 
 def past_pairing(phase: dict[int, int]) -> Pairing:
@@ -287,6 +299,10 @@ def run_sparse(
             t0 = time.thread_time()
             if not pairing.waits(k):
                 out = pair_frame(chain, k, lum, phase, times_us, fit, pairing)
+                if k in out:
+                    chain.same_rms.append(out[k].rms_px)
+            elif pairing.past_first:
+                out = _past_if_still(chain, k, lum, phase, times_us, fit, past_pairing(phase))
             spent += time.thread_time() - t0
         for j, result in out.items():
             _take(chain, j, result, k)
@@ -301,6 +317,20 @@ def run_sparse(
             if j not in chain.rt:
                 _reseed(chain, j, dense, phase)
     return chain, spent, worked
+
+
+def _past_if_still(
+    chain: Chain, k: int, lum: list[U8], phase: dict[int, int], times_us: list[int], fit: Any, past: Pairing
+) -> dict[int, SparseResult]:
+    """A waiting frame's fit with a past partner (of the video frame before), taken at once if its residual is
+    no more than :data:`STILL_RATIO` times the recent same-content pairs' (the content held still)."""
+    if not chain.same_rms:
+        return {}
+    found = pair_frame(chain, k, lum, phase, times_us, fit, past)
+    if k in found and found[k].rms_px <= STILL_RATIO * float(np.median(chain.same_rms[-16:])):
+        return found
+    chain.refused["content_moved"] += 1 if k in found else 0
+    return {}
 
 
 def _take(chain: Chain, k: int, result: SparseResult, out_at: int) -> None:
@@ -331,12 +361,17 @@ def errors(truth: Trajectory, times_s: list[float], poses: list[Any]) -> dict[st
 
 
 #: The chains the benchmark can run: which frames are paired (``--pairs``).
-PAIRINGS = ("past", "oracle", "order", "order2")
+PAIRINGS = ("past", "oracle", "order", "order2", "still")
+#: A past pair's residual up to this many times the same-content pairs' (median of the last 16): the content
+#: held still, and a first-phase frame's fit with the video frame before is taken at once.
+STILL_RATIO = float(os.environ.get("SPARSE_STILL_RATIO", "1.2"))
 
 
 def _pairing(name: str, dense: dict[int, FrameResult], phase: dict[int, int]) -> Pairing:
     if name == "oracle":
         return oracle_pairing(dense, phase)
+    if name == "still":
+        return replace(order_pairing(phase), known_first=True, refine=True, past_first=True)
     if name == "order2":
         return replace(order_pairing(phase), known_first=True, refine=True)
     return order_pairing(phase) if name == "order" else past_pairing(phase)
