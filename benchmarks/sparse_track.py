@@ -66,7 +66,7 @@ MAX_JUMP_M = 0.03
 #: Gauss-Newton iterations of a pair fit whose two poses are both only predicted.
 #: Frames between the two poses whose motion a same-content chain's prediction carries on.
 BASELINE = int(os.environ.get("SPARSE_BASELINE", "1"))
-JOINT_ITERATIONS = int(os.environ.get("SPARSE_JOINT_ITERATIONS", "8"))
+JOINT_ITERATIONS = int(os.environ.get("SPARSE_JOINT_ITERATIONS", "12"))
 #: ... and the largest last step (pixels) with which such a fit is taken as settled.
 JOINT_SETTLED_PX = float(os.environ.get("SPARSE_JOINT_SETTLED_PX", "0.6"))
 
