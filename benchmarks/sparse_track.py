@@ -44,10 +44,11 @@ from ipt.config.base import ConfigError
 from ipt.config.camera_info import load_camera_info
 from ipt.config.models import load_arena_config
 from ipt.eval import evaluate
+from ipt.receiver.core import kernels
 from ipt.receiver.core.demodulator import luminance
 from ipt.receiver.core.pipeline import FrameResult, Pipeline
 from ipt.receiver.core.pose import pose_of, rt_of
-from ipt.receiver.core.sparse import SparseCamera, SparseResult, SparseSettings, extrapolate, fit_sparse
+from ipt.receiver.core.sparse import SparseCamera, SparseResult, SparseSettings, extrapolate, fit_sparse, select
 from ipt.receiver.core.track import MapEdges
 from ipt.receiver.detect.detector import pipeline_detector
 from ipt.tagmap import grid_tag_map
@@ -67,6 +68,8 @@ MAX_JUMP_M = 0.03
 #: Frames between the two poses whose motion a same-content chain's prediction carries on.
 BASELINE = int(os.environ.get("SPARSE_BASELINE", "1"))
 JOINT_ITERATIONS = int(os.environ.get("SPARSE_JOINT_ITERATIONS", "12"))
+#: ... of which this many first read wider, smoothed profiles (SparseSettings.coarse_iterations).
+JOINT_COARSE = int(os.environ.get("SPARSE_JOINT_COARSE", "0"))
 #: ... and the largest last step (pixels) with which such a fit is taken as settled.
 JOINT_SETTLED_PX = float(os.environ.get("SPARSE_JOINT_SETTLED_PX", "0.6"))
 
@@ -90,6 +93,8 @@ class Chain:
     """The frame on whose arrival each sparse pose came out."""
     last_amplitude: float = 0.0
     same_rms: list[float] = field(default_factory=list)
+    still: bool = False
+    """The floor's content held still over the last video frame (``auto``)."""
     """The residuals of the fits with a same-content partner, in order."""
     reseeds: int = 0
     refused: Counter[str] = field(default_factory=Counter)
@@ -161,6 +166,9 @@ class Pairing:
     known_first: bool = False
     refine: bool = False
     past_first: bool = False
+    auto: bool = False
+    """A waiting frame is fitted at once with its past partner while the content holds still (measured on each
+    second-phase frame against the video frame before), and waits only when that fit fails or it moved."""
     """A waiting frame first tries its past partners and takes the fit at once if the content held still."""
 
 
@@ -277,6 +285,7 @@ def run_sparse(
         max_partner_px=3.0 * partner_sigma_px,
         iterations=JOINT_ITERATIONS,
         settled_px=JOINT_SETTLED_PX,
+        coarse_iterations=JOINT_COARSE,
     )
 
     def fit(image: U8, other: U8, other_rt: tuple[F64, F64], guess: tuple[F64, F64], hint: float, mode: Any) -> Any:
@@ -303,14 +312,18 @@ def run_sparse(
                     chain.same_rms.append(out[k].rms_px)
             elif pairing.past_first:
                 out = _past_if_still(chain, k, lum, phase, times_us, fit, past_pairing(phase))
+            elif pairing.auto and chain.still:
+                out = pair_frame(chain, k, lum, phase, times_us, fit, past_pairing(phase))
             spent += time.thread_time() - t0
         for j, result in out.items():
             _take(chain, j, result, k)
-        if k in out:
-            pass
-        elif started and pairing.waits(k):
+        if pairing.auto and k in out and not pairing.waits(k):
+            t0 = time.thread_time()
+            chain.still = _content_still(chain, k, lum, phase, camera, edges)
+            spent += time.thread_time() - t0
+        if k not in out and started and pairing.waits(k):
             pending.append(k)
-        else:
+        elif k not in out:
             _reseed(chain, k, dense, phase)
         for j in [j for j in pending if j <= k - 3 or k == len(lum) - 1]:
             pending.remove(j)
@@ -331,6 +344,43 @@ def _past_if_still(
         return found
     chain.refused["content_moved"] += 1 if k in found else 0
     return {}
+
+
+def _content_still(
+    chain: Chain, k: int, lum: list[U8], phase: dict[int, int], camera: SparseCamera, edges: MapEdges
+) -> bool:
+    """Whether the floor's content held still from the video frame before to ``k``'s: ``k`` and a frame of the
+    same phase of the video frame before (k−4, k−3, k−5), both read at their poses along the map's edges (the
+    map cancels between frames of one phase): the spread of their difference (robust) against ``k``'s pair fit's
+    residual, at most :data:`STILL_SPREAD` times it."""
+    m = next((m for m in (k - 4, k - 3, k - 5) if phase.get(m) == phase.get(k) and m in chain.rt), None)
+    if m is None:
+        return False
+    r_k, _ = cv2.Rodrigues(np.asarray(chain.rt[k][0], np.float64).reshape(3, 1))
+    r_m, _ = cv2.Rodrigues(np.asarray(chain.rt[m][0], np.float64).reshape(3, 1))
+    t_k, t_m = np.asarray(chain.rt[k][1], np.float64).reshape(3), np.asarray(chain.rt[m][1], np.float64).reshape(3)
+    chosen = select(edges, camera, r_k, t_k, 300)
+    _, pk, pm, _ = kernels.sparse_profiles(
+        edges.points_m[chosen],
+        edges.normals_m[chosen],
+        r_k,
+        t_k,
+        r_m,
+        t_m,
+        camera.camera_matrix,
+        camera.dist_coeffs,
+        lum[k],
+        lum[m],
+        4,
+        3.0,
+        3,
+    )
+    if len(pk) < 30:
+        return False
+    gain = float(np.median(pk.mean(axis=1) / np.maximum(pm.mean(axis=1), 1.0)))
+    d = (pk - gain * pm).ravel()
+    spread = 1.4826 * float(np.median(np.abs(d - np.median(d))))
+    return spread <= STILL_SPREAD * max(chain.fitted[k].rms_px, 0.1)
 
 
 def _take(chain: Chain, k: int, result: SparseResult, out_at: int) -> None:
@@ -361,7 +411,10 @@ def errors(truth: Trajectory, times_s: list[float], poses: list[Any]) -> dict[st
 
 
 #: The chains the benchmark can run: which frames are paired (``--pairs``).
-PAIRINGS = ("past", "oracle", "order", "order2", "still")
+PAIRINGS = ("past", "oracle", "order", "order2", "still", "auto")
+#: The spread of two same-phase frames' difference (a video frame apart) up to this many times a pair fit's
+#: residual: the content held still (shadow-vibration 0.4-1.0, moving-content 1.0-1.6, realcam 1.2-2.0).
+STILL_SPREAD = float(os.environ.get("SPARSE_STILL_SPREAD", "1.0"))
 #: A past pair's residual up to this many times the same-content pairs' (median of the last 16): the content
 #: held still, and a first-phase frame's fit with the video frame before is taken at once.
 STILL_RATIO = float(os.environ.get("SPARSE_STILL_RATIO", "1.2"))
@@ -370,6 +423,8 @@ STILL_RATIO = float(os.environ.get("SPARSE_STILL_RATIO", "1.2"))
 def _pairing(name: str, dense: dict[int, FrameResult], phase: dict[int, int]) -> Pairing:
     if name == "oracle":
         return oracle_pairing(dense, phase)
+    if name == "auto":
+        return replace(order_pairing(phase), known_first=True, refine=True, auto=True)
     if name == "still":
         return replace(order_pairing(phase), known_first=True, refine=True, past_first=True)
     if name == "order2":

@@ -218,23 +218,28 @@ PAN_PX = 8
 PREVIOUS_POSITION_M = POSITION_M - np.array([0.004, -0.003, 0.003])
 
 
-@pytest.fixture(scope="module")
-def panned() -> tuple[Pair, U8]:
-    """The pair of one video frame (this frame in its first phase, the later partner in the second) and a
-    frame of the previous video frame in the second phase, its content panned."""
+def _photo(pan_px: int) -> tuple[U8, U8]:
+    """The two phases of one video frame whose content (busy, seeded) is panned by ``pan_px``."""
     rng = np.random.default_rng(5)
     coarse = rng.integers(40, 216, (ARENA.projector.height_px // 8, ARENA.projector.width_px // 8, 3), np.uint8)
     size = (ARENA.projector.width_px, ARENA.projector.height_px)
     content = np.asarray(cv2.resize(coarse, size, interpolation=cv2.INTER_CUBIC), np.uint8)
     modulator = PaperModulator(TAG_MAP.render_mask(), ARENA.modulation.delta_l)
-    plus, minus = modulator.modulate(content, 0, 2)
-    _, minus_before = modulator.modulate(np.ascontiguousarray(np.roll(content, PAN_PX, axis=1)), 0, 2)
+    plus, minus = modulator.modulate(np.ascontiguousarray(np.roll(content, pan_px, axis=1)), 0, 2)
+    return plus, minus
+
+
+@pytest.fixture(scope="module")
+def panned() -> tuple[Pair, U8]:
+    """The pair of one video frame (this frame in its first phase, the later partner in the second) and a
+    frame of the previous video frame in the second phase, its content panned."""
+    plus, minus = _photo(0)
     pair = Pair(
         lightness(_distorted_view(plus, POSITION_M, R_ARENA_CAM, LENS)),
         lightness(_distorted_view(minus, OTHER_POSITION_M, R_OTHER, LENS)),
         SparseCamera.of(K, LENS, SIZE),
     )
-    return pair, lightness(_distorted_view(minus_before, PREVIOUS_POSITION_M, R_ARENA_CAM, LENS))
+    return pair, lightness(_distorted_view(_photo(PAN_PX)[1], PREVIOUS_POSITION_M, R_ARENA_CAM, LENS))
 
 
 def test_a_first_phase_frame_is_fitted_with_its_later_same_content_partner(
@@ -290,3 +295,20 @@ def test_both_frames_moved_together_see_the_maps_step_alone() -> None:
         gram, _, _ = kernels.sparse_moments(pk, pj, sv, gain, step, cdf, pdf, 1.0, np.zeros((5, 2)), esm)
         together = gram[:, 2, 2] + 2 * gram[:, 2, 3] + gram[:, 3, 3]  # Σ (u_δ + u_ε)² per profile
         assert np.allclose(together, np.sum(pure * pure), rtol=1e-6) == close
+
+
+def test_content_that_held_still_is_told_from_content_that_panned(panned: tuple[Pair, U8], edges: MapEdges) -> None:
+    """The ``auto`` chain's judge: a second-phase frame against one of the same phase of the video frame before
+    (the map cancels between them), each read at its pose, the camera moved 6 mm between them. The same content:
+    still; panned 8 px: moved."""
+    pair, before = panned
+    fitted, why = _fit(pair, edges, _guess_off_by(1.0))  # a pair fit's residual, the judge's yardstick
+    assert fitted is not None, why
+    held = lightness(_distorted_view(_photo(0)[1], PREVIOUS_POSITION_M, R_ARENA_CAM, LENS))
+    for earlier, still in ((held, True), (before, False)):
+        chain = sparse_track.Chain()
+        chain.rt = {0: rt_of(PREVIOUS_POSITION_M, R_ARENA_CAM), 4: rt_of(OTHER_POSITION_M, R_OTHER)}
+        chain.fitted = {4: fitted}
+        lum = [earlier, earlier, earlier, earlier, pair.other]
+        phase = {0: -1, 4: -1}
+        assert sparse_track._content_still(chain, 4, lum, phase, pair.camera, edges) == still
