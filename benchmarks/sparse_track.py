@@ -15,6 +15,8 @@ prediction by ``--partner-sigma-px``); the + frame's pose comes out then. ``orde
 a pose first, and each + frame still waiting then fitted on its own against the − frame's new pose.
 ``oracle``: the dense pipeline's chosen partner instead of the rule. ``still``: ``order2``, but a + frame
 first tries its past partner and takes that fit at once if its residual is as small as the same-content pairs'.
+``auto``: ``order2``, but a + frame is fitted at once with its past partner while the floor's content holds still
+(judged on each − frame against the − frame of the video frame before, :func:`_content_still`).
 When no partner gives a fit that its checks accept, the chain takes the dense pose (a re-seed, counted; a
 waiting frame three frames later); frames without one stay unposed. Prints JSON per flight and chain: the
 sparse yield, re-seeds, processor time per frame (``time.thread_time`` of everything the fits do: selection,
@@ -69,7 +71,7 @@ MAX_JUMP_M = 0.03
 BASELINE = int(os.environ.get("SPARSE_BASELINE", "1"))
 JOINT_ITERATIONS = int(os.environ.get("SPARSE_JOINT_ITERATIONS", "12"))
 #: ... of which this many first read wider, smoothed profiles (SparseSettings.coarse_iterations).
-JOINT_COARSE = int(os.environ.get("SPARSE_JOINT_COARSE", "0"))
+JOINT_COARSE = int(os.environ.get("SPARSE_JOINT_COARSE", "1"))
 #: ... and the largest last step (pixels) with which such a fit is taken as settled.
 JOINT_SETTLED_PX = float(os.environ.get("SPARSE_JOINT_SETTLED_PX", "0.6"))
 
