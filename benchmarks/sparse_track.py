@@ -10,7 +10,7 @@ pose of the first posed frame, and each later frame is fitted with a partner of 
 the chain's poses carried on at constant velocity. ``past`` (round one): each frame k from one of its past
 partners k−1…k−3 that has a pose of the chain. ``order``: the partner that shows the same video frame (IPT's
 sender shows each one in its + phase, then its −): a + frame waits; a − frame is fitted with a + frame before
-it (k−2, k−1, k−3), and when that one has no pose yet both poses are fitted (the partner's held near its
+it (k−1, k−2, k−3), and when that one has no pose yet both poses are fitted (the partner's held near its
 prediction by ``--partner-sigma-px``); the + frame's pose comes out then. ``order2``: the same, partners with
 a pose first, and each + frame still waiting then fitted on its own against the − frame's new pose.
 ``oracle``: the dense pipeline's chosen partner instead of the rule. ``still``: ``order2``, but a + frame
@@ -199,9 +199,10 @@ def oracle_pairing(dense: dict[int, FrameResult], phase: dict[int, int]) -> Pair
 def order_pairing(phase: dict[int, int], first: int = 1) -> Pairing:
     """A rule a live receiver can apply: the sender shows each video frame in the phase ``first`` (+1: IPT's
     sender starts each input frame on an even output index, its + phase), then the other; so a frame of the
-    first phase waits for a later partner and one of the second pairs with a past one of the first phase, a
-    projector period back first (k−2 at 120 FPS), then k−1, k−3 (all of the same video frame)."""
-    order = (2, 1, 3)
+    first phase waits for a later partner and one of the second pairs with a past one of the first phase, the
+    nearest first: k−1, k−2, k−3 at 120 FPS (all of the same video frame; ``SPARSE_ORDER``: k−2 first did
+    worse)."""
+    order = tuple(int(b) for b in os.environ.get("SPARSE_ORDER", "1,2,3").split(","))
     return Pairing(
         lambda k: phase.get(k) == first,
         lambda k: [k - b for b in order if phase.get(k) == -first and phase.get(k - b) == first],

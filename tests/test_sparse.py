@@ -268,12 +268,12 @@ def test_a_first_phase_frame_is_fitted_with_its_later_same_content_partner(
 
 def test_the_phase_order_pairs_each_frame_within_its_video_frame() -> None:
     """Four camera frames a video frame, [+, +, -, -] (IPT's sender shows each input frame's + phase first): a
-    + frame waits for a later partner, a - frame pairs with the + frames before it, a period back first, never
+    + frame waits for a later partner, a - frame pairs with the + frames before it, the nearest first, never
     with the previous video frame's."""
     phase = {k: (1 if k % 4 in (0, 1) else -1) for k in range(12)}
     pairing = sparse_track.order_pairing(phase)
     assert [pairing.waits(k) for k in range(4, 8)] == [True, True, False, False]
-    assert pairing.partners(6) == [4, 5]
+    assert pairing.partners(6) == [5, 4]
     assert pairing.partners(7) == [5, 4]
     assert pairing.partners(4) == []
 
