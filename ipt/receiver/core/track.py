@@ -25,8 +25,9 @@ import numpy.typing as npt
 
 from ipt.receiver.core import kernels
 from ipt.receiver.core.kernels import band_signs, cell_agreement, measure, peaks
+from ipt.receiver.core.mapedges import edge_arrays
 from ipt.receiver.core.pose import PoseEstimate
-from ipt.tagmap import TAG36H11_CELLS, TagMap, tag36h11_bitmap
+from ipt.tagmap import TagMap
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -74,66 +75,9 @@ class MapEdges:
 
     @classmethod
     def from_tag_map(cls, tag_map: TagMap) -> MapEdges:
-        points, normals, steps, owners, centres, radii, cells = [], [], [], [], [], [], []
-        cell_pts, cell_vals, cell_owner = [], [], []
-        lo, hi = 1.0, float(TAG36H11_CELLS - 1)  # the black border square in cell units
-        src = np.array([[lo, hi], [hi, hi], [hi, lo], [lo, lo]], np.float32)  # BL, BR, TR, TL
-        for t_index, tag in enumerate(tag_map.tags):
-            corners = np.asarray(tag.corners_m, np.float64)
-            h = cv2.getPerspectiveTransform(src, corners[:, :2].astype(np.float32)).astype(np.float64)
-            value = np.pad(tag36h11_bitmap(tag.tag_id).astype(np.int64) * 2 - 1, 1)  # +1 white, -1 black, 0 out
-            n = TAG36H11_CELLS
-            fractions = np.asarray(SAMPLE_FRACTIONS, np.float64)
-            k = len(fractions)
-            # Vertical edges (left of column c in row r, step to the right), then horizontal ones (above row
-            # r in column c, step downwards); each sampled at the fractions along it.
-            vertical = value[1 : n + 1, 1 : n + 2] - value[1 : n + 1, 0 : n + 1]
-            horizontal = value[1 : n + 2, 1 : n + 1] - value[0 : n + 1, 1 : n + 1]
-            vr, vc = np.nonzero(vertical)
-            hr, hc = np.nonzero(horizontal)
-            p = np.concatenate(
-                [
-                    np.column_stack([np.repeat(vc, k), (vr[:, None] + fractions).ravel()]),
-                    np.column_stack([(hc[:, None] + fractions).ravel(), np.repeat(hr, k)]),
-                ]
-            ).astype(np.float64)
-            nrm_c = np.repeat(np.array([[1.0, 0.0], [0.0, 1.0]]), [len(vr) * k, len(hr) * k], axis=0)
-            stp = np.concatenate([np.repeat(vertical[vr, vc], k), np.repeat(horizontal[hr, hc], k)])
-            q = p + 0.01 * nrm_c
-            pm = cv2.perspectiveTransform(p[None], h)[0]
-            qm = cv2.perspectiveTransform(q[None], h)[0]
-            d = qm - pm
-            d /= np.linalg.norm(d, axis=1, keepdims=True)
-            points.append(np.column_stack([pm, np.zeros(len(pm))]))
-            normals.append(np.column_stack([d, np.zeros(len(d))]))
-            steps.append(np.asarray(stp, np.float64))
-            owners.append(np.full(len(pm), t_index, np.int64))
-            # The 6x6 data cells only: the quiet zone and the border are the same ring in every tag, so a
-            # pose off by part of a tag would still find most of them right.
-            data = np.arange(2, n - 2)
-            grid = np.stack(np.meshgrid(data + 0.5, data + 0.5), axis=-1).reshape(-1, 2)
-            cell_pts.append(np.column_stack([cv2.perspectiveTransform(grid[None], h)[0], np.zeros(len(grid))]))
-            cell_vals.append(value[1:-1, 1:-1][np.ix_(data, data)].reshape(-1).astype(np.float64))
-            cell_owner.append(np.full(len(grid), t_index, np.int64))
-            outer = cv2.perspectiveTransform(np.array([[[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]]]), h)[0]
-            centre = outer.mean(axis=0)
-            centres.append((*centre, 0.0))
-            radii.append(float(np.linalg.norm(outer - centre, axis=1).max()))
-            cells.append(float(np.linalg.norm(corners[1] - corners[0])) / (hi - lo))
-        return cls(
-            np.concatenate(points),
-            np.concatenate(normals),
-            np.concatenate(steps),
-            np.concatenate(owners),
-            tuple(t.tag_id for t in tag_map.tags),
-            np.asarray(centres, np.float64),
-            np.asarray(radii, np.float64),
-            float(min(cells)),
-            np.concatenate(cell_pts),
-            np.concatenate(cell_vals),
-            np.concatenate(cell_owner),
-            np.asarray(cells, np.float64),
-        )
+        """The edges of every tag of ``tag_map``, sampled at :data:`SAMPLE_FRACTIONS` along each (built for all
+        the tags at once, :func:`~ipt.receiver.core.mapedges.edge_arrays`)."""
+        return cls(*edge_arrays(tag_map, SAMPLE_FRACTIONS))
 
 
 @dataclass(frozen=True)
