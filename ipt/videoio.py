@@ -310,7 +310,7 @@ def _luma(frame: Any) -> npt.NDArray[np.uint8]:
 class _VideoSource(FrameSource):
     """Frames decoded one packet at a time from a file PyAV can open (a damaged packet costs one frame)."""
 
-    def __init__(self, path: Path, skip_bad: bool = False, grey: bool = False) -> None:
+    def __init__(self, path: Path, skip_bad: bool = False, grey: bool = False, paced: bool = False) -> None:
         self.path = path
         self.skip_bad = skip_bad
         self.grey = grey
@@ -327,7 +327,10 @@ class _VideoSource(FrameSource):
             if not self._container.streams.video:
                 raise VideoError(f"{path}: has no video stream")
             stream = self._container.streams.video[0]
-            stream.thread_type = "AUTO"
+            # Frame threads (AUTO) decode several frames at once: the most frames a processor-second when they
+            # are read as fast as they come, but their start and look-ahead cost ~0.1 s of processor time
+            # before the first frame is out. Frames read at a camera's rate need no more than slice threads.
+            stream.thread_type = "SLICE" if paced else "AUTO"
             self.fps = _stream_fps(stream)
             self.frame_count = int(stream.frames) if stream.frames and stream.frames > 0 else None
             self._announced = self.frame_count
@@ -545,6 +548,7 @@ def open_frames(
     grey: bool = False,
     max_pixels: int | None = None,
     limit: str | None = None,
+    paced: bool = False,
 ) -> FrameSource:
     """Open a video file (anything PyAV reads) or a folder of PNG/JPG/BMP/TIFF images as RGB frames (with
     ``grey``: as H×W luma frames, see the module docstring).
@@ -555,11 +559,13 @@ def open_frames(
     instead (see :class:`FrameSource`); only a file with no usable frame at all is an error. An image in a
     folder whose header gives more than ``max_pixels`` pixels (default
     :data:`~ipt.imageio.MAX_IMAGE_PIXELS`; ``limit`` names the cap in the sentence) is skipped and counted
-    undecoded in any case.
+    undecoded in any case. ``paced``: the frames will be read at a camera's rate, not as fast as they can be
+    decoded (the daemon's ``--realtime``): a video is decoded without frame threads, whose start costs more
+    processor time before the first frame than they save at that rate.
     """
     p = Path(path)
     if p.is_dir():
         return _ImageFolderSource(p, skip_bad, grey, max_pixels, limit)
     if not p.exists():
         raise VideoError(f"{p}: no such file or folder")
-    return _VideoSource(p, skip_bad, grey)
+    return _VideoSource(p, skip_bad, grey, paced)

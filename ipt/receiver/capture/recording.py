@@ -75,7 +75,7 @@ class VideoCapture:
             if self.size is None
             else (self.size[0] * self.size[1], "the camera's {}x{}".format(*self.size))
         )
-        source = open_frames(self.path, skip_bad=True, grey=self.grey, max_pixels=cap, limit=limit)
+        source = open_frames(self.path, skip_bad=True, grey=self.grey, max_pixels=cap, limit=limit, paced=self.live)
         try:
             if self.size is not None and (source.width, source.height) != self.size:
                 w, h = self.size
