@@ -177,7 +177,8 @@ class TagMap:
 
 def _draw_tag(mask: npt.NDArray[np.int8], tag: TagPlacement) -> None:
     """Draw one tag (quiet zone included) into ``mask`` by nearest-neighbour warping of its cells."""
-    cells = tag36h11_bitmap(tag.tag_id).astype(np.uint8) + 1  # 1 black, 2 white, 0 = outside
+    # The mask's own values as bytes: 1 white, 255 (-1 as int8) black, 0 outside the tag (left as it was).
+    cells = np.where(tag36h11_bitmap(tag.tag_id) > 0, np.uint8(1), np.uint8(255))
     lo, hi = (TAG36H11_CELLS - _BORDER_CELLS) / 2, (TAG36H11_CELLS + _BORDER_CELLS) / 2
     src = np.array([[lo, hi], [hi, hi], [hi, lo], [lo, lo]], np.float64)  # BL, BR, TR, TL in cell units
     dst = np.asarray(tag.corners_px, np.float64)
@@ -198,9 +199,7 @@ def _draw_tag(mask: npt.NDArray[np.int8], tag: TagPlacement) -> None:
     warped = cv2.warpPerspective(
         cells, h, (x1 - x0, y1 - y0), flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0
     )
-    roi = mask[y0:y1, x0:x1]
-    roi[warped == 2] = 1
-    roi[warped == 1] = -1
+    np.copyto(mask[y0:y1, x0:x1], warped.view(np.int8), where=warped != 0)
 
 
 def tile_of(arena: ArenaConfig, u_px: float, v_px: float) -> int | None:

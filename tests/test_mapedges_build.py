@@ -115,3 +115,56 @@ def test_edges_for_all_tags_at_once_equal_the_per_tag_loop(which: str) -> None:
     # Every tag's samples, in the map's order of tags.
     assert np.array_equal(np.unique(new.tag), np.arange(len(tag_map.tags)))
     assert np.all(np.diff(new.tag) >= 0)
+
+
+def _old_render_mask(tag_map: TagMap) -> np.ndarray:
+    """The mask as it was drawn before (cells warped as 1 black / 2 white, then two boolean writes)."""
+    mask = np.zeros((tag_map.height_px, tag_map.width_px), np.int8)
+    n = TAG36H11_CELLS
+    for tag in tag_map.tags:
+        cells = tag36h11_bitmap(tag.tag_id).astype(np.uint8) + 1
+        src = np.array([[1.0, 9.0], [9.0, 9.0], [9.0, 1.0], [1.0, 1.0]], np.float32)
+        h_edge = cv2.getPerspectiveTransform(src, np.asarray(tag.corners_px, np.float32))
+        outer = cv2.perspectiveTransform(np.array([[[0.0, 0.0], [n, 0.0], [n, n], [0.0, n]]]), h_edge)[0]
+        x0, y0 = max(0, int(np.floor(outer[:, 0].min()))), max(0, int(np.floor(outer[:, 1].min())))
+        x1 = min(mask.shape[1], int(np.ceil(outer[:, 0].max())))
+        y1 = min(mask.shape[0], int(np.ceil(outer[:, 1].max())))
+        if x1 <= x0 or y1 <= y0:
+            continue
+        to_roi = np.array([[1, 0, -x0 - 0.5], [0, 1, -y0 - 0.5], [0, 0, 1]], np.float64)
+        h = to_roi @ h_edge @ np.array([[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1]], np.float64)
+        warped = cv2.warpPerspective(cells, h, (x1 - x0, y1 - y0), flags=cv2.INTER_NEAREST, borderValue=0)
+        roi = mask[y0:y1, x0:x1]
+        roi[warped == 2] = 1
+        roi[warped == 1] = -1
+    return mask
+
+
+def _overlapping_map() -> TagMap:
+    """Tags whose quiet zones overlap, one cut by the image's edge, one tilted."""
+
+    def px_tag(tag_id: int, corners_px: list[tuple[float, float]]) -> TagPlacement:
+        return TagPlacement(tag_id, tuple(corners_px), tuple((x / 100, y / 100, 0.0) for x, y in corners_px))
+
+    return TagMap(
+        200,
+        150,
+        (
+            px_tag(5, [(10.0, 90.0), (90.0, 90.0), (90.0, 10.0), (10.0, 10.0)]),
+            px_tag(6, [(85.0, 100.0), (150.0, 95.0), (145.0, 30.0), (80.0, 35.0)]),
+            px_tag(7, [(170.0, 140.0), (230.0, 140.0), (230.0, 80.0), (170.0, 80.0)]),
+        ),
+    )
+
+
+@pytest.mark.parametrize("which", ["shipped arena", "several sizes", "overlapping"])
+def test_render_mask_equals_the_boolean_writes(which: str) -> None:
+    tag_map = {
+        "shipped arena": lambda: grid_tag_map(load_arena_config(shipped_config_path("arena.yaml"))),
+        "several sizes": _multi_size_map,
+        "overlapping": _overlapping_map,
+    }[which]()
+    mask = tag_map.render_mask()
+    assert mask.dtype == np.int8
+    assert np.array_equal(mask, _old_render_mask(tag_map))
+    assert set(np.unique(mask).tolist()) == {-1, 0, 1}
