@@ -75,3 +75,22 @@ def test_open_frames_starts_frame_threads_only_unpaced(video: Path) -> None:
     with open_frames(video) as source:
         next(source)
         assert _frame_threads() > before
+
+
+def test_grey_frames_of_an_ffv1_video_are_opencvs_luma_of_its_rgb_frames(tmp_path: Path) -> None:
+    """Grey frames of FfvWriter's ``bgr0`` video are read in place (no conversion to RGB first): the same
+    luma, to the bit, as OpenCV's of the RGB frames, at an odd width too (rows padded in the decoder)."""
+    import cv2
+
+    rng = np.random.default_rng(5)
+    path = tmp_path / "odd.mkv"
+    with FfvWriter(path, 37, 21, 30) as writer:
+        for _ in range(4):
+            writer.write(rng.integers(0, 256, (21, 37, 3), dtype=np.uint8))
+    with open_frames(path) as rgb, open_frames(path, grey=True, paced=True) as grey:
+        pairs = list(zip(rgb, grey, strict=True))
+    assert len(pairs) == 4
+    for colour, luma in pairs:
+        assert luma.shape == (21, 37)
+        assert luma.flags.c_contiguous
+        assert np.array_equal(luma, cv2.cvtColor(colour, cv2.COLOR_RGB2GRAY))
