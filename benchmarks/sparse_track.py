@@ -45,7 +45,6 @@ import numpy.typing as npt
 from ipt.config.base import ConfigError
 from ipt.config.camera_info import load_camera_info
 from ipt.config.models import load_arena_config
-from ipt.eval import evaluate
 from ipt.receiver.core import kernels
 from ipt.receiver.core.demodulator import luminance
 from ipt.receiver.core.pipeline import FrameResult, Pipeline
@@ -54,9 +53,10 @@ from ipt.receiver.core.sparse import SparseCamera, SparseResult, SparseSettings,
 from ipt.receiver.core.track import MapEdges
 from ipt.receiver.detect.detector import pipeline_detector
 from ipt.tagmap import grid_tag_map
-from ipt.tum import Trajectory, read_tum
+from ipt.tum import read_tum
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from sparse_report import chain_report
 from suite import one_core, receiver_config
 
 F64 = npt.NDArray[np.float64]
@@ -66,12 +66,19 @@ U8 = npt.NDArray[np.uint8]
 PAST = (1, 2, 3)
 #: A fit this far (metres) from the chain's prediction is refused (the dense pipeline's gates do as much).
 MAX_JUMP_M = 0.03
-#: Gauss-Newton iterations of a pair fit whose two poses are both only predicted.
 #: Frames between the two poses whose motion a same-content chain's prediction carries on.
 BASELINE = int(os.environ.get("SPARSE_BASELINE", "1"))
+#: ... and for the two predicted poses of a joint fit (0: the same).
+JOINT_BASELINE = int(os.environ.get("SPARSE_JOINT_BASELINE", "0"))
+#: Gauss-Newton iterations of a pair fit whose two poses are both only predicted.
 JOINT_ITERATIONS = int(os.environ.get("SPARSE_JOINT_ITERATIONS", "12"))
 #: ... of which this many first read wider, smoothed profiles (SparseSettings.coarse_iterations).
 JOINT_COARSE = int(os.environ.get("SPARSE_JOINT_COARSE", "1"))
+#: ... whose profiles reach this far (pixels at 640 wide) and are smoothed this much (σ, pixels at 640 wide).
+JOINT_RADIUS = int(os.environ.get("SPARSE_JOINT_RADIUS", str(SparseSettings.radius_px)))
+JOINT_SMOOTH = float(os.environ.get("SPARSE_JOINT_SMOOTH", str(SparseSettings.coarse_smooth_px)))
+#: ... which read every second sample while their last step moved one by more than this (pixels at 640; 0: all).
+JOINT_HALF_UNTIL_PX = float(os.environ.get("SPARSE_JOINT_HALF_UNTIL_PX", "0"))
 #: ... and the largest last step (pixels) with which such a fit is taken as settled.
 JOINT_SETTLED_PX = float(os.environ.get("SPARSE_JOINT_SETTLED_PX", "0.6"))
 
@@ -100,6 +107,11 @@ class Chain:
     """The residuals of the fits with a same-content partner, in order."""
     reseeds: int = 0
     refused: Counter[str] = field(default_factory=Counter)
+    guesses: dict[int, tuple[F64, F64]] = field(default_factory=dict)
+    """The prediction (rvec, tvec) of each frame started from one in a joint fit (both poses predicted): its
+    error is the benchmark's to report."""
+    joint_ok: dict[int, bool] = field(default_factory=dict)
+    """Whether each joint fit of a frame (the last one tried) passed the fit's own checks."""
 
 
 def load_frames(folder: Path, frames: int | None, method: str) -> tuple[list[npt.NDArray[Any]], list[U8], float]:
@@ -140,11 +152,15 @@ def run_dense(
     return {r.index: r for r in results}, phase, spent / len(raw)
 
 
-def predict(chain: Chain, k: int, times_us: list[int], baseline: int = 1) -> tuple[F64, F64] | None:
+def predict(
+    chain: Chain, k: int, times_us: list[int], baseline: int = 1, joint: bool = False
+) -> tuple[F64, F64] | None:
     """The chain's last pose before ``k`` (within five frames) carried on to ``k`` at the velocity since a pose
     at least ``baseline`` frames before it (within eight frames; else the nearest before it), or that last pose
     alone. A longer baseline averages the poses' own noise out of the velocity (which a prediction three frames
     ahead multiplies)."""
+    if joint and JOINT_BASELINE:
+        baseline = JOINT_BASELINE
     recent = [j for j in range(k - 1, max(k - 6, -1), -1) if j in chain.rt]
     if not recent:
         return None
@@ -236,12 +252,18 @@ def pair_frame(
     found: dict[int, SparseResult] = {}
     for j in candidates:
         known = j in chain.rt
-        partner_rt = chain.rt[j] if known else predict(chain, j, times_us, pairing.baseline)
-        if partner_rt is None:
+        partner_rt = chain.rt[j] if known else predict(chain, j, times_us, pairing.baseline, joint=True)
+        start = guess if known else predict(chain, k, times_us, pairing.baseline, joint=True)
+        if partner_rt is None or start is None:
             continue
+        if not known:
+            chain.guesses.setdefault(k, start)
+            chain.guesses.setdefault(j, partner_rt)
         hint = -chain.sign[j] * chain.step[j] if j in chain.step else 0.0 if known else phase[k] * chain.last_amplitude
-        result, why = fit(lum[k], lum[j], partner_rt, guess, hint, None if known else "predicted")
-        if not _accept(chain, result, why, k, guess, phase[k]):
+        result, why = fit(lum[k], lum[j], partner_rt, start, hint, None if known else "predicted")
+        if not known:
+            chain.joint_ok[k] = result is not None
+        if not _accept(chain, result, why, k, start, phase[k]):
             continue
         assert result is not None
         found[k] = result
@@ -289,6 +311,9 @@ def run_sparse(
         iterations=JOINT_ITERATIONS,
         settled_px=JOINT_SETTLED_PX,
         coarse_iterations=JOINT_COARSE,
+        radius_px=round(JOINT_RADIUS * settings.blur_px / SparseSettings.blur_px),
+        half_until_px=JOINT_HALF_UNTIL_PX * settings.blur_px / SparseSettings.blur_px,
+        coarse_smooth_px=JOINT_SMOOTH * settings.blur_px / SparseSettings.blur_px,
     )
 
     def fit(image: U8, other: U8, other_rt: tuple[F64, F64], guess: tuple[F64, F64], hint: float, mode: Any) -> Any:
@@ -401,18 +426,6 @@ def _reseed(chain: Chain, k: int, dense: dict[int, FrameResult], phase: dict[int
         chain.reseeds += 1 if chain.fitted or len(chain.rt) > 1 else 0
 
 
-def errors(truth: Trajectory, times_s: list[float], poses: list[Any]) -> dict[str, Any]:
-    if not poses:
-        return {"poses": 0}
-    r = evaluate(truth, Trajectory.from_arrays(times_s, [p.position_m for p in poses], [p.quat_wxyz for p in poses]))
-    return {
-        "poses": len(poses),
-        "mae_mm": [round(1e3 * v, 2) for v in (r.mae_x_m, r.mae_y_m, r.mae_z_m)],
-        "max_error_mm": round(1e3 * r.max_pos_err_m, 1),
-        "poses_over_10cm": r.n_outliers,
-    }
-
-
 #: The chains the benchmark can run: which frames are paired (``--pairs``).
 PAIRINGS = ("past", "oracle", "order", "order2", "still", "auto")
 #: The spread of two same-phase frames' difference (a video frame apart) up to this many times a pair fit's
@@ -476,49 +489,8 @@ def flight(
                 _pairing(name, dense, phase),
                 partner_sigma_px * scale,
             )
-            out[name] = chain_report(chain, sparse_s, worked, dense, phase, truth, times_us)
+            out[name] = chain_report(chain, sparse_s, worked, dense, phase, truth, times_us, sparse_camera)
     return out
-
-
-def chain_report(
-    chain: Chain,
-    sparse_s: float,
-    worked: int,
-    dense: dict[int, FrameResult],
-    phase: dict[int, int],
-    truth: Trajectory,
-    times_us: list[int],
-) -> dict[str, Any]:
-    """A chain's yield, re-seeds, processor time, errors (its own and the dense pipeline's on the same frames)
-    and latency (from the frame's capture to the arrival of the frame whose fit gave its pose)."""
-    own = sorted(chain.fitted)
-    same = [k for k in own if dense.get(k) is not None and dense[k].pose is not None]
-    waited_ms = [(times_us[chain.emitted[k]] - times_us[k]) * 1e-3 for k in own]
-    return {
-        "sparse_yield_pct": round(100.0 * len(own) / len(times_us), 1),
-        "reseeds": chain.reseeds,
-        "refused": dict(sorted(chain.refused.items())),
-        "sparse_ms_per_frame": round(1e3 * sparse_s / max(worked, 1), 3),
-        "sparse_ms_per_pose": round(1e3 * sparse_s / max(len(own), 1), 3),
-        "iterations_mean": round(float(np.mean([chain.fitted[k].iterations for k in own])), 2) if own else None,
-        "frames_waited": dict(sorted(Counter(chain.emitted[k] - k for k in own).items())),
-        "wait_ms_p50_p99": [round(float(np.percentile(waited_ms, q)), 1) for q in (50, 99)] if own else None,
-        "sparse": errors(truth, [times_us[k] * 1e-6 for k in own], [chain.fitted[k].estimate() for k in own]),
-        "dense_same_frames": errors(truth, [times_us[k] * 1e-6 for k in same], [dense[k].pose for k in same]),
-        # By the frame's phase: with a 60 Hz projector showing each 30 Hz video frame as one phase then the
-        # other, the first phase's past partners all show the video frame before (moved, cut).
-        "sparse_by_phase": {
-            f"{p:+d}": errors(
-                truth,
-                [times_us[k] * 1e-6 for k in own if phase.get(k) == p],
-                [chain.fitted[k].estimate() for k in own if phase.get(k) == p],
-            )
-            for p in (1, -1)
-        },
-        "sparse_same_frames": errors(
-            truth, [times_us[k] * 1e-6 for k in same], [chain.fitted[k].estimate() for k in same]
-        ),
-    }
 
 
 def main() -> int:

@@ -312,3 +312,16 @@ def test_content_that_held_still_is_told_from_content_that_panned(panned: tuple[
         lum = [earlier, earlier, earlier, earlier, pair.other]
         phase = {0: -1, 4: -1}
         assert sparse_track._content_still(chain, 4, lum, phase, pair.camera, edges) == still
+
+
+def test_a_fit_that_reads_half_the_samples_while_far_off_ends_on_all_of_them(
+    pinhole_pair: Pair, edges: MapEdges
+) -> None:
+    """Every second sample steers the first steps (``half_until_px``); the fit settles, and is judged, on all."""
+    start = _guess_off_by(3.0)
+    full, why = _fit(pinhole_pair, edges, start)
+    assert full is not None, why
+    halved, why = _fit(pinhole_pair, edges, start, SparseSettings(half_until_px=1.0, iterations=5))
+    assert halved is not None, why
+    assert halved.tried == full.tried
+    assert _image_error_px(halved.rvec, halved.tvec) < 0.2

@@ -58,6 +58,9 @@ class SparseSettings:
     map's step, and the fit's slopes come from the partner's profile."""
     iterations: int = 3
     converged_px: float = 0.1
+    half_until_px: float = 0.0
+    """While the last step moved a sample by more than this (pixels), only every second sample is read (0:
+    all, always): far from the answer half of them steer as well, and the fit ends on all of them."""
     """The fit stops when its last step moved no kept sample by more than this (pixels)."""
     settled_px: float = 0.6
     """... and is refused if, after the last iteration, that step was larger than this."""
@@ -293,13 +296,18 @@ def fit_sparse(
     # per chosen sample: the weights of its frames' own steps (-1: not yet known)
     weights = np.full((len(chosen), 2), -1.0 if s.own_steps else 0.0)
     noise2 = -1.0
+    every = np.arange(len(chosen))
+    half = every[::2] if s.half_until_px > 0 else every
     for it in range(s.iterations):
         coarse = it < s.coarse_iterations
         radius = s.radius_px if coarse else s.fine_radius_px
+        active = half if moved > s.half_until_px else every
+        ends = (s.border_px, s.lines)
         idx, pk, pj, a_rows = kernels.sparse_profiles(
-            obj, nrm, st.r, st.t, st.r_other, st.t_other, k, dist, image, other, radius, s.border_px, s.lines
+            obj[active], nrm[active], st.r, st.t, st.r_other, st.t_other, k, dist, image, other, radius, *ends
         )
-        if len(idx) < s.min_inliers:
+        idx = active[idx]
+        if len(idx) < s.min_inliers * len(active) / len(every):
             return None, "few_in_view"
         if not gain_set:
             st.gain, gain_set = fast_median(pk.mean(axis=1) / np.maximum(pj.mean(axis=1), 1.0)), True
@@ -314,14 +322,14 @@ def fit_sparse(
         weights[idx] = frame_weights
         keep = kept[idx]
         for _ in range(2 if it == 0 else 1):  # robust: drop profiles far worse than the typical one
-            if keep.sum() < s.min_inliers:
+            if keep.sum() < s.min_inliers * len(active) / len(every):
                 return None, "few_kept"
             sol, rms, normal = _solve(m, keep, st, s)
             keep = rms < s.outlier_factor * max(fast_median(rms[keep]), 0.5)
         kept[idx] = keep
         _update(st, sol)
         moved = float(np.abs(a_rows[keep, :6] @ sol[_THIS]).max())
-        if not coarse and moved < s.converged_px:
+        if not coarse and moved < s.converged_px and len(active) == len(every):
             break
     return _finish(st, edges, chosen, idx, keep, rms, normal, moved, it, a_rows[:, 6:12], s)
 
