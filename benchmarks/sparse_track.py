@@ -23,7 +23,8 @@ sparse yield, re-seeds, processor time per frame (``time.thread_time`` of everyt
 sampling through the lens, the fit; frames preloaded as lightness, not timed, the lightness's own cost given
 apart), the frames each pose waited for and that wait in ms (p50, p99), the errors against the ground truth of
 the sparse poses and of the dense poses of the same frames, and the dense pipeline's own processor time per
-frame and per stage in the same run.
+frame and per stage in the same run. ``joint_guess_error``: how far the joint fits' predicted starts were from the
+ground truth (:mod:`sparse_report`). Environment knobs of the joint fits (``SPARSE_JOINT_*``) are read below.
 """
 
 from __future__ import annotations
