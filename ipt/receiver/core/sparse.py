@@ -58,12 +58,12 @@ class SparseSettings:
     map's step, and the fit's slopes come from the partner's profile."""
     iterations: int = 3
     converged_px: float = 0.1
-    half_until_px: float = 0.0
-    """While the last step moved a sample by more than this (pixels), only every second sample is read (0:
-    all, always): far from the answer half of them steer as well, and the fit ends on all of them."""
     """The fit stops when its last step moved no kept sample by more than this (pixels)."""
     settled_px: float = 0.6
     """... and is refused if, after the last iteration, that step was larger than this."""
+    half_until_px: float = 0.0
+    """While the last step moved a sample by more than this (pixels), only every second sample is read (0:
+    all, always): far from the answer half of them steer as well; a fit is only taken from all of them."""
     max_samples: int = 700
     min_inliers: int = 60
     min_tags: int = 2
@@ -298,11 +298,11 @@ def fit_sparse(
     noise2 = -1.0
     every = np.arange(len(chosen))
     half = every[::2] if s.half_until_px > 0 else every
+    ends = (s.border_px, s.lines)
     for it in range(s.iterations):
         coarse = it < s.coarse_iterations
         radius = s.radius_px if coarse else s.fine_radius_px
         active = half if moved > s.half_until_px else every
-        ends = (s.border_px, s.lines)
         idx, pk, pj, a_rows = kernels.sparse_profiles(
             obj[active], nrm[active], st.r, st.t, st.r_other, st.t_other, k, dist, image, other, radius, *ends
         )
@@ -331,6 +331,8 @@ def fit_sparse(
         moved = float(np.abs(a_rows[keep, :6] @ sol[_THIS]).max())
         if not coarse and moved < s.converged_px and len(active) == len(every):
             break
+    if len(active) < len(every):  # still reading half the samples at the last iteration: far from settled
+        return None, "not_converged"
     return _finish(st, edges, chosen, idx, keep, rms, normal, moved, it, a_rows[:, 6:12], s)
 
 
