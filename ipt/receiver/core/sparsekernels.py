@@ -242,6 +242,33 @@ def profiles(
     return idx[:count], pk[:count], pj[:count], a_rows[:count]
 
 
+def centred_moments_py(u: F64, y: F64, mean_u: F64, gram: F64, uy: F64, yy: F64, i: int) -> None:
+    """Add one profile's pair equations to its moments, each basis profile and the target less its mean over
+    the profile (the constant's share): the upper triangle of Σ u uᵀ into ``gram``, Σ u y into ``uy``, Σ y²
+    into ``yy[i]``; ``mean_u`` is scratch."""
+    width = y.shape[0]
+    mean_u[:] = 0.0
+    mean_y = 0.0
+    for o in range(width):
+        for c in range(5):
+            mean_u[c] += u[o, c]
+        mean_y += y[o]
+    mean_y /= width
+    for c in range(5):
+        mean_u[c] /= width
+    for o in range(width):
+        yc = y[o] - mean_y
+        yy[i] += yc * yc
+        for a in range(5):
+            ua = u[o, a] - mean_u[a]
+            uy[a] += ua * yc
+            for b in range(a, 5):
+                gram[a, b] += ua * (u[o, b] - mean_u[b])
+
+
+centred_moments: Any = centred_moments_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+
+
 def moments(
     pk: F32,
     pj: F32,
@@ -271,8 +298,6 @@ def moments(
     line = np.arange(width) - (width - 1) / 2.0
     line /= math.sqrt(np.sum(line * line))
     for i in range(n):
-        mean_u[:] = 0.0
-        mean_y = 0.0
         for o in range(width):
             lo = o - 1 if o > 0 else 0
             hi = o + 1 if o < width - 1 else width - 1
@@ -289,20 +314,7 @@ def moments(
             u[o, 3] = 0.5 * (gain * slope + own - step * sv[i] * pdf[o]) if esm_partner else gain * slope
             u[o, 4] = -(gain * slope + 0.5 * step * sv[i] * pdf[o])  # the content's slope alone
             y[o] = pk[i, o] - gain * pj[i, o] - step * m
-            for c in range(5):
-                mean_u[c] += u[o, c]
-            mean_y += y[o]
-        mean_y /= width
-        for c in range(5):
-            mean_u[c] /= width
-        for o in range(width):
-            yc = y[o] - mean_y
-            yy[i] += yc * yc
-            for a in range(5):
-                ua = u[o, a] - mean_u[a]
-                uy[i, a] += ua * yc
-                for b in range(a, 5):
-                    gram[i, a, b] += ua * (u[o, b] - mean_u[b])
+        centred_moments(u, y, mean_u, gram[i], uy[i], yy, i)
         for frame in range(2):  # each frame alone: this one (δ, +c/2), then the partner (ε, −c/2g)
             profile = pk[i] if frame == 0 else pj[i]
             per_step = 0.5 if frame == 0 else -0.5 / gain
