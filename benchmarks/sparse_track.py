@@ -48,10 +48,10 @@ from ipt.config.camera_info import load_camera_info
 from ipt.config.models import load_arena_config
 from ipt.receiver.core import kernels
 from ipt.receiver.core.demodulator import luminance
+from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.pipeline import FrameResult, Pipeline
 from ipt.receiver.core.pose import pose_of, rt_of
 from ipt.receiver.core.sparse import SparseCamera, SparseResult, SparseSettings, extrapolate, fit_sparse, select
-from ipt.receiver.core.track import MapEdges
 from ipt.receiver.detect.detector import pipeline_detector
 from ipt.tagmap import grid_tag_map
 from ipt.tum import read_tum

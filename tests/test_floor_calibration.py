@@ -23,7 +23,7 @@ import yaml
 
 from ipt.calib.floor import fit_floor, parse_points, update_floor_yaml
 from ipt.config.models import ArenaConfig, FloorConfig, load_arena_config
-from ipt.receiver.core.track import MapEdges
+from ipt.receiver.core.mapedges import MapEdges
 from ipt.sender.content import GeneratedScene
 from ipt.sender.overlay import ArOverlay
 from ipt.sim.arena import SimulatedArena, survey_points, true_arena

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from ipt.config.models import load_arena_config, shipped_config_path
-from ipt.receiver.core.track import SAMPLE_FRACTIONS, MapEdges
+from ipt.receiver.core.mapedges import SAMPLE_FRACTIONS, MapEdges
 from ipt.tagmap import TAG36H11_CELLS, TagMap, TagPlacement, grid_tag_map, tag36h11_bitmap
 
 

@@ -13,8 +13,9 @@ from ipt.config.camera_info import CameraInfo
 from ipt.config.models import ArenaConfig, DetectorConfig
 from ipt.geometry import R_BODY_CAM_DOWNWARD, rot_x, rot_y, rot_z
 from ipt.receiver.core.demodulator import PairDifference, binarise_difference, lightness, pair_difference
+from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.mapsearch import MapSearch, MapSearchError, level_pose, yaw_mod_90
-from ipt.receiver.core.track import MapEdges, TrackSettings, track_pose
+from ipt.receiver.core.track import TrackSettings, track_pose
 from ipt.receiver.detect.detector import InlineBackend, c_settings
 from ipt.sender.modulator import PaperModulator
 from ipt.tagmap import grid_tag_map

@@ -18,6 +18,7 @@ from ipt.config.models import (
     load_arena_config,
     shipped_config_path,
 )
+from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.pipeline import Pipeline
 from ipt.receiver.core.scales import (
     DetectScale,
@@ -27,7 +28,6 @@ from ipt.receiver.core.scales import (
     scale_for_cell,
     tag_cells_m,
 )
-from ipt.receiver.core.track import MapEdges
 from ipt.receiver.detect.detector import APRILTAG_TO_OPENCV_PX, TagDetector, pipeline_detector
 from ipt.sim.arena import SimulatedArena, scene_for
 from ipt.sim.config import SimConfig

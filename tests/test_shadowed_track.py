@@ -17,9 +17,10 @@ from ipt.config.camera_info import CameraInfo
 from ipt.config.models import ArenaConfig, PipelineConfig
 from ipt.geometry import R_BODY_CAM_DOWNWARD, rot_x, rot_y, rot_z
 from ipt.receiver.core.demodulator import PairDifference, lightness, pair_difference
+from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.pipeline import Pipeline
 from ipt.receiver.core.pose import rt_of
-from ipt.receiver.core.track import FEW_CELLS, MANY_CELLS, MapEdges, TrackResult
+from ipt.receiver.core.track import FEW_CELLS, MANY_CELLS, TrackResult
 from ipt.receiver.detect.detector import pipeline_detector
 from ipt.sender.modulator import PaperModulator
 from ipt.tagmap import grid_tag_map

@@ -18,6 +18,7 @@ from ipt.config.models import ArenaConfig
 from ipt.geometry import R_BODY_CAM_DOWNWARD, rot_x, rot_y, rot_z, rotation_angle_rad
 from ipt.receiver.core import kernels
 from ipt.receiver.core.demodulator import lightness
+from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.pose import pose_of, rt_of
 from ipt.receiver.core.sparse import (
     SparseCamera,
@@ -27,7 +28,6 @@ from ipt.receiver.core.sparse import (
     extrapolate,
     fit_sparse,
 )
-from ipt.receiver.core.track import MapEdges
 from ipt.sender.modulator import PaperModulator
 from ipt.tagmap import grid_tag_map
 

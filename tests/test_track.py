@@ -14,9 +14,9 @@ from ipt.config.camera_info import CameraInfo
 from ipt.config.models import ArenaConfig
 from ipt.geometry import R_BODY_CAM_DOWNWARD, rot_x, rot_y, rot_z, rotation_angle_rad
 from ipt.receiver.core.demodulator import PairDifference, lightness, pair_difference
+from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.pose import rt_of
 from ipt.receiver.core.track import (
-    MapEdges,
     MaskRenderer,
     TrackSettings,
     coarse_shift,

@@ -54,6 +54,7 @@ from ipt.receiver.core.frameresult import FrameResult
 from ipt.receiver.core.gates import PoseGates
 from ipt.receiver.core.history import Candidate, Frame, FrameHistory, Pair
 from ipt.receiver.core.imagealign import AlignTarget, alignment_features, floor_warp_between, warp_image
+from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.mapsearch import MapSearch
 from ipt.receiver.core.motion import MotionTrack, floor_warp
 from ipt.receiver.core.paperway import PaperWay
@@ -62,7 +63,6 @@ from ipt.receiver.core.reasons import PAIR_FAILURES, SHADOWED_SHARE, FrameReason
 from ipt.receiver.core.scales import DetectScale, ScaleChooser
 from ipt.receiver.core.secondlook import SecondLook
 from ipt.receiver.core.track import (
-    MapEdges,
     MaskRenderer,
     TrackResult,
     TrackSettings,

@@ -33,8 +33,9 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.receiver.core import kernels
+from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.pose import PoseEstimate, pose_of
-from ipt.receiver.core.track import MIN_CELL_PX, MapEdges, fast_median
+from ipt.receiver.core.track import MIN_CELL_PX, fast_median
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]

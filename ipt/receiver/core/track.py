@@ -25,16 +25,13 @@ import numpy.typing as npt
 
 from ipt.receiver.core import kernels
 from ipt.receiver.core.kernels import band_signs, cell_agreement, measure, peaks
-from ipt.receiver.core.mapedges import edge_arrays
+from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.pose import PoseEstimate
-from ipt.tagmap import TagMap
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
 
-#: Where along each cell edge it is sampled (fractions of the edge).
-SAMPLE_FRACTIONS = (0.25, 0.75)
 #: Tags whose cells would be narrower than this in the image are left out: the difference's smoothing
 #: blurs their edges into each other (a landing pad's small tags seen from high up).
 MIN_CELL_PX = 2.5
@@ -43,41 +40,6 @@ MANY_CELLS = 20
 #: With fewer (a low view mostly in the drone's shadow: ~10-20 data cells lit), down to this many, more of
 #: them must agree (:meth:`TrackResult.cells_confirm`); with fewer still, the cells cannot confirm a pose.
 FEW_CELLS = 10
-
-
-@dataclass(frozen=True)
-class MapEdges:
-    """Every cell edge of the hidden map where the mask changes, as sample points on the floor."""
-
-    points_m: F64
-    """(N, 3) arena points (z = 0)."""
-    normals_m: F64
-    """(N, 3) unit vectors in the floor plane across the edge."""
-    step: F64
-    """(N,) the mask's change across the edge along the normal: ±2 between cells, ±1 to untouched floor."""
-    tag: I64
-    """(N,) index of the edge's tag in :attr:`tag_ids`."""
-    tag_ids: tuple[int, ...]
-    tag_centres_m: F64
-    """(T, 3) centre of each tag."""
-    tag_radius_m: F64
-    """(T,) distance from each tag's centre to its farthest quiet-zone corner."""
-    cell_m: float
-    """The smallest cell side in the map, metres."""
-    cells_m: F64
-    """(M, 3) the centre of every data cell (the 6x6 inside the border) of every tag."""
-    cell_value: F64
-    """(M,) the mask there: +1 white, -1 black."""
-    cell_tag: I64
-    """(M,) index of the cell's tag."""
-    tag_cell_m: F64 | None = None
-    """(T,) the cell side of each tag (a map of several tag sizes), metres; None: all :attr:`cell_m`."""
-
-    @classmethod
-    def from_tag_map(cls, tag_map: TagMap) -> MapEdges:
-        """The edges of every tag of ``tag_map``, sampled at :data:`SAMPLE_FRACTIONS` along each (built for all
-        the tags at once, :func:`~ipt.receiver.core.mapedges.edge_arrays`)."""
-        return cls(*edge_arrays(tag_map, SAMPLE_FRACTIONS))
 
 
 @dataclass(frozen=True)
