@@ -505,7 +505,9 @@ def main() -> int:
         "--pairs",
         default="past,order",
         help="chains to run, comma-separated: past (round one: each frame from its nearest past partner), "
-        "oracle (the dense pipeline's partner), order (the same video frame's partner by the phase order)",
+        "oracle (the dense pipeline's partner), order (the same video frame's partner by the phase order), "
+        "order2 (order, partners with a pose first, then the waiting + frames), still (a + frame's past fit "
+        "taken when its residual is small), auto (past partners while the content holds still, else order2)",
     )
     parser.add_argument(
         "--partner-sigma-px", type=float, default=10.0, help="a predicted partner's uncertainty, px at 640 wide"
