@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import io
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -50,7 +50,7 @@ class ImageError(IptError):
     """An image file cannot be read or written."""
 
 
-def decode_image(data: bytes, mode: ImageMode = "rgb") -> npt.NDArray[np.generic] | None:
+def decode_image(data: bytes | memoryview, mode: ImageMode = "rgb") -> npt.NDArray[np.generic] | None:
     """``data`` (the bytes of an image file) decoded as ``mode`` asks, or ``None`` if OpenCV cannot decode it."""
     if not data:
         return None
@@ -65,24 +65,43 @@ def decode_image(data: bytes, mode: ImageMode = "rgb") -> npt.NDArray[np.generic
     return np.asarray(img)
 
 
-def header_size(data: bytes) -> tuple[int, int] | None:
+#: :func:`header_size` first parses this many leading bytes: a header is there unless a JPEG's metadata (a
+#: large EXIF thumbnail) comes before its frame header, and then the whole file is parsed.
+HEADER_PREFIX_BYTES = 1 << 16
+
+
+def header_size(data: bytes | memoryview) -> tuple[int, int] | None:
     """(width, height) as the header of the image file ``data`` gives it, without decoding its pixels; None
     when Pillow knows no such format (OpenCV may still decode it) or the header is damaged.
 
     Pillow's format plugins are asked in turn, as ``PIL.Image.open`` does, but without its own bomb check
-    (which would refuse a large image before saying its size): only the header is parsed.
+    (which would refuse a large image before saying its size): only the header is parsed, first from the
+    file's first :data:`HEADER_PREFIX_BYTES` (parsing a header reads no further than it, so a size found
+    there is the whole file's), else from the whole file.
     """
     from PIL import Image  # Pillow comes with matplotlib; loaded only when an image is read
 
     Image.init()
-    prefix = data[:16]
+    prefix = bytes(data[:16])
+    plugins = []
     for fmt in list(Image.ID):
         factory, accept = Image.OPEN[fmt]
         try:
-            if accept is not None:
-                said = accept(prefix)
-                if not said or isinstance(said, str):  # a string: "this format, but Pillow cannot open it"
-                    continue
+            said = accept(prefix) if accept is not None else True
+        except Exception:
+            continue
+        if said and not isinstance(said, str):  # a string: "this format, but Pillow cannot open it"
+            plugins.append(factory)
+    if len(data) > HEADER_PREFIX_BYTES:
+        found = _parsed_size(plugins, bytes(data[:HEADER_PREFIX_BYTES]))
+        if found is not None:
+            return found
+    return _parsed_size(plugins, data)
+
+
+def _parsed_size(plugins: list[Any], data: bytes | memoryview) -> tuple[int, int] | None:
+    for factory in plugins:
+        try:
             with factory(io.BytesIO(data), "") as img:
                 width, height = img.size
         except Exception:
@@ -91,7 +110,9 @@ def header_size(data: bytes) -> tuple[int, int] | None:
     return None
 
 
-def too_many_pixels(data: bytes, max_pixels: int = MAX_IMAGE_PIXELS, limit: str | None = None) -> str | None:
+def too_many_pixels(
+    data: bytes | memoryview, max_pixels: int = MAX_IMAGE_PIXELS, limit: str | None = None
+) -> str | None:
     """Why the image file ``data`` is refused undecoded (its header gives more than ``max_pixels`` pixels;
     ``limit`` names the cap in the sentence), or None."""
     size = header_size(data)
@@ -102,7 +123,9 @@ def too_many_pixels(data: bytes, max_pixels: int = MAX_IMAGE_PIXELS, limit: str 
     return f"{w}x{h} pixels ({w * h / 1e6:.1f} megapixels), more than {limit}; not decoded"
 
 
-def image_from_bytes(data: bytes, path: str | Path, mode: ImageMode = "rgb", error: type[Exception] = ImageError) -> U8:
+def image_from_bytes(
+    data: bytes | memoryview, path: str | Path, mode: ImageMode = "rgb", error: type[Exception] = ImageError
+) -> U8:
     """The bytes ``data`` of the image file ``path`` decoded as :func:`read_image` does (no pixel check)."""
     img = decode_image(data, mode)
     if img is None:

@@ -37,7 +37,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.errors import IptError
-from ipt.fileio import WriteError, atomic_path, disk_write_error, read_bytes_file
+from ipt.fileio import FileBuffer, WriteError, atomic_path, disk_write_error
 from ipt.imageio import IMAGE_SUFFIXES, MAX_IMAGE_BYTES, MAX_IMAGE_PIXELS, image_from_bytes, too_many_pixels
 
 # PyAV (``av``) is imported where a video is opened, not here: a folder of images needs none of it, and it
@@ -467,6 +467,7 @@ class _ImageFolderSource(FrameSource):
         self._mode: Literal["rgb", "grey"] = "grey" if grey else "rgb"
         self._max_pixels = MAX_IMAGE_PIXELS if max_pixels is None else max_pixels
         self._limit = limit
+        self._buffer = FileBuffer()  # each image read into the same memory (see FileBuffer)
         self.oversized = 0
         """Images skipped undecoded because their header gives too many pixels (counted in ``skipped`` too)."""
         try:
@@ -499,7 +500,7 @@ class _ImageFolderSource(FrameSource):
     def _read(self, file: Path) -> npt.NDArray[np.uint8] | None:
         """The image in ``file``, or None if it was skipped (see the class doc)."""
         try:
-            data = read_bytes_file(file, VideoError, "an image file", max_bytes=MAX_IMAGE_BYTES)
+            data = self._buffer.read(file, VideoError, "an image file", max_bytes=MAX_IMAGE_BYTES)
         except VideoError as e:
             self._skip(str(e))
             return None
