@@ -31,12 +31,23 @@ from ipt.receiver.core.pose import PoseEstimate
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
+U8 = npt.NDArray[np.uint8]
+B = npt.NDArray[np.bool_]
 
 #: Tags whose cells would be narrower than this in the image are left out: the difference's smoothing
 #: blurs their edges into each other (a landing pad's small tags seen from high up).
 MIN_CELL_PX = 2.5
 #: With at least this many clear data cells in view, their agreement with the map (a fraction) is the check.
 MANY_CELLS = 20
+#: When fewer of the evenly spread samples than this land on lit pixels of the image (a low view mostly in
+#: the drone's shadow: the tags near it reach far out of the image), the samples are spread over those
+#: predicted on lit pixels instead (:func:`_select`); views with more keep the even spread unchanged.
+FEW_LIT_SAMPLES = 100
+#: The coarse search prefers small shifts: its correlation is weighted by a Gaussian of the shift with σ this
+#: fraction of the image's width (:func:`coarse_shift`). The guess it corrects comes from the last poses, a few
+#: pixels to tens of pixels off; the map repeats itself a tag pitch away (the tags differ only in their data
+#: cells), and a view mostly in the drone's shadow (0.4-0.45 m) peaked there, ~290 px off, over the near peak.
+SHIFT_PRIOR = 0.25
 #: With fewer (a low view mostly in the drone's shadow: ~10-20 data cells lit), down to this many, more of
 #: them must agree (:meth:`TrackResult.cells_confirm`); with fewer still, the cells cannot confirm a pose.
 FEW_CELLS = 10
@@ -133,8 +144,19 @@ class TrackSettings:
 CONVERGED_PX = 0.05
 
 
-def _select(edges: MapEdges, camera_matrix: F64, r: F64, t: F64, size: tuple[int, int], most: int) -> I64:
-    """Indices of the edge samples of the tags that may be in view, at most ``most`` of them, spread evenly."""
+def _select(
+    edges: MapEdges,
+    camera_matrix: F64,
+    r: F64,
+    t: F64,
+    size: tuple[int, int],
+    most: int,
+    lit: U8 | None = None,
+    border_px: float = 0.0,
+) -> I64:
+    """Indices of the edge samples of the tags that may be in view, at most ``most`` of them, spread evenly;
+    with ``lit`` (the pixels that carry signal), spread over those the pose puts on lit pixels instead when
+    fewer than :data:`FEW_LIT_SAMPLES` of the even spread would land there."""
     w, h = size
     centres = edges.tag_centres_m @ r.T + t
     depth = centres[:, 2]
@@ -147,9 +169,33 @@ def _select(edges: MapEdges, camera_matrix: F64, r: F64, t: F64, size: tuple[int
     if edges.tag_cell_m is not None:
         near &= k[0, 0] * edges.tag_cell_m / np.maximum(depth, 0.05) >= MIN_CELL_PX
     chosen = np.flatnonzero(near[edges.tag])
-    if len(chosen) > most:
-        chosen = chosen[np.linspace(0, len(chosen) - 1, most).astype(np.int64)]
-    return chosen
+    if len(chosen) <= most:
+        return chosen
+    even = chosen[np.linspace(0, len(chosen) - 1, most).astype(np.int64)]
+    if lit is None or int(_on_lit(edges, camera_matrix, r, t, even, lit, border_px).sum()) >= FEW_LIT_SAMPLES:
+        return even
+    seen = chosen[_on_lit(edges, camera_matrix, r, t, chosen, lit, border_px)]
+    if len(seen) > most:
+        seen = seen[np.linspace(0, len(seen) - 1, most).astype(np.int64)]
+    return seen if len(seen) > FEW_LIT_SAMPLES else even
+
+
+def _on_lit(edges: MapEdges, camera_matrix: F64, r: F64, t: F64, samples: I64, lit: U8, border_px: float) -> B:
+    """Which of the edge ``samples`` the pose (``r``, ``t``) puts on a lit pixel of ``lit`` (non-zero), inside
+    the image by ``border_px``: the test :func:`~ipt.receiver.core.kernels.measure` makes."""
+    h, w = lit.shape
+    cam = edges.points_m.take(samples, axis=0) @ r.T + t
+    z = cam[:, 2]
+    ahead = z > 0
+    z = np.where(ahead, z, 1.0)
+    u = camera_matrix[0, 0] * cam[:, 0] / z + camera_matrix[0, 2]
+    v = camera_matrix[1, 1] * cam[:, 1] / z + camera_matrix[1, 2]
+    inside = ahead & (u > border_px) & (u < w - 1 - border_px) & (v > border_px) & (v < h - 1 - border_px)
+    on = np.zeros(len(samples), np.bool_)
+    rows = (v[inside] + 0.5).astype(np.int64)
+    cols = (u[inside] + 0.5).astype(np.int64)
+    on[inside] = lit[rows, cols] != 0
+    return on
 
 
 def fast_median(values: npt.NDArray[np.floating[Any]]) -> float:
@@ -192,7 +238,8 @@ def track_pose(
     h, w = diff.shape
     rot, _ = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3, 1))
     r, t = np.asarray(rot, np.float64), np.asarray(tvec, np.float64).reshape(3)
-    chosen = _select(edges, camera_matrix, r, t, (w, h), settings.max_samples)
+    lit = valid if valid is not None and valid.shape == diff.shape else None
+    chosen = _select(edges, camera_matrix, r, t, (w, h), settings.max_samples, lit, settings.border_px)
     if len(chosen) < settings.min_inliers:
         return None
     fit = _Fit(edges, chosen, camera_matrix, (w, h), settings, valid)
@@ -416,6 +463,17 @@ class MaskRenderer:
 
 
 @functools.lru_cache(maxsize=4)
+def _near_prior(w: int, h: int) -> F64:
+    """Weights of the circular correlation's shifts (w x h, unshifted at [0, 0]): a Gaussian of the shift's
+    length with σ :data:`SHIFT_PRIOR` of the image's width, so that a far peak must be that much stronger
+    than a near one to be taken."""
+    sigma = SHIFT_PRIOR * w
+    dx = np.minimum(np.arange(w), w - np.arange(w)).astype(np.float64)
+    dy = np.minimum(np.arange(h), h - np.arange(h)).astype(np.float64)
+    return np.asarray(np.exp(-(dy[:, None] ** 2 + dx[None, :] ** 2) / (2 * sigma * sigma)), np.float64)
+
+
+@functools.lru_cache(maxsize=4)
 def _hanning(w: int, h: int) -> F32:
     return np.asarray(cv2.createHanningWindow((w, h), cv2.CV_32F), np.float32)
 
@@ -438,7 +496,7 @@ def coarse_shift(
         cv2.idft(cv2.mulSpectrums(fa, fb, 0, conjB=True), flags=cv2.DFT_REAL_OUTPUT | cv2.DFT_SCALE), np.float64
     )
     magnitude = np.abs(corr)
-    peak = int(np.argmax(magnitude))
+    peak = int(np.argmax(magnitude * _near_prior(w, h)))
     py, px = divmod(peak, w)
     value = float(corr.flat[peak])
     norm = float(np.sqrt((small * small * window).sum() * (mask * mask * window).sum())) + 1e-9
