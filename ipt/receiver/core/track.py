@@ -43,6 +43,10 @@ MANY_CELLS = 20
 #: the drone's shadow: the tags near it reach far out of the image), the samples are spread over those
 #: predicted on lit pixels instead (:func:`_select`); views with more keep the even spread unchanged.
 FEW_LIT_SAMPLES = 100
+#: Spread over the lit edges only, a right pose from a clear pair puts most samples on their steps (80-90 %
+#: at 0.40-0.45 m); fits with fewer than this fraction came from weak pairs and were up to 8 cm off (a guess
+#: carried by a poor alignment, settled a few cells away): no pose.
+LIT_MIN_INLIER_FRACTION = 0.3
 #: The coarse search prefers small shifts: its correlation is weighted by a Gaussian of the shift with σ this
 #: fraction of the image's width (:func:`coarse_shift`). The guess it corrects comes from the last poses, a few
 #: pixels to tens of pixels off; the map repeats itself a tag pitch away (the tags differ only in their data
@@ -153,10 +157,10 @@ def _select(
     most: int,
     lit: U8 | None = None,
     border_px: float = 0.0,
-) -> I64:
+) -> tuple[I64, bool]:
     """Indices of the edge samples of the tags that may be in view, at most ``most`` of them, spread evenly;
     with ``lit`` (the pixels that carry signal), spread over those the pose puts on lit pixels instead when
-    fewer than :data:`FEW_LIT_SAMPLES` of the even spread would land there."""
+    fewer than :data:`FEW_LIT_SAMPLES` of the even spread would land there; and whether it did so."""
     w, h = size
     centres = edges.tag_centres_m @ r.T + t
     depth = centres[:, 2]
@@ -170,14 +174,14 @@ def _select(
         near &= k[0, 0] * edges.tag_cell_m / np.maximum(depth, 0.05) >= MIN_CELL_PX
     chosen = np.flatnonzero(near[edges.tag])
     if len(chosen) <= most:
-        return chosen
+        return chosen, False
     even = chosen[np.linspace(0, len(chosen) - 1, most).astype(np.int64)]
     if lit is None or int(_on_lit(edges, camera_matrix, r, t, even, lit, border_px).sum()) >= FEW_LIT_SAMPLES:
-        return even
+        return even, False
     seen = chosen[_on_lit(edges, camera_matrix, r, t, chosen, lit, border_px)]
     if len(seen) > most:
         seen = seen[np.linspace(0, len(seen) - 1, most).astype(np.int64)]
-    return seen if len(seen) > FEW_LIT_SAMPLES else even
+    return (seen, True) if len(seen) > FEW_LIT_SAMPLES else (even, False)
 
 
 def _on_lit(edges: MapEdges, camera_matrix: F64, r: F64, t: F64, samples: I64, lit: U8, border_px: float) -> B:
@@ -239,7 +243,7 @@ def track_pose(
     rot, _ = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3, 1))
     r, t = np.asarray(rot, np.float64), np.asarray(tvec, np.float64).reshape(3)
     lit = valid if valid is not None and valid.shape == diff.shape else None
-    chosen = _select(edges, camera_matrix, r, t, (w, h), settings.max_samples, lit, settings.border_px)
+    chosen, seen_only = _select(edges, camera_matrix, r, t, (w, h), settings.max_samples, lit, settings.border_px)
     if len(chosen) < settings.min_inliers:
         return None
     fit = _Fit(edges, chosen, camera_matrix, (w, h), settings, valid)
@@ -260,7 +264,10 @@ def track_pose(
         r, t = fit.r, fit.t
         if fit.converged:
             break
-    return fit.result(diff, valid)
+    result = fit.result(diff, valid)
+    if result is not None and seen_only and result.inlier_fraction < LIT_MIN_INLIER_FRACTION:
+        return None
+    return result
 
 
 _NO_MASK = np.zeros((0, 0), np.uint8)
