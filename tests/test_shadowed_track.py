@@ -20,7 +20,16 @@ from ipt.receiver.core.demodulator import PairDifference, lightness, pair_differ
 from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.pipeline import Pipeline
 from ipt.receiver.core.pose import rt_of
-from ipt.receiver.core.track import FEW_CELLS, MANY_CELLS, TrackResult
+from ipt.receiver.core.track import (
+    FEW_CELLS,
+    FEW_LIT_SAMPLES,
+    LIT_MIN_INLIER_FRACTION,
+    MANY_CELLS,
+    TrackResult,
+    TrackSettings,
+    coarse_shift,
+    track_pose,
+)
 from ipt.receiver.detect.detector import pipeline_detector
 from ipt.sender.modulator import PaperModulator
 from ipt.tagmap import grid_tag_map
@@ -86,6 +95,65 @@ def test_the_true_pose_of_a_shadowed_low_view_is_tracked(
     assert np.linalg.norm(_position_m(tracked.rvec, tracked.tvec) - POSITION_M) < 0.001
 
 
+def test_the_track_spreads_its_samples_over_the_lit_edges(shadowed: tuple[PairDifference, U8]) -> None:
+    """Spread evenly over the tags near the view, only ~70 of the 700 samples land on its lit third (the
+    take-off flight's frames at 0.40-0.45 m: 62-80); the track takes its samples among the lit edges instead,
+    ~180 here, and every one of them finds its step at the true pose."""
+    start = rt_of(POSITION_M, R_ARENA_CAM)
+    tracked = track_pose(shadowed[0].diff, K, EDGES, *start, TrackSettings(), None, shadowed[1])
+    assert tracked is not None
+    assert tracked.tried > 1.5 * FEW_LIT_SAMPLES
+    assert tracked.inlier_fraction > 0.9
+    assert tracked.cells_agreeing == tracked.cells_clear >= FEW_CELLS
+    assert np.linalg.norm(_position_m(tracked.rvec, tracked.tvec) - POSITION_M) < 0.001
+
+
+def test_a_lit_view_keeps_the_even_spread(shadowed: tuple[PairDifference, U8]) -> None:
+    """Where most of the view is lit, the samples and the fit are those of the even spread, to the last bit."""
+    start = rt_of(POSITION_M, R_ARENA_CAM)
+    all_lit = np.full_like(shadowed[1], 255)
+    with_mask = track_pose(shadowed[0].diff, K, EDGES, *start, TrackSettings(), None, all_lit)
+    without = track_pose(shadowed[0].diff, K, EDGES, *start, TrackSettings(), None, None)
+    assert with_mask is not None
+    assert without is not None
+    assert (with_mask.tried, with_mask.inliers) == (without.tried, without.inliers)
+    assert np.array_equal(with_mask.tvec, without.tvec)
+
+
+def test_a_weak_fit_over_the_lit_edges_gives_no_pose(shadowed: tuple[PairDifference, U8]) -> None:
+    """A weak pair (noise added) and a start 2 cm off, as a guess carried by a poor alignment: the fit settles
+    ~2 cm off on a fifth of the lit samples, and gives no pose; from the true start the same pair keeps its
+    pose, on half of them."""
+    rng = np.random.default_rng(3)
+    noisy = np.asarray(cv2.GaussianBlur(shadowed[0].diff + rng.normal(0, 7.0, shadowed[0].diff.shape), (0, 0), 0.8))
+    noisy = noisy.astype(np.float32)
+    settings = TrackSettings(min_inliers=30)  # (the pipeline's)
+    start = rt_of(POSITION_M + np.array([0.02, 0, 0]), R_ARENA_CAM)
+    off = track_pose(noisy, K, EDGES, *start, settings, valid=shadowed[1])
+    assert off is None
+    right = track_pose(noisy, K, EDGES, *rt_of(POSITION_M, R_ARENA_CAM), settings, valid=shadowed[1])
+    assert right is not None
+    assert right.inlier_fraction > LIT_MIN_INLIER_FRACTION
+    assert np.linalg.norm(_position_m(right.rvec, right.tvec) - POSITION_M) < 0.002
+
+
+def test_the_coarse_search_prefers_a_near_peak_to_a_far_stronger_one() -> None:
+    """The map repeats itself a tag pitch away: a mostly shadowed view peaked there (~290 px off) a little
+    above the near peak and sent guesses 2 mm off to the neighbouring tag. A far peak must be much stronger."""
+    rng = np.random.default_rng(5)
+    blocks = np.where(rng.random((45, 80)) < 0.5, -1.0, 1.0).astype(np.float32)
+    mask_half = np.asarray(cv2.resize(blocks, (320, 180), interpolation=cv2.INTER_NEAREST), np.float32)
+    full = np.asarray(cv2.resize(mask_half, (640, 360), interpolation=cv2.INTER_NEAREST), np.float32)
+    near = np.roll(full, (4, 6), axis=(0, 1))
+    far = np.roll(full, (40, 280), axis=(0, 1))
+    dx, dy, _ = coarse_shift(0.5 * near + 1.0 * far, mask_half, None)
+    assert np.hypot(dx - 6, dy - 4) < 2
+    # ... but a far peak alone is still found.
+    dx, dy, score = coarse_shift(far, mask_half, None)
+    assert np.hypot(dx - 280, dy - 40) < 2 or np.hypot(dx - 280 + 640, dy - 40) < 2
+    assert abs(score) > 0.1
+
+
 def _with_cells(agreeing: int, clear: int) -> TrackResult:
     return TrackResult(
         np.zeros(3), np.array([0.0, 0.0, 1.0]), 100, 120, 0.3, (1, 2), np.eye(6), 1, None, 0.0, clear, agreeing
@@ -120,7 +188,8 @@ def test_a_start_one_tag_off_gives_no_wrong_pose(
 ) -> None:
     """One tag pitch off, the tags' borders and quiet zones fit the edges as well as the right ones: only the
     data cells tell the tags apart. The track refuses the start, or brings it back to the truth."""
-    centres = np.unique(np.round(pipeline.edges.tag_centres_m[:, 0], 4)) if pipeline.edges is not None else []
+    assert pipeline.edges is not None
+    centres = np.unique(np.round(pipeline.edges.tag_centres_m[:, 0], 4))
     pitch_m = float(np.median(np.diff(centres)))
     start = POSITION_M + pitch_m * np.array([offset[0], offset[1], 0.0])
     tracked = pipeline._track_from(shadowed[0], rt_of(start, R_ARENA_CAM), shadowed[1])
