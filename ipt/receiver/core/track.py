@@ -489,7 +489,8 @@ def coarse_shift(
     diff: F32, predicted_mask_half: F32, valid: npt.NDArray[np.uint8] | None
 ) -> tuple[float, float, float]:
     """The image shift (dx, dy, full-resolution pixels) that best lays the predicted mask on the difference,
-    by cross-correlation at half resolution, and the normalised peak (its sign is the difference's)."""
+    by cross-correlation at half resolution (near shifts preferred: :data:`SHIFT_PRIOR`), and the normalised
+    peak (its sign is the difference's)."""
     small = np.asarray(cv2.pyrDown(diff), np.float32)
     if valid is not None:
         small = small * (cv2.resize(valid, small.shape[::-1], interpolation=cv2.INTER_NEAREST) > 0)
