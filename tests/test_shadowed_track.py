@@ -89,7 +89,7 @@ def test_the_true_pose_of_a_shadowed_low_view_is_tracked(
 ) -> None:
     """From the true pose the track finds it again to a millimetre, and the pipeline's checks take it though
     fewer than 20 data cells are clear (the old check refused every such view)."""
-    tracked = pipeline._track_from(shadowed[0], rt_of(POSITION_M, R_ARENA_CAM), shadowed[1])
+    tracked = pipeline.track_from(shadowed[0], rt_of(POSITION_M, R_ARENA_CAM), shadowed[1])
     assert tracked is not None
     assert FEW_CELLS <= tracked.cells_clear < MANY_CELLS
     assert np.linalg.norm(_position_m(tracked.rvec, tracked.tvec) - POSITION_M) < 0.001
@@ -192,5 +192,5 @@ def test_a_start_one_tag_off_gives_no_wrong_pose(
     centres = np.unique(np.round(pipeline.edges.tag_centres_m[:, 0], 4))
     pitch_m = float(np.median(np.diff(centres)))
     start = POSITION_M + pitch_m * np.array([offset[0], offset[1], 0.0])
-    tracked = pipeline._track_from(shadowed[0], rt_of(start, R_ARENA_CAM), shadowed[1])
+    tracked = pipeline.track_from(shadowed[0], rt_of(start, R_ARENA_CAM), shadowed[1])
     assert tracked is None or np.linalg.norm(_position_m(tracked.rvec, tracked.tvec) - POSITION_M) < 0.01

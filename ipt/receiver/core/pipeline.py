@@ -38,11 +38,11 @@ import numpy.typing as npt
 from ipt.config.camera_info import CameraInfo
 from ipt.config.models import PipelineConfig
 from ipt.receiver.core import kernels
+from ipt.receiver.core.acquire import Acquisition
 from ipt.receiver.core.bridge import ContentBridge
 from ipt.receiver.core.demodulator import (
     PairDifference,
     Undistorter,
-    binarise_difference,
     ksize_for,
     luminance,
     pair_difference,
@@ -55,10 +55,9 @@ from ipt.receiver.core.gates import PoseGates
 from ipt.receiver.core.history import Candidate, Frame, FrameHistory, Pair
 from ipt.receiver.core.imagealign import AlignTarget, alignment_features, floor_warp_between, warp_image
 from ipt.receiver.core.mapedges import MapEdges
-from ipt.receiver.core.mapsearch import MapSearch
 from ipt.receiver.core.motion import MotionTrack, floor_warp
 from ipt.receiver.core.paperway import PaperWay
-from ipt.receiver.core.pose import Pose, pose_of, rt_of, solve_pose
+from ipt.receiver.core.pose import Pose, pose_of, rt_of
 from ipt.receiver.core.reasons import PAIR_FAILURES, SHADOWED_SHARE, FrameReason
 from ipt.receiver.core.scales import DetectScale, ScaleChooser
 from ipt.receiver.core.secondlook import SecondLook
@@ -90,8 +89,6 @@ GOOD_QUALITY = 0.3
 LOST_AFTER_US = 50_000
 #: A coarse search whose normalised correlation peak is weaker than this is not followed.
 MIN_COARSE_SCORE = 0.1
-#: While no pose and no whole tag is found, the map is searched on one pair every this many frames.
-SEARCH_EVERY = 3
 #: ... and while the track fails from its guesses, once the newest pose is older than this.
 SEARCH_AFTER_US = 20_000
 
@@ -159,17 +156,13 @@ class Pipeline:
         """The second look at frames whose fits the recent motion doubts (tracking only)."""
         self._guide = MotionTrack()
         """The motion of every frame's best candidate as soon as it is found: the first guesses' source."""
-        self._since_verify = 0
-        self._detector_failed = False
         self._view_px = max(1, cv2.countNonZero(coverage) if coverage is not None else size[0] * size[1])
         self.reasons: Counter[str] = Counter()
         self.stage_seconds: dict[str, float] = defaultdict(float)
         """Processor time of the pipeline's thread spent per stage (the AprilTag helper process's own time is not
         in "detect"), for benchmarks and diagnostics."""
-        self._detector_runs = 0
-        self.map_search: MapSearch | None = None
-        """The search of the whole map for a view without a whole tag (built at its first use)."""
-        self._searched_at = -SEARCH_EVERY
+        self.acquisition = Acquisition(self, tag_map, self.pinhole, cfg, detector)
+        """AprilTag's acquisition and check of the track, and the search of the whole map."""
         self.paper = PaperWay(cfg, camera, tag_map, detector, self.history, self.gates, self.lap)
         """The paper's way through (the paper profile)."""
         self.detector.wait_ready()
@@ -181,7 +174,7 @@ class Pipeline:
     @property
     def detector_runs(self) -> int:
         """AprilTag runs so far (either profile)."""
-        return self._detector_runs + self.paper.detector_runs
+        return self.acquisition.runs + self.paper.detector_runs
 
     @property
     def detector_replacements(self) -> tuple[int, int]:
@@ -283,9 +276,9 @@ class Pipeline:
             )
             if result.pose is None and result.reason in PAIR_FAILURES and f.lit_share < SHADOWED_SHARE:
                 result = replace(result, reason=FrameReason.SHADOWED)
-            if self._detector_failed:
+            if self.acquisition.detector_failed:
                 result = replace(result, detector_failed=True)
-                self._detector_failed = False
+                self.acquisition.detector_failed = False
             self.reasons[result.reason] += 1
             out.append(result)
         live = {f.index for f in self.history}
@@ -413,27 +406,27 @@ class Pipeline:
             t0 = self.lap("track", t0)
             if tracked is None:
                 reason = FrameReason.LOST
-            elif self.cfg.pose.track.verify_every and self._since_verify >= self.cfg.pose.track.verify_every:
-                if not self._verified(tracked, diff, t0):
+            elif self.cfg.pose.track.verify_every and self.acquisition.since_verify >= self.cfg.pose.track.verify_every:
+                if not self.acquisition.verified(tracked, diff, t0):
                     tracked, reason = None, FrameReason.TRACK_DISAGREES
                 t0 = time.thread_time()
         candidate: Candidate | None = None
         if tracked is not None:
-            self._since_verify += 1
+            self.acquisition.since_verify += 1
             target.phase, other.phase = tracked.sign, -tracked.sign
             candidate = self.candidate(tracked, other.index)
         elif not self.tracking or guess is None or (not guess[1] and self._lost(target)):
             # AprilTag when there is no track to follow: at the start, or once the motion it predicted from
             # is too old (while it lasts, a pair that fails is just a bad pair: another partner may do).
             try:
-                candidate = self._acquire(target, other, diff)
+                candidate = self.acquisition.acquire(target, other, diff)
             except DetectorError:
                 target.failure = FrameResult(target.index, target.time_us, None, 0, FrameReason.DETECTOR_FAILED)
-                self._detector_failed = True
+                self.acquisition.detector_failed = True
                 return
             t0 = self.lap("detect", t0)
         elif reason == FrameReason.LOST and target.best is None and self._lost(target, SEARCH_AFTER_US):
-            candidate = self._search_map(target, other, diff)  # the track has been failing from its guesses
+            candidate = self.acquisition.search_map(target, other, diff)  # the track has been failing from its guesses
             t0 = self.lap("detect", t0)
         if candidate is None:
             target.failure = FrameResult(target.index, target.time_us, None, 0, reason, partner=other.index)
@@ -460,7 +453,7 @@ class Pipeline:
         rt = (tracked.rvec, tracked.tvec)
         return Candidate(pose, rt, len(tracked.tags), "track", partner, tracked.inlier_fraction)
 
-    def _track_from(
+    def track_from(
         self, diff: PairDifference, init: tuple[F64, F64], lit: U8 | None = None, coarse_px: float = 0.0
     ) -> TrackResult | None:
         """The pose from the map's edges on ``diff`` from ``init``; only where ``lit`` (the target frame's
@@ -495,9 +488,9 @@ class Pipeline:
         """The pose tracked from ``guess``: from its start if close, else from a search around it; a close start
         that fails is searched around too (the partner's pose or the pair's homography was off)."""
         init, close = guess
-        tracked = self._track_from(diff, init if close else self._coarse(diff, init), lit)
+        tracked = self.track_from(diff, init if close else self.coarse(diff, init), lit)
         if tracked is None and close:
-            tracked = self._track_from(diff, self._coarse(diff, init), lit)
+            tracked = self.track_from(diff, self.coarse(diff, init), lit)
         return tracked
 
     def _initial_pose(self, target: Frame, other: Frame, warp_other_to_target: F64) -> Guess | None:
@@ -524,7 +517,7 @@ class Pipeline:
             return None
         return np.asarray(rvec, np.float64).reshape(3), np.asarray(tvec, np.float64).reshape(3)
 
-    def _coarse(self, diff: PairDifference, init: tuple[F64, F64]) -> tuple[F64, F64]:
+    def coarse(self, diff: PairDifference, init: tuple[F64, F64]) -> tuple[F64, F64]:
         """``init`` moved by the image shift that best lays the map on the difference."""
         assert self.masks is not None
         size = (self.camera.width_px, self.camera.height_px)
@@ -534,67 +527,6 @@ class Pipeline:
             return init
         moved = shifted_pose(k, init[0], init[1], dx, dy, size)
         return init if moved is None else moved
-
-    def _acquire(self, target: Frame, other: Frame, diff: PairDifference) -> Candidate | None:
-        """AprilTag on the pair's difference, then (tracking) the map's edges from its pose; None: no pose."""
-        first = self.history.predicted_phase(target) or 1
-        for scale, sign in ((s, sign) for s in self.scales.to_try(target.index) for sign in (first, -first)):
-            self._detector_runs += 1
-            dets = self.detector.detect(binarise_difference(diff, sign, scale.ksize), scale.decimate)
-            if len(dets) < self.cfg.pose.min_tags:
-                continue
-            target.phase, other.phase = sign, -sign
-            pose = solve_pose(dets, self.tag_map, self.pinhole, self.cfg.pose)
-            if pose is None:
-                target.failure = FrameResult(target.index, target.time_us, None, len(dets), FrameReason.POSE_REJECTED)
-                return None
-            start = rt_of(pose.position_m, pose.r_arena_cam)
-            if self.tracking:
-                refined = self._track_from(diff, self._coarse(diff, start), target.signal)
-                if refined is not None:
-                    self._since_verify = 0
-                    return self.candidate(refined, other.index)
-            return Candidate(pose, start, len(dets), "apriltag", other.index, 0.0)
-        return self._search_map(target, other, diff) if self.tracking else None
-
-    def _search_map(self, target: Frame, other: Frame, diff: PairDifference) -> Candidate | None:
-        """No whole tag: the level poses that lay the whole map on the difference (:mod:`~ipt.receiver.core.
-        mapsearch`; one pair every :data:`SEARCH_EVERY` frames), the first the track confirms."""
-        if target.index - self._searched_at < SEARCH_EVERY:
-            return None
-        self._searched_at = target.index
-        self.map_search = self.map_search or MapSearch.of(self.tag_map)
-        lit = diff.valid if target.signal is None else np.minimum(diff.valid, target.signal)
-        for h in self.map_search.search(diff.diff, lit, self.pinhole.camera_matrix):
-            try:  # (a search around the start, not _coarse's: that one lays a level guess's view wrong by a tag)
-                tracked = self._track_from(diff, (h.rvec, h.tvec), target.signal, h.search_px)
-            except np.linalg.LinAlgError:  # a wrong placement's samples may all run one way
-                continue
-            if tracked is not None:
-                target.phase, other.phase = tracked.sign, -tracked.sign
-                return self.candidate(tracked, other.index)
-        return None
-
-    def _verified(self, tracked: TrackResult, diff: PairDifference, t0: float) -> bool:
-        """AprilTag's view of the frame agrees with the track (or sees too little to say)."""
-        self._since_verify = 0
-        r_cam, _ = cv2.Rodrigues(tracked.rvec)
-        position = -r_cam.T @ tracked.tvec
-        scale = self.scales.at(float(position[2]))
-        self._detector_runs += 1
-        try:
-            dets = self.detector.detect(binarise_difference(diff, tracked.sign, scale.ksize), scale.decimate)
-        except DetectorError:
-            self._detector_failed = True  # reported with the next result that comes out; the track goes on
-            return True
-        finally:
-            self.lap("detect", t0)
-        if len(dets) < self.cfg.pose.min_tags:
-            return True
-        pose = solve_pose(dets, self.tag_map, self.pinhole, self.cfg.pose)
-        if pose is None:
-            return True
-        return float(np.linalg.norm(position - pose.position_m)) < 0.05
 
 
 __all__ = ["FrameResult", "Pipeline", "Prepared"]

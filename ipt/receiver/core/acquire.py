@@ -1,0 +1,131 @@
+"""AprilTag's part in the ipt way (:class:`Acquisition`, held by :class:`~ipt.receiver.core.pipeline.Pipeline`):
+acquiring a pose on a pair's difference when there is no track to follow, checking the track now and then, and
+searching the whole map for a view without a whole tag (:mod:`~ipt.receiver.core.mapsearch`)."""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from ipt.config.camera_info import CameraInfo
+from ipt.config.models import PipelineConfig
+from ipt.receiver.core.demodulator import PairDifference, binarise_difference
+from ipt.receiver.core.detection import Detector, DetectorError
+from ipt.receiver.core.frameresult import FrameResult
+from ipt.receiver.core.history import Candidate, Frame, FrameHistory
+from ipt.receiver.core.mapsearch import MapSearch
+from ipt.receiver.core.pose import rt_of, solve_pose
+from ipt.receiver.core.reasons import FrameReason
+from ipt.receiver.core.scales import ScaleChooser
+from ipt.receiver.core.track import TrackResult
+from ipt.tagmap import TagMap
+
+U8 = npt.NDArray[np.uint8]
+F64 = npt.NDArray[np.float64]
+
+#: While no pose and no whole tag is found, the map is searched on one pair every this many frames.
+SEARCH_EVERY = 3
+
+
+class TrackStages(Protocol):
+    """The pipeline's stages acquisition uses."""
+
+    history: FrameHistory
+    scales: ScaleChooser
+    tracking: bool
+
+    def track_from(
+        self, diff: PairDifference, init: tuple[F64, F64], lit: U8 | None = None, coarse_px: float = 0.0
+    ) -> TrackResult | None:
+        """The pose from the map's edges on ``diff`` from ``init``."""
+
+    def coarse(self, diff: PairDifference, init: tuple[F64, F64]) -> tuple[F64, F64]:
+        """``init`` moved by the image shift that best lays the map on the difference."""
+
+    def candidate(self, tracked: TrackResult, partner: int) -> Candidate:
+        """A candidate of the track's pose, paired with frame ``partner``."""
+
+    def lap(self, stage: str, t0: float) -> float:
+        """Count processor time since ``t0`` to ``stage``; the time now."""
+
+
+class Acquisition:
+    """AprilTag (``detector``) and the map search for the pipeline's ``stages``."""
+
+    def __init__(
+        self, stages: TrackStages, tag_map: TagMap, pinhole: CameraInfo, cfg: PipelineConfig, detector: Detector
+    ) -> None:
+        self.stages, self.tag_map, self.pinhole, self.cfg, self.detector = stages, tag_map, pinhole, cfg, detector
+        self.runs = 0
+        """AprilTag runs so far."""
+        self.since_verify = 0
+        """Tracked frames since AprilTag last checked the track."""
+        self.detector_failed = False
+        """The detector failed since the last result went out (the next result says so)."""
+        self.map_search: MapSearch | None = None
+        """The search of the whole map for a view without a whole tag (built at its first use)."""
+        self.searched_at = -SEARCH_EVERY
+
+    def acquire(self, target: Frame, other: Frame, diff: PairDifference) -> Candidate | None:
+        """AprilTag on the pair's difference, then (tracking) the map's edges from its pose; None: no pose."""
+        first = self.stages.history.predicted_phase(target) or 1
+        for scale, sign in ((s, sign) for s in self.stages.scales.to_try(target.index) for sign in (first, -first)):
+            self.runs += 1
+            dets = self.detector.detect(binarise_difference(diff, sign, scale.ksize), scale.decimate)
+            if len(dets) < self.cfg.pose.min_tags:
+                continue
+            target.phase, other.phase = sign, -sign
+            pose = solve_pose(dets, self.tag_map, self.pinhole, self.cfg.pose)
+            if pose is None:
+                target.failure = FrameResult(target.index, target.time_us, None, len(dets), FrameReason.POSE_REJECTED)
+                return None
+            start = rt_of(pose.position_m, pose.r_arena_cam)
+            if self.stages.tracking:
+                refined = self.stages.track_from(diff, self.stages.coarse(diff, start), target.signal)
+                if refined is not None:
+                    self.since_verify = 0
+                    return self.stages.candidate(refined, other.index)
+            return Candidate(pose, start, len(dets), "apriltag", other.index, 0.0)
+        return self.search_map(target, other, diff) if self.stages.tracking else None
+
+    def search_map(self, target: Frame, other: Frame, diff: PairDifference) -> Candidate | None:
+        """No whole tag: the level poses that lay the whole map on the difference (:mod:`~ipt.receiver.core.
+        mapsearch`; one pair every :data:`SEARCH_EVERY` frames), the first the track confirms."""
+        if target.index - self.searched_at < SEARCH_EVERY:
+            return None
+        self.searched_at = target.index
+        self.map_search = self.map_search or MapSearch.of(self.tag_map)
+        lit = diff.valid if target.signal is None else np.minimum(diff.valid, target.signal)
+        for h in self.map_search.search(diff.diff, lit, self.pinhole.camera_matrix):
+            try:  # (a search around the start, not _coarse's: that one lays a level guess's view wrong by a tag)
+                tracked = self.stages.track_from(diff, (h.rvec, h.tvec), target.signal, h.search_px)
+            except np.linalg.LinAlgError:  # a wrong placement's samples may all run one way
+                continue
+            if tracked is not None:
+                target.phase, other.phase = tracked.sign, -tracked.sign
+                return self.stages.candidate(tracked, other.index)
+        return None
+
+    def verified(self, tracked: TrackResult, diff: PairDifference, t0: float) -> bool:
+        """AprilTag's view of the frame agrees with the track (or sees too little to say)."""
+        self.since_verify = 0
+        r_cam, _ = cv2.Rodrigues(tracked.rvec)
+        position = -r_cam.T @ tracked.tvec
+        scale = self.stages.scales.at(float(position[2]))
+        self.runs += 1
+        try:
+            dets = self.detector.detect(binarise_difference(diff, tracked.sign, scale.ksize), scale.decimate)
+        except DetectorError:
+            self.detector_failed = True  # reported with the next result that comes out; the track goes on
+            return True
+        finally:
+            self.stages.lap("detect", t0)
+        if len(dets) < self.cfg.pose.min_tags:
+            return True
+        pose = solve_pose(dets, self.tag_map, self.pinhole, self.cfg.pose)
+        if pose is None:
+            return True
+        return float(np.linalg.norm(position - pose.position_m)) < 0.05
