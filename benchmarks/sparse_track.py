@@ -34,8 +34,7 @@ import json
 import os
 import sys
 import time
-from collections import Counter
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -46,12 +45,24 @@ import numpy.typing as npt
 from ipt.config.base import ConfigError
 from ipt.config.camera_info import load_camera_info
 from ipt.config.models import load_arena_config
-from ipt.receiver.core import kernels
+from ipt.receiver.core import sparsechain
 from ipt.receiver.core.demodulator import luminance
 from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.pipeline import FrameResult, Pipeline
-from ipt.receiver.core.pose import pose_of, rt_of
-from ipt.receiver.core.sparse import SparseCamera, SparseResult, SparseSettings, extrapolate, fit_sparse, select
+from ipt.receiver.core.pose import rt_of
+from ipt.receiver.core.sparse import SparseCamera, SparseResult, SparseSettings
+from ipt.receiver.core.sparsechain import (
+    Chain,
+    Pairing,
+    chain_settings,
+    content_still,
+    fitter,
+    order_pairing,
+    pair_frame,
+    past_pairing,
+    seed,
+    take,
+)
 from ipt.receiver.detect.detector import pipeline_detector
 from ipt.tagmap import grid_tag_map
 from ipt.tum import read_tum
@@ -63,10 +74,6 @@ from suite import one_core, receiver_config
 F64 = npt.NDArray[np.float64]
 U8 = npt.NDArray[np.uint8]
 
-#: Past partners tried for a frame, nearest first.
-PAST = (1, 2, 3)
-#: A fit this far (metres) from the chain's prediction is refused (the dense pipeline's gates do as much).
-MAX_JUMP_M = 0.03
 #: Frames between the two poses whose motion a same-content chain's prediction carries on.
 BASELINE = int(os.environ.get("SPARSE_BASELINE", "1"))
 #: ... and for the two predicted poses of a joint fit (0: the same).
@@ -82,37 +89,6 @@ JOINT_SMOOTH = float(os.environ.get("SPARSE_JOINT_SMOOTH", str(SparseSettings.co
 JOINT_HALF_UNTIL_PX = float(os.environ.get("SPARSE_JOINT_HALF_UNTIL_PX", "0"))
 #: ... and the largest last step (pixels) with which such a fit is taken as settled.
 JOINT_SETTLED_PX = float(os.environ.get("SPARSE_JOINT_SETTLED_PX", "0.6"))
-
-
-def _moved_m(result: SparseResult, guess: tuple[F64, F64]) -> float:
-    """How far the fitted camera is from the predicted one, metres."""
-    fitted, _ = pose_of(result.rvec, result.tvec)
-    predicted, _ = pose_of(*guess)
-    return float(np.linalg.norm(fitted - predicted))
-
-
-@dataclass
-class Chain:
-    """The sparse chain's poses so far."""
-
-    rt: dict[int, tuple[F64, F64]] = field(default_factory=dict)
-    sign: dict[int, int] = field(default_factory=dict)
-    step: dict[int, float] = field(default_factory=dict)
-    fitted: dict[int, SparseResult] = field(default_factory=dict)
-    emitted: dict[int, int] = field(default_factory=dict)
-    """The frame on whose arrival each sparse pose came out."""
-    last_amplitude: float = 0.0
-    same_rms: list[float] = field(default_factory=list)
-    still: bool = False
-    """The floor's content held still over the last video frame (``auto``)."""
-    """The residuals of the fits with a same-content partner, in order."""
-    reseeds: int = 0
-    refused: Counter[str] = field(default_factory=Counter)
-    guesses: dict[int, tuple[F64, F64]] = field(default_factory=dict)
-    """The prediction (rvec, tvec) of each frame started from one in a joint fit (both poses predicted): its
-    error is the benchmark's to report."""
-    joint_ok: dict[int, bool] = field(default_factory=dict)
-    """Whether each joint fit of a frame (the last one tried) passed the fit's own checks."""
 
 
 def load_frames(folder: Path, frames: int | None, method: str) -> tuple[list[npt.NDArray[Any]], list[U8], float]:
@@ -153,49 +129,6 @@ def run_dense(
     return {r.index: r for r in results}, phase, spent / len(raw)
 
 
-def predict(
-    chain: Chain, k: int, times_us: list[int], baseline: int = 1, joint: bool = False
-) -> tuple[F64, F64] | None:
-    """The chain's last pose before ``k`` (within five frames) carried on to ``k`` at the velocity since a pose
-    at least ``baseline`` frames before it (within eight frames; else the nearest before it), or that last pose
-    alone. A longer baseline averages the poses' own noise out of the velocity (which a prediction three frames
-    ahead multiplies)."""
-    if joint and JOINT_BASELINE:
-        baseline = JOINT_BASELINE
-    recent = [j for j in range(k - 1, max(k - 6, -1), -1) if j in chain.rt]
-    if not recent:
-        return None
-    b = recent[0]
-    before = [j for j in range(b - 1, max(b - 9, -1), -1) if j in chain.rt]
-    if not before:
-        return chain.rt[b]
-    a = next((j for j in before if j <= b - baseline), before[0])
-    return extrapolate(chain.rt[a], times_us[a], chain.rt[b], times_us[b], times_us[k])
-
-
-@dataclass(frozen=True)
-class Pairing:
-    """Which frames show the same video frame: ``waits(k)``: frame k's same-content partner is a later frame
-    (k's pose comes out with it); ``partners(k)``: the earlier frames to pair k with, best first; ``baseline``:
-    of the predictions' velocity (frames)."""
-
-    waits: Any
-    partners: Any
-    baseline: int = BASELINE
-    known_first: bool = False
-    refine: bool = False
-    past_first: bool = False
-    auto: bool = False
-    """A waiting frame is fitted at once with its past partner while the content holds still (measured on each
-    second-phase frame against the video frame before), and waits only when that fit fails or it moved."""
-    """A waiting frame first tries its past partners and takes the fit at once if the content held still."""
-
-
-def past_pairing(phase: dict[int, int]) -> Pairing:
-    """Round one's chain: every frame from its nearest past partner of the other phase."""
-    return Pairing(lambda k: False, lambda k: [k - b for b in PAST if phase.get(k - b) == -phase.get(k, 0)], 1)
-
-
 def oracle_pairing(dense: dict[int, FrameResult], phase: dict[int, int]) -> Pairing:
     """The dense pipeline's winning partner of each frame (an oracle: it looked at frames ahead)."""
     chosen = {
@@ -210,85 +143,7 @@ def oracle_pairing(dense: dict[int, FrameResult], phase: dict[int, int]) -> Pair
         own = [chosen[k]] if k in chosen and chosen[k] < k else []
         return own + [j for j in claims.get(k, []) if j not in own]
 
-    return Pairing(lambda k: k in chosen and chosen[k] > k, partners)
-
-
-def order_pairing(phase: dict[int, int], first: int = 1) -> Pairing:
-    """A rule a live receiver can apply: the sender shows each video frame in the phase ``first`` (+1: IPT's
-    sender starts each input frame on an even output index, its + phase), then the other; so a frame of the
-    first phase waits for a later partner and one of the second pairs with a past one of the first phase, the
-    nearest first: k−1, k−2, k−3 at 120 FPS (all of the same video frame; ``SPARSE_ORDER``: k−2 first did
-    worse)."""
-    order = tuple(int(b) for b in os.environ.get("SPARSE_ORDER", "1,2,3").split(","))
-    return Pairing(
-        lambda k: phase.get(k) == first,
-        lambda k: [k - b for b in order if phase.get(k) == -first and phase.get(k - b) == first],
-    )
-
-
-def _accept(chain: Chain, result: SparseResult | None, why: str, k: int, guess: tuple[F64, F64], want: int) -> bool:
-    if result is not None and _moved_m(result, guess) > MAX_JUMP_M:
-        chain.refused["far_from_prediction"] += 1
-        return False
-    if result is not None and result.sign == want:
-        return True
-    chain.refused[why or "wrong_phase"] += 1
-    return False
-
-
-def pair_frame(
-    chain: Chain, k: int, lum: list[U8], phase: dict[int, int], times_us: list[int], fit: Any, pairing: Pairing
-) -> dict[int, SparseResult]:
-    """Frame ``k``'s fit with its same-content past partner j (``pairing``; with ``known_first``, those with a
-    pose first); when j has no pose yet (it waited for k) both poses are unknowns, j's started from its
-    prediction and held near it by the prediction's uncertainty. With ``refine``, each frame still waiting
-    among k's partners is then fitted on its own against k, k held at its fitted pose. Returns the poses
-    found, by frame."""
-    guess = predict(chain, k, times_us, pairing.baseline)
-    if guess is None or k not in phase:
-        return {}
-    candidates = [j for j in pairing.partners(k) if j >= 0 and (j in chain.rt or pairing.waits(j))]
-    if pairing.known_first:
-        candidates.sort(key=lambda j: j not in chain.rt)
-    found: dict[int, SparseResult] = {}
-    for j in candidates:
-        known = j in chain.rt
-        partner_rt = chain.rt[j] if known else predict(chain, j, times_us, pairing.baseline, joint=True)
-        start = guess if known else predict(chain, k, times_us, pairing.baseline, joint=True)
-        if partner_rt is None or start is None:
-            continue
-        if not known:
-            chain.guesses.setdefault(k, start)
-            chain.guesses.setdefault(j, partner_rt)
-        hint = -chain.sign[j] * chain.step[j] if j in chain.step else 0.0 if known else phase[k] * chain.last_amplitude
-        result, why = fit(lum[k], lum[j], partner_rt, start, hint, None if known else "predicted")
-        if not known:
-            chain.joint_ok[k] = result is not None
-        if not _accept(chain, result, why, k, start, phase[k]):
-            continue
-        assert result is not None
-        found[k] = result
-        if not known:
-            other = result.partner()
-            if _moved_m(other, partner_rt) > MAX_JUMP_M:
-                chain.refused["partner_far_from_prediction"] += 1
-                found.clear()
-                continue
-            found[j] = other
-        break
-    if k in found and pairing.refine:
-        held = (found[k].rvec, found[k].tvec)
-        for j in candidates:
-            if j in chain.rt or phase.get(j) != -phase[k]:
-                continue
-            start = (found[j].rvec, found[j].tvec) if j in found else predict(chain, j, times_us, pairing.baseline)
-            if start is None:
-                continue
-            result, why = fit(lum[j], lum[k], held, start, -found[k].sign * found[k].amplitude, None)
-            if _accept(chain, result, why, j, start, phase[j]):
-                assert result is not None
-                found[j] = result
-    return found
+    return Pairing(lambda k: k in chosen and chosen[k] > k, partners, BASELINE, JOINT_BASELINE)
 
 
 def run_sparse(
@@ -305,20 +160,18 @@ def run_sparse(
     """The chain over the frames; its processor time (sparse work only) and the frames it worked on. A frame
     that waits for a later partner (``pairing``) gets its pose with that partner's; if none has given it one
     by three frames later, the chain takes its dense pose then (a re-seed)."""
-    predicted = replace(
-        settings,
-        other_sigma_px=partner_sigma_px,
-        max_partner_px=3.0 * partner_sigma_px,
-        iterations=JOINT_ITERATIONS,
-        settled_px=JOINT_SETTLED_PX,
-        coarse_iterations=JOINT_COARSE,
-        radius_px=round(JOINT_RADIUS * settings.blur_px / SparseSettings.blur_px),
-        half_until_px=JOINT_HALF_UNTIL_PX * settings.blur_px / SparseSettings.blur_px,
-        coarse_smooth_px=JOINT_SMOOTH * settings.blur_px / SparseSettings.blur_px,
+    known, joint = chain_settings(
+        camera.size[0],
+        partner_sigma_px=partner_sigma_px,
+        base=settings,
+        joint_iterations=JOINT_ITERATIONS,
+        joint_coarse=JOINT_COARSE,
+        joint_settled_px=JOINT_SETTLED_PX,
+        joint_radius_px=JOINT_RADIUS,
+        joint_smooth_px=JOINT_SMOOTH,
+        joint_half_until_px=JOINT_HALF_UNTIL_PX,
     )
-
-    def fit(image: U8, other: U8, other_rt: tuple[F64, F64], guess: tuple[F64, F64], hint: float, mode: Any) -> Any:
-        return fit_sparse(image, other, camera, edges, other_rt, guess, predicted if mode else settings, hint)
+    fit = fitter(camera, edges, known, joint)
 
     chain = Chain()
     spent, worked = 0.0, 0
@@ -327,8 +180,10 @@ def run_sparse(
         pose = dense[first].pose
         assert pose is not None
         rt = rt_of(pose.position_m, pose.r_arena_cam)
-        fit(lum[first], lum[first], rt, rt, 0.0, None)
+        fit(lum[first], lum[first], rt, rt, 0.0, False)
     pending: list[int] = []
+    past = replace(past_pairing(phase), baseline=BASELINE)
+    frames, times = dict(enumerate(lum)), dict(enumerate(times_us))
     for k in range(len(lum)):
         out: dict[int, SparseResult] = {}
         started = bool(chain.rt)
@@ -336,19 +191,21 @@ def run_sparse(
             worked += 1
             t0 = time.thread_time()
             if not pairing.waits(k):
-                out = pair_frame(chain, k, lum, phase, times_us, fit, pairing)
+                out = pair_frame(chain, k, frames, phase, times, fit, pairing)
                 if k in out:
                     chain.same_rms.append(out[k].rms_px)
             elif pairing.past_first:
-                out = _past_if_still(chain, k, lum, phase, times_us, fit, past_pairing(phase))
+                out = _past_if_still(
+                    chain, k, lum, phase, times_us, fit, replace(past_pairing(phase), baseline=BASELINE)
+                )
             elif pairing.auto and chain.still:
-                out = pair_frame(chain, k, lum, phase, times_us, fit, past_pairing(phase))
+                out = pair_frame(chain, k, frames, phase, times, fit, past)
             spent += time.thread_time() - t0
         for j, result in out.items():
-            _take(chain, j, result, k)
+            take(chain, j, result, k)
         if pairing.auto and k in out and not pairing.waits(k):
             t0 = time.thread_time()
-            chain.still = _content_still(chain, k, lum, phase, camera, edges)
+            chain.still = content_still(chain, k, frames, phase, camera, edges, STILL_SPREAD)
             spent += time.thread_time() - t0
         if k not in out and started and pairing.waits(k):
             pending.append(k)
@@ -362,7 +219,7 @@ def run_sparse(
 
 
 def _past_if_still(
-    chain: Chain, k: int, lum: list[U8], phase: dict[int, int], times_us: list[int], fit: Any, past: Pairing
+    chain: Chain, k: int, lum: dict[int, U8], phase: dict[int, int], times_us: dict[int, int], fit: Any, past: Pairing
 ) -> dict[int, SparseResult]:
     """A waiting frame's fit with a past partner (of the video frame before), taken at once if its residual is
     no more than :data:`STILL_RATIO` times the recent same-content pairs' (the content held still)."""
@@ -375,63 +232,19 @@ def _past_if_still(
     return {}
 
 
-def _content_still(
-    chain: Chain, k: int, lum: list[U8], phase: dict[int, int], camera: SparseCamera, edges: MapEdges
-) -> bool:
-    """Whether the floor's content held still from the video frame before to ``k``'s: ``k`` and a frame of the
-    same phase of the video frame before (k−4, k−3, k−5), both read at their poses along the map's edges (the
-    map cancels between frames of one phase): the spread of their difference (robust) against ``k``'s pair fit's
-    residual, at most :data:`STILL_SPREAD` times it."""
-    m = next((m for m in (k - 4, k - 3, k - 5) if phase.get(m) == phase.get(k) and m in chain.rt), None)
-    if m is None:
-        return False
-    r_k, _ = cv2.Rodrigues(np.asarray(chain.rt[k][0], np.float64).reshape(3, 1))
-    r_m, _ = cv2.Rodrigues(np.asarray(chain.rt[m][0], np.float64).reshape(3, 1))
-    t_k, t_m = np.asarray(chain.rt[k][1], np.float64).reshape(3), np.asarray(chain.rt[m][1], np.float64).reshape(3)
-    chosen = select(edges, camera, r_k, t_k, 300)
-    _, pk, pm, _ = kernels.sparse_profiles(
-        edges.points_m[chosen],
-        edges.normals_m[chosen],
-        r_k,
-        t_k,
-        r_m,
-        t_m,
-        camera.camera_matrix,
-        camera.dist_coeffs,
-        lum[k],
-        lum[m],
-        4,
-        3.0,
-        3,
-    )
-    if len(pk) < 30:
-        return False
-    gain = float(np.median(pk.mean(axis=1) / np.maximum(pm.mean(axis=1), 1.0)))
-    d = (pk - gain * pm).ravel()
-    spread = 1.4826 * float(np.median(np.abs(d - np.median(d))))
-    return spread <= STILL_SPREAD * max(chain.fitted[k].rms_px, 0.1)
-
-
-def _take(chain: Chain, k: int, result: SparseResult, out_at: int) -> None:
-    chain.rt[k], chain.sign[k], chain.step[k] = (result.rvec, result.tvec), result.sign, result.amplitude
-    chain.fitted[k], chain.emitted[k], chain.last_amplitude = result, out_at, result.amplitude
-
-
 def _reseed(chain: Chain, k: int, dense: dict[int, FrameResult], phase: dict[int, int]) -> None:
     """The dense pose of ``k`` into the chain, if it has one."""
     if k in dense and dense[k].pose is not None and k in phase:
         pose = dense[k].pose
         assert pose is not None
-        chain.rt[k], chain.sign[k] = rt_of(pose.position_m, pose.r_arena_cam), phase[k]
-        chain.step.pop(k, None)
-        chain.reseeds += 1 if chain.fitted or len(chain.rt) > 1 else 0
+        seed(chain, k, rt_of(pose.position_m, pose.r_arena_cam), phase[k])
 
 
 #: The chains the benchmark can run: which frames are paired (``--pairs``).
 PAIRINGS = ("past", "oracle", "order", "order2", "still", "auto")
 #: The spread of two same-phase frames' difference (a video frame apart) up to this many times a pair fit's
-#: residual: the content held still (shadow-vibration 0.4-1.0, moving-content 1.0-1.6, realcam 1.2-2.0).
-STILL_SPREAD = float(os.environ.get("SPARSE_STILL_SPREAD", "1.0"))
+#: residual: the content held still (:data:`~ipt.receiver.core.sparsechain.STILL_SPREAD`).
+STILL_SPREAD = float(os.environ.get("SPARSE_STILL_SPREAD", str(sparsechain.STILL_SPREAD)))
 #: A past pair's residual up to this many times the same-content pairs' (median of the last 16): the content
 #: held still, and a first-phase frame's fit with the video frame before is taken at once.
 STILL_RATIO = float(os.environ.get("SPARSE_STILL_RATIO", "1.2"))
@@ -440,13 +253,16 @@ STILL_RATIO = float(os.environ.get("SPARSE_STILL_RATIO", "1.2"))
 def _pairing(name: str, dense: dict[int, FrameResult], phase: dict[int, int]) -> Pairing:
     if name == "oracle":
         return oracle_pairing(dense, phase)
+    order = order_pairing(phase, 1, tuple(int(b) for b in os.environ.get("SPARSE_ORDER", "1,2,3").split(",")))
     if name == "auto":
-        return replace(order_pairing(phase), known_first=True, refine=True, auto=True)
-    if name == "still":
-        return replace(order_pairing(phase), known_first=True, refine=True, past_first=True)
-    if name == "order2":
-        return replace(order_pairing(phase), known_first=True, refine=True)
-    return order_pairing(phase) if name == "order" else past_pairing(phase)
+        chosen = replace(order, known_first=True, refine=True, auto=True)
+    elif name == "still":
+        chosen = replace(order, known_first=True, refine=True, past_first=True)
+    elif name == "order2":
+        chosen = replace(order, known_first=True, refine=True)
+    else:
+        chosen = order if name == "order" else past_pairing(phase)
+    return replace(chosen, baseline=BASELINE, joint_baseline=JOINT_BASELINE)
 
 
 def flight(
@@ -474,8 +290,6 @@ def flight(
         out["dense_yield_pct"] = round(100.0 * sum(1 for r in dense.values() if r.pose is not None) / len(raw), 1)
         out["dense_ms_per_frame"] = round(1e3 * dense_s, 3)
         out["dense_stage_ms_per_frame"] = {s: round(1e3 * v / len(raw), 3) for s, v in pipeline.stage_seconds.items()}
-        scale = camera.width_px / 640
-        settings = replace(settings, blur_px=settings.blur_px * scale, border_px=settings.border_px * scale)
         sparse_camera = SparseCamera.of(camera.camera_matrix, camera.dist_coeffs, (camera.width_px, camera.height_px))
         edges = MapEdges.from_tag_map(tag_map)
         for name in pairings:
@@ -488,7 +302,7 @@ def flight(
                 edges,
                 settings,
                 _pairing(name, dense, phase),
-                partner_sigma_px * scale,
+                partner_sigma_px,
             )
             out[name] = chain_report(chain, sparse_s, worked, dense, phase, truth, times_us, sparse_camera)
     return out

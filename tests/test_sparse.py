@@ -16,7 +16,7 @@ from floorview import render_view
 
 from ipt.config.models import ArenaConfig
 from ipt.geometry import R_BODY_CAM_DOWNWARD, rot_x, rot_y, rot_z, rotation_angle_rad
-from ipt.receiver.core import kernels
+from ipt.receiver.core import kernels, sparsechain
 from ipt.receiver.core.demodulator import lightness
 from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.pose import pose_of, rt_of
@@ -32,8 +32,6 @@ from ipt.sender.modulator import PaperModulator
 from ipt.tagmap import grid_tag_map
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
-import sparse_track  # noqa: E402
 
 U8 = npt.NDArray[np.uint8]
 F64 = npt.NDArray[np.float64]
@@ -271,7 +269,7 @@ def test_the_phase_order_pairs_each_frame_within_its_video_frame() -> None:
     + frame waits for a later partner, a - frame pairs with the + frames before it, the nearest first, never
     with the previous video frame's."""
     phase = {k: (1 if k % 4 in (0, 1) else -1) for k in range(12)}
-    pairing = sparse_track.order_pairing(phase)
+    pairing = sparsechain.order_pairing(phase)
     assert [pairing.waits(k) for k in range(4, 8)] == [True, True, False, False]
     assert pairing.partners(6) == [5, 4]
     assert pairing.partners(7) == [5, 4]
@@ -306,12 +304,12 @@ def test_content_that_held_still_is_told_from_content_that_panned(panned: tuple[
     assert fitted is not None, why
     held = lightness(_distorted_view(_photo(0)[1], PREVIOUS_POSITION_M, R_ARENA_CAM, LENS))
     for earlier, still in ((held, True), (before, False)):
-        chain = sparse_track.Chain()
+        chain = sparsechain.Chain()
         chain.rt = {0: rt_of(PREVIOUS_POSITION_M, R_ARENA_CAM), 4: rt_of(OTHER_POSITION_M, R_OTHER)}
         chain.fitted = {4: fitted}
-        lum = [earlier, earlier, earlier, earlier, pair.other]
+        lum = dict(enumerate([earlier, earlier, earlier, earlier, pair.other]))
         phase = {0: -1, 4: -1}
-        assert sparse_track._content_still(chain, 4, lum, phase, pair.camera, edges) == still
+        assert sparsechain.content_still(chain, 4, lum, phase, pair.camera, edges) == still
 
 
 def test_a_fit_that_reads_half_the_samples_while_far_off_ends_on_all_of_them(

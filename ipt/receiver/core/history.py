@@ -64,6 +64,12 @@ class Frame:
     """The candidate that fits the map best so far."""
     failure: FrameResult | None = None
     """Why the last attempt gave no pose."""
+    raw: U8 | None = None
+    """Its lightness as the camera saw it (not undistorted), kept by the sparse tracker, which prepares
+    :attr:`lum`, :attr:`signal` and :attr:`features` from it only when a dense pair needs them (until then
+    :attr:`signal` is None)."""
+    waiting: bool = False
+    """The sparse chain waits for a later frame to pose this one."""
 
 
 @dataclass(frozen=True)

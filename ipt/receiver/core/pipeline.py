@@ -61,6 +61,10 @@ from ipt.receiver.core.pose import Pose, pose_of, rt_of
 from ipt.receiver.core.reasons import PAIR_FAILURES, SHADOWED_SHARE, FrameReason
 from ipt.receiver.core.scales import DetectScale, ScaleChooser
 from ipt.receiver.core.secondlook import SecondLook
+from ipt.receiver.core.sparse import SparseCamera
+from ipt.receiver.core.sparsechain import LiveChain, chain_settings, fitter
+from ipt.receiver.core.sparsestage import SparseStage
+from ipt.receiver.core.sparsestage import posed as sparse_posed
 from ipt.receiver.core.track import (
     MaskRenderer,
     TrackResult,
@@ -163,6 +167,17 @@ class Pipeline:
         in "detect"), for benchmarks and diagnostics."""
         self.acquisition = Acquisition(self, tag_map, self.pinhole, cfg, detector)
         """AprilTag's acquisition and check of the track, and the search of the whole map."""
+        self.sparse: SparseStage | None = None
+        """The sparse tracker (``cfg.tracker`` "sparse", tracking only): poses a frame first, the dense way second."""
+        if self.edges is not None and cfg.tracker == "sparse":
+            lens = SparseCamera.of(camera.camera_matrix, camera.dist_coeffs, size)
+            fit = fitter(lens, self.edges, *chain_settings(camera.width_px))
+            chain = LiveChain(lens, self.edges, fit, projector_hz)
+            self.sparse = SparseStage(
+                chain, self.history, self.gates, self._solve, self._dense, self.add_candidate, self.lap, self._tracked
+            )
+        self.dense_prepared = 0
+        """Frames given the dense preparation after their arrival (sparse tracker), for tests and benchmarks."""
         self.paper = PaperWay(cfg, camera, tag_map, detector, self.history, self.gates, self.lap)
         """The paper's way through (the paper profile)."""
         self.detector.wait_ready()
@@ -192,13 +207,30 @@ class Pipeline:
         if problem is not None:
             return Prepared(problem, None, None, None)
         lum = luminance(frame, self.cfg.demodulation.lightness)
-        if not self.ipt:
+        if not self.ipt or self.sparse is not None:  # (the sparse tracker prepares the rest when it is needed)
             return Prepared(None, lum, None, None)
+        return Prepared(None, *self._dense_parts(lum))
+
+    def _dense_parts(self, lum: U8) -> tuple[U8, U8, F32]:
+        """A frame's lightness undistorted, its signal mask and alignment features."""
         coverage = None
         if self.undistort is not None:
             lum = self.undistort(lum)
             coverage = self.undistort.coverage
-        return Prepared(None, lum, signal_mask(lum, coverage), alignment_features(lum))
+        return lum, signal_mask(lum, coverage), alignment_features(lum)
+
+    def _tracked(self) -> None:
+        self.acquisition.since_verify += 1
+
+    def _dense(self, f: Frame) -> None:
+        """The dense preparation of ``f`` (sparse tracker), once: when a dense pair needs it."""
+        if f.signal is not None or f.raw is None:
+            return
+        t0 = time.thread_time()
+        f.lum, f.signal, f.features = self._dense_parts(f.raw)
+        f.lit_share = cv2.countNonZero(f.signal) / self._view_px
+        self.dense_prepared += 1
+        self.lap("prepare", t0)
 
     def process(self, index: int, frame: U8 | Prepared, capture_time_us: int) -> list[FrameResult]:
         """Take camera frame ``index`` (H×W×3 RGB, or H×W grey: a mono camera's, or the luma plane of a YUV
@@ -212,6 +244,8 @@ class Pipeline:
         if problem is not None:  # not an image of this camera, or one without signal: never a partner
             if problem in RESTARTS:
                 self._restart()
+            elif self.sparse is not None:
+                self.sparse.reset(True)
             bad = Frame(index, capture_time_us, np.zeros((0, 0), np.uint8), final=True)
             bad.result = FrameResult(index, capture_time_us, None, 0, problem)
             self._pending.append(bad)
@@ -223,6 +257,8 @@ class Pipeline:
         new = Frame(index, capture_time_us, ready.lum, ready.signal, ready.features)
         if ready.signal is not None:  # the share of the view (the undistorted sensor's pixels) it lights
             new.lit_share = cv2.countNonZero(ready.signal) / self._view_px
+        if self.sparse is not None:
+            new.raw = ready.lum
         if gap:  # its reason unless a later frame pairs with it
             new.failure = FrameResult(index, capture_time_us, None, 0, FrameReason.TIME_GAP)
         t0 = self.lap("lightness", t0)
@@ -266,6 +302,8 @@ class Pipeline:
         self.gates.motion.clear()
         self._guide.clear()
         self.scales.forget()
+        if self.sparse is not None:
+            self.sparse.reset(True)
 
     def _emit(self) -> list[FrameResult]:
         out = []
@@ -274,6 +312,8 @@ class Pipeline:
             result = f.result or FrameResult(
                 f.index, f.time_us, None, 0, FrameReason.FIRST_FRAME if not f.tried else FrameReason.NO_TAGS
             )
+            if result.pose is None and result.reason in PAIR_FAILURES:
+                self._dense(f)  # (its lit share, with the sparse tracker)
             if result.pose is None and result.reason in PAIR_FAILURES and f.lit_share < SHADOWED_SHARE:
                 result = replace(result, reason=FrameReason.SHADOWED)
             if self.acquisition.detector_failed:
@@ -301,22 +341,31 @@ class Pipeline:
         and the gates judge it then, in frame order. Once ``new`` has a good pose its other partners are paired
         only for their own sake, if they have none (fast: 84.2 → 88.3 %: a frame exposed across a flip often has
         its strongest pair with its later neighbour, which had found its own pose with the frame before)."""
-        good = False
-        for partner in self.history.partners(new, earlier=True):
-            if not good:
-                self._solve(partner, new, new)
-            if not partner.final and not (good and partner.best is not None):
-                self._solve(partner, new, partner)
-            good = new.best is not None and new.best.quality >= GOOD_QUALITY
-        if self.tracking:
+        if self.sparse is None or self.sparse.step(new):
+            good = False
+            for partner in self.history.partners(new, earlier=True):
+                if not good:
+                    self._solve(partner, new, new)
+                if not partner.final and not (good and partner.best is not None):
+                    self._solve(partner, new, partner)
+                good = new.best is not None and new.best.quality >= GOOD_QUALITY
+            if self.sparse is not None:
+                self.sparse.after_dense(new)
+        if self.tracking and (self.sparse is None or self.sparse.bridge_ready()):
             self.bridge.offer(new)
         for f in self._pending:
-            if not f.final and new.index - f.index >= self.lookahead + (self.bridge.wait(f) if self.tracking else 0):
+            if f.final or f.waiting:
+                continue
+            if sparse_posed(f) or new.index - f.index >= self.lookahead + (self.bridge.wait(f) if self.tracking else 0):
                 self._finish(f)
 
     def _finish(self, f: Frame) -> None:
         """Judge ``f``'s candidates (earlier frames are final already), after a second look if the recent motion
-        doubts them all: the best fit it does not doubt, or else the best fit, which the gates then hold back."""
+        doubts them all: the best fit it does not doubt, or else the best fit, which the gates then hold back.
+        A frame the sparse chain still waits for, or whose sparse poses the gates all doubt, takes the dense way
+        first."""
+        if self.sparse is not None:
+            self.sparse.before_finish(f)
         f.final = True
         if self.tracking:
             self.second_look.look(f)
@@ -333,6 +382,8 @@ class Pipeline:
         key = (a.index, b.index)
         if key in self._pairs:
             return self._pairs[key]
+        self._dense(a)  # (the sparse tracker's frames are prepared here, when a dense pair first needs them)
+        self._dense(b)
         t0 = time.thread_time()
         assert a.features is not None
         assert b.features is not None

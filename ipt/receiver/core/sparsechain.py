@@ -1,0 +1,450 @@
+"""The sparse tracker as a chain over the frames (issue 29; the fits are :mod:`ipt.receiver.core.sparse`'s).
+
+IPT's sender shows each video frame in its + phase, then its − (it starts each input frame on an even output
+index), so at 120 FPS a video frame is [+, +, −, −]. The chain pairs each frame with one of the other phase that
+shows the same video frame (``order``): a + frame waits; a − frame is fitted with a + frame before it (k−1, k−2,
+k−3, those with a pose first), both poses fitted when that one has none yet (a *joint* fit, the + frame held near
+its prediction); then each + frame still waiting is fitted on its own against the − frame's new pose. While the
+floor's content holds still (judged on each − frame against the − frame of the video frame before,
+:func:`content_still`) a + frame is fitted at once with its past partner instead of waiting. Predictions carry the
+chain's last two poses on at constant velocity. A fit its checks refuse gives no pose: the caller's dense pipeline
+poses that frame and re-seeds the chain with it.
+
+:class:`LiveChain` is that chain fed one frame at a time (the pipeline's); the functions below it are shared with
+``benchmarks/sparse_track.py``, which runs other pairings for comparison. Pure: lightness frames and poses in,
+poses out.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from ipt.receiver.core import kernels
+from ipt.receiver.core.mapedges import MapEdges
+from ipt.receiver.core.pose import pose_of
+from ipt.receiver.core.sparse import SparseCamera, SparseResult, SparseSettings, extrapolate, fit_sparse, select
+
+F64 = npt.NDArray[np.float64]
+U8 = npt.NDArray[np.uint8]
+RT = tuple[F64, F64]
+FitResult = tuple[SparseResult | None, str]
+Fit = Callable[[U8, U8, RT, RT, float, bool], FitResult]
+"""A pair fit: (this frame, partner, partner's pose, start, step hint, partner only predicted) → result, why not."""
+
+#: A fit this far (metres) from the chain's prediction is refused (the dense pipeline's gates do as much).
+MAX_JUMP_M = 0.03
+#: The spread of two same-phase frames' difference (a video frame apart) up to this many times a pair fit's
+#: residual: the content held still (shadow-vibration 0.4-1.0, moving-content 1.0-1.6, realcam 1.2-2.0).
+STILL_SPREAD = 1.0
+#: A + frame still waiting this many frames after it is given up (the caller poses it densely).
+WAIT_FRAMES = 3
+#: Frames of chain state kept behind the newest.
+KEEP_FRAMES = 16
+
+
+@dataclass
+class Chain:
+    """The sparse chain's poses so far."""
+
+    rt: dict[int, RT] = field(default_factory=dict)
+    sign: dict[int, int] = field(default_factory=dict)
+    step: dict[int, float] = field(default_factory=dict)
+    fitted: dict[int, SparseResult] = field(default_factory=dict)
+    emitted: dict[int, int] = field(default_factory=dict)
+    """The frame on whose arrival each sparse pose came out."""
+    last_amplitude: float = 0.0
+    same_rms: list[float] = field(default_factory=list)
+    """The residuals of the fits with a same-content partner, in order."""
+    still: bool = False
+    """The floor's content held still over the last video frame (``auto``)."""
+    reseeds: int = 0
+    refused: Counter[str] = field(default_factory=Counter)
+    guesses: dict[int, RT] = field(default_factory=dict)
+    """The prediction (rvec, tvec) of each frame started from one in a joint fit (both poses predicted)."""
+    joint_ok: dict[int, bool] = field(default_factory=dict)
+    """Whether each joint fit of a frame (the last one tried) passed the fit's own checks."""
+    partner: dict[int, int] = field(default_factory=dict)
+    """The partner frame of each fitted pose."""
+
+
+@dataclass(frozen=True)
+class Pairing:
+    """Which frames show the same video frame: ``waits(k)``: frame k's same-content partner is a later frame
+    (k's pose comes out with it); ``partners(k)``: the earlier frames to pair k with, best first; ``baseline``:
+    of the predictions' velocity (frames); ``joint_baseline``: the same for joint fits (0: ``baseline``)."""
+
+    waits: Callable[[int], bool]
+    partners: Callable[[int], list[int]]
+    baseline: int = 1
+    joint_baseline: int = 0
+    known_first: bool = False
+    """Partners with a pose first."""
+    refine: bool = False
+    """Each frame still waiting among a fitted frame's partners is then fitted on its own against it."""
+    past_first: bool = False
+    """A waiting frame first tries its past partners and takes the fit at once if the content held still."""
+    auto: bool = False
+    """A waiting frame is fitted at once with its past partner while the content holds still (measured on each
+    second-phase frame against the video frame before), and waits only when that fit fails or it moved."""
+
+
+def past_pairing(phase: Mapping[int, int]) -> Pairing:
+    """Round one's chain: every frame from its nearest past partner of the other phase."""
+    return Pairing(lambda k: False, lambda k: [k - b for b in (1, 2, 3) if phase.get(k - b) == -phase.get(k, 0)])
+
+
+def order_pairing(phase: Mapping[int, int], first: int = 1, order: tuple[int, ...] = (1, 2, 3)) -> Pairing:
+    """The rule a live receiver applies (the module's note): a frame of the phase ``first`` waits for a later
+    partner, one of the other phase pairs with a past one of the first phase, ``order`` (the nearest first)."""
+    return Pairing(
+        lambda k: phase.get(k) == first,
+        lambda k: [k - b for b in order if phase.get(k) == -first and phase.get(k - b) == first],
+    )
+
+
+def auto_pairing(phase: Mapping[int, int]) -> Pairing:
+    """The live chain's pairing: ``order``, partners with a pose first, waiting frames refined, and past partners
+    while the content holds still."""
+    return replace(order_pairing(phase), known_first=True, refine=True, auto=True)
+
+
+def moved_m(result: SparseResult, guess: RT) -> float:
+    """How far the fitted camera is from the predicted one, metres."""
+    fitted, _ = pose_of(result.rvec, result.tvec)
+    predicted, _ = pose_of(*guess)
+    return float(np.linalg.norm(fitted - predicted))
+
+
+def predict(chain: Chain, k: int, times_us: Mapping[int, int], baseline: int = 1) -> RT | None:
+    """The chain's last pose before ``k`` (within five frames) carried on to ``k`` at the velocity since a pose
+    at least ``baseline`` frames before it (within eight frames; else the nearest before it), or that last pose
+    alone."""
+    recent = [j for j in range(k - 1, max(k - 6, -1), -1) if j in chain.rt]
+    if not recent:
+        return None
+    b = recent[0]
+    before = [j for j in range(b - 1, max(b - 9, -1), -1) if j in chain.rt]
+    if not before:
+        return chain.rt[b]
+    a = next((j for j in before if j <= b - baseline), before[0])
+    return extrapolate(chain.rt[a], times_us[a], chain.rt[b], times_us[b], times_us[k])
+
+
+def accept(chain: Chain, result: SparseResult | None, why: str, guess: RT, want: int) -> bool:
+    """Whether a fit is taken: found, within :data:`MAX_JUMP_M` of its start, of the expected phase."""
+    if result is not None and moved_m(result, guess) > MAX_JUMP_M:
+        chain.refused["far_from_prediction"] += 1
+        return False
+    if result is not None and result.sign == want:
+        return True
+    chain.refused[why or "wrong_phase"] += 1
+    return False
+
+
+def pair_frame(
+    chain: Chain,
+    k: int,
+    lum: Mapping[int, U8],
+    phase: Mapping[int, int],
+    times_us: Mapping[int, int],
+    fit: Fit,
+    pairing: Pairing,
+) -> dict[int, SparseResult]:
+    """Frame ``k``'s fit with its same-content past partner j (``pairing``); when j has no pose yet (it waited
+    for k) both poses are unknowns, j's started from its prediction. With ``refine``, each frame still waiting
+    among k's partners is then fitted on its own against k, k held at its fitted pose. The poses found, by
+    frame."""
+    guess = predict(chain, k, times_us, pairing.baseline)
+    if guess is None or k not in phase:
+        return {}
+    candidates = [j for j in pairing.partners(k) if j in lum and (j in chain.rt or pairing.waits(j))]
+    if pairing.known_first:
+        candidates.sort(key=lambda j: j not in chain.rt)
+    joint = pairing.joint_baseline or pairing.baseline
+    found: dict[int, SparseResult] = {}
+    for j in candidates:
+        known = j in chain.rt
+        partner_rt = chain.rt[j] if known else predict(chain, j, times_us, joint)
+        start = guess if known else predict(chain, k, times_us, joint)
+        if partner_rt is None or start is None:
+            continue
+        if not known:
+            chain.guesses.setdefault(k, start)
+            chain.guesses.setdefault(j, partner_rt)
+        hint = -chain.sign[j] * chain.step[j] if j in chain.step else 0.0 if known else phase[k] * chain.last_amplitude
+        result, why = fit(lum[k], lum[j], partner_rt, start, hint, not known)
+        if not known:
+            chain.joint_ok[k] = result is not None
+        if not accept(chain, result, why, start, phase[k]):
+            continue
+        assert result is not None
+        found[k], chain.partner[k] = result, j
+        if not known:
+            other = result.partner()
+            if moved_m(other, partner_rt) > MAX_JUMP_M:
+                chain.refused["partner_far_from_prediction"] += 1
+                found.clear()
+                continue
+            found[j], chain.partner[j] = other, k
+        break
+    if k in found and pairing.refine:
+        _refine(chain, k, found, candidates, lum, phase, times_us, fit, pairing.baseline)
+    return found
+
+
+def _refine(
+    chain: Chain,
+    k: int,
+    found: dict[int, SparseResult],
+    candidates: list[int],
+    lum: Mapping[int, U8],
+    phase: Mapping[int, int],
+    times_us: Mapping[int, int],
+    fit: Fit,
+    baseline: int,
+) -> None:
+    """Each frame still waiting among ``candidates`` fitted on its own against ``k``, held at its fitted pose."""
+    held = (found[k].rvec, found[k].tvec)
+    for j in candidates:
+        if j in chain.rt or phase.get(j) != -phase[k]:
+            continue
+        start = (found[j].rvec, found[j].tvec) if j in found else predict(chain, j, times_us, baseline)
+        if start is None:
+            continue
+        result, why = fit(lum[j], lum[k], held, start, -found[k].sign * found[k].amplitude, False)
+        if accept(chain, result, why, start, phase[j]):
+            assert result is not None
+            found[j], chain.partner[j] = result, k
+
+
+def content_still(
+    chain: Chain,
+    k: int,
+    lum: Mapping[int, U8],
+    phase: Mapping[int, int],
+    camera: SparseCamera,
+    edges: MapEdges,
+    spread_ratio: float = STILL_SPREAD,
+) -> bool:
+    """Whether the floor's content held still from the video frame before to ``k``'s: ``k`` and a frame of the
+    same phase of the video frame before (k−4, k−3, k−5), both read at their poses along the map's edges (the
+    map cancels between frames of one phase): the spread of their difference (robust) against ``k``'s pair fit's
+    residual, at most ``spread_ratio`` times it."""
+    m = next((m for m in (k - 4, k - 3, k - 5) if phase.get(m) == phase.get(k) and m in chain.rt and m in lum), None)
+    if m is None:
+        return False
+    r_k, _ = cv2.Rodrigues(np.asarray(chain.rt[k][0], np.float64).reshape(3, 1))
+    r_m, _ = cv2.Rodrigues(np.asarray(chain.rt[m][0], np.float64).reshape(3, 1))
+    t_k, t_m = np.asarray(chain.rt[k][1], np.float64).reshape(3), np.asarray(chain.rt[m][1], np.float64).reshape(3)
+    chosen = select(edges, camera, r_k, t_k, 300)
+    _, pk, pm, _ = kernels.sparse_profiles(
+        edges.points_m[chosen],
+        edges.normals_m[chosen],
+        r_k,
+        t_k,
+        r_m,
+        t_m,
+        camera.camera_matrix,
+        camera.dist_coeffs,
+        lum[k],
+        lum[m],
+        4,
+        3.0,
+        3,
+    )
+    if len(pk) < 30:
+        return False
+    gain = float(np.median(pk.mean(axis=1) / np.maximum(pm.mean(axis=1), 1.0)))
+    d = (pk - gain * pm).ravel()
+    spread = 1.4826 * float(np.median(np.abs(d - np.median(d))))
+    return spread <= spread_ratio * max(chain.fitted[k].rms_px, 0.1)
+
+
+def take(chain: Chain, k: int, result: SparseResult, out_at: int) -> None:
+    """A fitted pose of ``k`` into the chain (it came out on frame ``out_at``'s arrival)."""
+    chain.rt[k], chain.sign[k], chain.step[k] = (result.rvec, result.tvec), result.sign, result.amplitude
+    chain.fitted[k], chain.emitted[k], chain.last_amplitude = result, out_at, result.amplitude
+
+
+def seed(chain: Chain, k: int, rt: RT, sign: int) -> None:
+    """A pose of ``k`` found otherwise (the dense pipeline's) into the chain; counted as a re-seed once the chain
+    has started."""
+    chain.rt[k], chain.sign[k] = rt, sign
+    chain.step.pop(k, None)
+    chain.reseeds += 1 if chain.fitted or len(chain.rt) > 1 else 0
+
+
+def chain_settings(
+    width_px: int,
+    *,
+    esm_partner: bool = True,
+    partner_sigma_px: float = 10.0,
+    base: SparseSettings | None = None,
+    joint_iterations: int = 12,
+    joint_coarse: int = 1,
+    joint_settled_px: float = 0.6,
+    joint_radius_px: int = SparseSettings.radius_px,
+    joint_smooth_px: float = SparseSettings.coarse_smooth_px,
+    joint_half_until_px: float = 0.0,
+) -> tuple[SparseSettings, SparseSettings]:
+    """The fits' settings for a camera ``width_px`` wide (pixel figures are stated at 640): with a partner whose
+    pose is known, and for a joint fit (the partner only predicted, held near it by ``partner_sigma_px``). The
+    defaults are the prototype's best measured chain (docs/receiver-cores.md, rounds two and three)."""
+    s = base if base is not None else SparseSettings(esm_partner=esm_partner)
+    scale = width_px / 640
+    known = replace(s, blur_px=s.blur_px * scale, border_px=s.border_px * scale)
+    ratio = known.blur_px / SparseSettings.blur_px
+    joint = replace(
+        known,
+        other_sigma_px=partner_sigma_px * scale,
+        max_partner_px=3.0 * partner_sigma_px * scale,
+        iterations=joint_iterations,
+        settled_px=joint_settled_px,
+        coarse_iterations=joint_coarse,
+        radius_px=round(joint_radius_px * ratio),
+        half_until_px=joint_half_until_px * ratio,
+        coarse_smooth_px=joint_smooth_px * ratio,
+    )
+    return known, joint
+
+
+def fitter(camera: SparseCamera, edges: MapEdges, known: SparseSettings, joint: SparseSettings) -> Fit:
+    """The pair fit with these settings (``joint`` when the partner's pose is only predicted)."""
+
+    def fit(
+        image: U8, other: U8, other_rt: RT, guess: RT, hint: float, predicted: bool
+    ) -> tuple[SparseResult | None, str]:
+        return fit_sparse(image, other, camera, edges, other_rt, guess, joint if predicted else known, hint)
+
+    return fit
+
+
+def clock_phase(times_us: list[int], signs: list[int], at_us: int, projector_hz: float) -> int | None:
+    """The projector phase at ``at_us`` from the phases ``signs`` of frames captured at ``times_us``: the phase
+    is ±(−1)^⌊t·f + φ⌋ (f the projector's rate), φ the unknown offset of its clock against the camera's; the
+    offsets (twentieths of a period) and signs that agree with the most of the given phases (all but at most one)
+    must all predict the same phase, else None. (At 120 FPS against 60 Hz a frame is half a period from its
+    neighbours, so a single known phase does not tell whether its neighbour flipped.)"""
+    if len(signs) < 2:
+        return None
+    ref = times_us[-1]
+    t = (np.asarray(times_us, np.float64) - ref) * 1e-6 * projector_hz
+    offsets = np.arange(20) / 20.0
+    pattern = 1.0 - 2.0 * (np.floor(t[None, :] + offsets[:, None]) % 2)
+    agree = pattern @ np.asarray(signs, np.float64)
+    best = float(np.abs(agree).max())
+    if best < len(signs) - 2:
+        return None
+    ok = np.abs(agree) == best
+    at = (at_us - ref) * 1e-6 * projector_hz
+    predicted = np.sign(agree[ok]) * (1.0 - 2.0 * (np.floor(at + offsets[ok]) % 2))
+    return int(predicted[0]) if np.all(predicted == predicted[0]) else None
+
+
+@dataclass(frozen=True)
+class ChainStep:
+    """What the chain made of a frame: the sparse poses it found (this frame's and waiting earlier frames'), by
+    frame; the earlier frames it gave up on (the caller poses them otherwise); whether this frame waits for a
+    later partner (its pose, if any, comes with a later frame's step)."""
+
+    poses: dict[int, SparseResult]
+    partners: dict[int, int]
+    """The partner frame of each of :attr:`poses`."""
+    given_up: list[int]
+    waits: bool
+
+
+class LiveChain:
+    """The chain fed one frame at a time: its raw (distorted) lightness, capture time and predicted projector
+    phase (+1, −1, or None if not known yet). It starts from a pose given by :meth:`seed` (the dense pipeline's),
+    is re-seeded the same way for frames it gives up on, and starts afresh on :meth:`reset` (a restart, a gap in
+    time, a bad frame, a pose the caller found it wrong on)."""
+
+    def __init__(self, camera: SparseCamera, edges: MapEdges, fit: Fit, projector_hz: float) -> None:
+        self.camera, self.edges, self.fit, self.projector_hz = camera, edges, fit, projector_hz
+        self.chain = Chain()
+        self._lum: dict[int, U8] = {}
+        self._times_us: dict[int, int] = {}
+        self._phase: dict[int, int] = {}
+        self._pending: list[int] = []
+        self.pairing = auto_pairing(self._phase)
+        self.posed = 0
+        """Frames posed by the chain since it was made."""
+
+    @property
+    def started(self) -> bool:
+        """Whether the chain has a pose to go on from."""
+        return bool(self.chain.rt)
+
+    def reset(self, frames: bool = True) -> None:
+        """Forget the chain's poses, and with ``frames`` the frames too (else a frame kept may still be seeded):
+        the chain waits for a new seed."""
+        self.chain = Chain(reseeds=self.chain.reseeds, refused=self.chain.refused)
+        if frames:
+            for kept in (self._lum, self._times_us, self._phase):
+                kept.clear()
+        self._pending.clear()
+
+    def seed(self, k: int, rt: RT, sign: int) -> None:
+        """Frame ``k``'s pose found otherwise (``sign``: its projector phase), if the chain has it as a frame."""
+        if k in self._lum:
+            self._phase[k] = sign
+            seed(self.chain, k, rt, sign)
+            if k in self._pending:
+                self._pending.remove(k)
+
+    def feed(self, k: int, time_us: int, lum: U8, phase: int | None) -> ChainStep:
+        """Take frame ``k``; what the chain made of it (:class:`ChainStep`). Its phase is predicted from the phases
+        the chain found for the frames before (:func:`clock_phase`), else ``phase`` is taken."""
+        known = sorted(self.chain.sign)[-8:]
+        by_clock = clock_phase(
+            [self._times_us[j] for j in known], [self.chain.sign[j] for j in known], time_us, self.projector_hz
+        )
+        phase = by_clock if by_clock is not None else phase
+        self._lum[k], self._times_us[k] = lum, time_us
+        if phase is not None:
+            self._phase[k] = phase
+        self._forget(k - KEEP_FRAMES)
+        out: dict[int, SparseResult] = {}
+        chain, pairing, started = self.chain, self.pairing, self.started
+        waits = phase is not None and pairing.waits(k)
+        if started and phase is not None:
+            if not waits:
+                out = pair_frame(chain, k, self._lum, self._phase, self._times_us, self.fit, pairing)
+                if k in out:
+                    chain.same_rms = [*chain.same_rms[-15:], out[k].rms_px]
+            elif chain.still:
+                past = past_pairing(self._phase)
+                out = pair_frame(chain, k, self._lum, self._phase, self._times_us, self.fit, past)
+        for j, result in out.items():
+            take(chain, j, result, k)
+            if j in self._pending:
+                self._pending.remove(j)
+        if k in out and not waits:
+            chain.still = content_still(chain, k, self._lum, self._phase, self.camera, self.edges)
+        waiting = started and waits and k not in out
+        if waiting:
+            self._pending.append(k)
+        given_up = [j for j in self._pending if j <= k - WAIT_FRAMES]
+        for j in given_up:
+            self._pending.remove(j)
+        self.posed += len(out)
+        return ChainStep(out, {j: chain.partner.get(j, -1) for j in out}, given_up, waiting)
+
+    def _forget(self, before: int) -> None:
+        for kept in (self._lum, self._times_us, self._phase):
+            for j in [j for j in kept if j < before]:
+                del kept[j]
+        c = self.chain
+        for kept_rt in (c.rt, c.sign, c.step, c.fitted, c.emitted, c.guesses, c.joint_ok, c.partner):
+            for j in [j for j in kept_rt if j < before]:
+                del kept_rt[j]
+
+
+__all__ = ["Chain", "ChainStep", "LiveChain", "Pairing", "chain_settings", "fitter"]

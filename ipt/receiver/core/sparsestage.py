@@ -1,0 +1,144 @@
+"""The sparse tracker in the pipeline (``tracker: sparse``; :class:`SparseStage`, held by
+:class:`~ipt.receiver.core.pipeline.Pipeline`).
+
+Each frame goes to the sparse chain first (:class:`~ipt.receiver.core.sparsechain.LiveChain`: raw lightness, no
+undistortion, no content homography, no difference image). A pose it finds becomes the frame's candidate with
+method ``sparse`` and goes through the same gates; such a frame goes out at once. A frame the chain does not pose
+(and does not wait for a later partner to pose) takes the pipeline's dense way, as with ``tracker: dense``; so do
+the frames the chain waited for in vain, those whose sparse poses the gates all doubt, and acquisition (no chain
+yet). Dense poses the gates do not doubt re-seed the chain. Against drift: every :data:`CHECK_EVERY` sparse poses a
+frame is posed the dense way too (which also lets AprilTag's periodic check of the track run); a sparse pose more
+than :data:`CHECK_M` off the dense one restarts the chain from the dense pose, and the dense pose is taken.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from ipt.receiver.core.gates import PoseGates
+from ipt.receiver.core.history import Candidate, Frame, FrameHistory
+from ipt.receiver.core.sparsechain import LiveChain
+
+#: Every this many sparse poses one frame is posed the dense way too, as a check.
+CHECK_EVERY = 16
+#: ... and a sparse pose further than this from the dense one restarts the chain from the dense pose.
+CHECK_M = 0.02
+
+
+class SparseStage:
+    """The sparse chain between the pipeline's frames and its dense way: ``solve(a, b, target)`` a dense pair
+    (a earlier), ``prepare(f)`` a frame's dense preparation (once), ``add_candidate``, ``lap`` (processor time),
+    ``verified_count()`` (one more tracked frame towards AprilTag's check)."""
+
+    def __init__(
+        self,
+        chain: LiveChain,
+        history: FrameHistory,
+        gates: PoseGates,
+        solve: Callable[[Frame, Frame, Frame], None],
+        prepare: Callable[[Frame], None],
+        add_candidate: Callable[[Frame, Candidate], None],
+        lap: Callable[[str, float], float],
+        tracked: Callable[[], None],
+    ) -> None:
+        self.chain, self.history, self.gates = chain, history, gates
+        self._solve, self._prepare, self._add, self._lap, self._tracked = solve, prepare, add_candidate, lap, tracked
+        self._since_check = 0
+        self.checks_failed = 0
+        """Dense checks that found the chain's pose more than :data:`CHECK_M` off."""
+
+    def step(self, new: Frame) -> bool:
+        """Feed ``new`` to the chain; its poses (``new``'s, and earlier frames' that waited for it) join their
+        frames' candidates; frames it gives up on are posed densely. Whether ``new`` takes the dense way (the chain
+        did not pose it and does not wait; or a check)."""
+        assert new.raw is not None
+        t0 = time.thread_time()
+        step = self.chain.feed(new.index, new.time_us, new.raw, self.history.predicted_phase(new))
+        self._lap("sparse", t0)
+        frames = {f.index: f for f in self.history}
+        for j, result in step.poses.items():
+            f = frames.get(j)
+            if f is None or f.final:
+                continue
+            f.waiting, f.phase = False, result.sign
+            self._tracked()
+            quality = result.inliers / max(result.tried, 1)
+            rt = (result.rvec, result.tvec)
+            self._add(f, Candidate(result.estimate(), rt, len(result.tags), "sparse", step.partners[j], quality))
+        new.waiting = step.waits
+        for j in step.given_up:
+            if j in frames and frames[j].waiting and not frames[j].final:
+                frames[j].waiting = False
+                self.dense_late(frames[j])
+        if new.index not in step.poses:
+            return not step.waits
+        self._since_check += 1
+        if self._since_check < CHECK_EVERY:
+            return False
+        self._since_check = 0
+        return True
+
+    def after_dense(self, new: Frame) -> None:
+        """After ``new``'s dense pairs: the check of a sparse pose (the chain starts afresh if the two are more than
+        :data:`CHECK_M` apart; the dense pose is taken either way); then the dense poses the gates do not doubt
+        re-seed the chain."""
+        dense = [c for c in new.candidates if c.method != "sparse"]
+        if dense and len(dense) < len(new.candidates):
+            best = max(dense, key=lambda c: c.quality)
+            sparse = next(c for c in new.candidates if c.method == "sparse")
+            if float(np.linalg.norm(best.pose.position_m - sparse.pose.position_m)) > CHECK_M:
+                self.checks_failed += 1
+                self.reset(False)
+            new.candidates, new.best, new.rt = dense, best, best.rt
+        for f in self.history:
+            if f.final or f.best is None or f.best.method == "sparse" or f.phase is None:
+                continue
+            if self.gates.doubt(f.time_us, f.best.pose) is None:
+                self.chain.seed(f.index, f.best.rt, f.phase)
+                f.waiting = False
+
+    def dense_late(self, f: Frame) -> None:
+        """``f``'s dense pairs with the partners on both sides it has not been paired with (a frame the chain waited
+        for in vain, or whose sparse poses the gates doubt)."""
+        partners = [*self.history.partners(f, earlier=True), *self.history.partners(f, earlier=False)]
+        for other in partners:
+            if other.index not in f.tried:
+                a, b = (other, f) if other.index < f.index else (f, other)
+                self._solve(a, b, f)
+        self.after_dense(f)
+
+    def reset(self, frames: bool) -> None:
+        """The chain starts afresh (``frames``: forgetting the frames it has); the frames it made wait take the
+        dense way."""
+        self.chain.reset(frames)
+        for f in self.history:
+            if f.waiting and not f.final:
+                f.waiting = False
+                self.dense_late(f)
+
+    def before_finish(self, f: Frame) -> None:
+        """Before ``f`` is judged: if the chain still waits for it, or the gates doubt every candidate and its best
+        is the chain's, the dense way (the chain restarts in the second case)."""
+        if f.waiting:
+            f.waiting = False
+            self.dense_late(f)
+        elif posed(f) and all(self.gates.doubt(f.time_us, c.pose) is not None for c in f.candidates):
+            self.reset(False)
+            self.dense_late(f)
+
+    def bridge_ready(self) -> bool:
+        """Whether the bridge may look at the frames kept: once a frame may want it (its dense pairs failed), after
+        the kept frames' dense preparation."""
+        if not any(not f.final and f.best is None and f.tried for f in self.history):
+            return False
+        for f in self.history:
+            self._prepare(f)
+        return True
+
+
+def posed(f: Frame) -> bool:
+    """``f``'s best pose is the sparse chain's: it goes out at once, waiting for no later frame."""
+    return f.best is not None and f.best.method == "sparse"
