@@ -22,6 +22,7 @@ from ipt.cliutil import Parser, positive_float, run_main
 from ipt.signals import Interrupted, interruption
 
 if TYPE_CHECKING:
+    from ipt.config.models import PipelineConfig
     from ipt.config.receiver import ReceiverConfig
     from ipt.receiver.capture import CaptureSource
     from ipt.receiver.capture.framelog import FrameLogWriter
@@ -67,11 +68,16 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         Path(args.video),
         Path(args.output),
         args.fps,
-        PipelineConfig.profile(args.profile),
+        _with_tracker(PipelineConfig.profile(args.profile), args.tracker),
     )
     print(f"ipt-receiver replay: {summary.poses} poses from {summary.frames} frames -> {args.output}")
     _say_kernels()
     return 0
+
+
+def _with_tracker(cfg: PipelineConfig, tracker: str | None) -> PipelineConfig:
+    """``cfg`` with ``replay --tracker`` if given (the profile's own otherwise)."""
+    return cfg if tracker is None else cfg.model_copy(update={"tracker": tracker})
 
 
 def _say_kernels() -> None:
@@ -410,6 +416,13 @@ def _add_replay(sub: argparse._SubParsersAction[Parser]) -> None:
         help="processing profile: 'ipt' (default: opposite-phase pairing, sub-pixel alignment, refined and "
         "gated poses) or 'paper' (the published pipeline: lag-1 pairs, integer shift, IPPE alone)",
     )
+    r.add_argument(
+        "--tracker",
+        choices=("dense", "sparse"),
+        help="with the ipt profile: 'dense' (every frame undistorted, aligned and differenced) or 'sparse' (the "
+        "sparse chain first, the dense way for the frames it does not pose; docs/receiver-cores.md); default: "
+        "the profile's",
+    )
     r.set_defaults(func=_cmd_replay)
 
 
@@ -422,7 +435,7 @@ def _add_run(sub: argparse._SubParsersAction[Parser]) -> None:
         "and send one UDP pose packet per pose to every target, and with --mavlink (or mavlink.link) ODOMETRY to "
         "the flight controller (docs/flight-controllers.md). Statistics go to stderr every stats_interval_s "
         "seconds and at exit. With --ros2 (or ros2.enabled) also /ipt/pose, /ipt/odom and /tf as ROS 2 topics over "
-        "DDS, and with --record an MCAP flight log (README \"ROS 2 and flight logs\"). Stops on SIGTERM, SIGINT or "
+        'DDS, and with --record an MCAP flight log (README "ROS 2 and flight logs"). Stops on SIGTERM, SIGINT or '
         "SIGHUP at any moment, also while starting (exit code 0, with the final statistics line), at the end of a "
         "recording, or after --max-frames. A recording is read to its end once: a frame that cannot be decoded is "
         "skipped and counted, and a file shorter than its header says is reported.",
