@@ -187,7 +187,7 @@ class _MemoryCamera:
         pass
 
 
-def run_camera(folder: Path, fps: float, isolation: str = "process") -> dict[str, Any]:
+def run_camera(folder: Path, fps: float, isolation: str = "process", tracker: str = "dense") -> dict[str, Any]:
     import asyncio
     import io
 
@@ -204,7 +204,7 @@ def run_camera(folder: Path, fps: float, isolation: str = "process") -> dict[str
         camera=folder / "camera.yaml",
         send=[f"127.0.0.1:{listener.port}"],
         stats_interval_s=3600.0,
-        pipeline=PipelineConfig(detector=DetectorConfig(isolation=isolation)),
+        pipeline=PipelineConfig(detector=DetectorConfig(isolation=isolation), tracker=tracker),
     )
     report = io.StringIO()
     t0 = time.monotonic()
@@ -250,6 +250,12 @@ def main() -> int:
     p.add_argument("--seconds", type=float, default=5.0, help="length of the flight to simulate (no --video)")
     p.add_argument("--fps", type=float, default=120.0, help="camera frame rate")
     p.add_argument(
+        "--tracker",
+        choices=("dense", "sparse"),
+        default="dense",
+        help="the pipeline's tracker in the camera modes (default dense, the ipt profile's)",
+    )
+    p.add_argument(
         "--modes", default="camera,fast", help="comma-separated: camera, camera_inline, realtime, fast"
     )
     p.add_argument("--compare-replay", action="store_true", help="also count the poses ipt-receiver replay finds")
@@ -260,7 +266,9 @@ def main() -> int:
         for mode in args.modes.split(","):
             print(f"daemon benchmark: {mode} ...", file=sys.stderr)
             if mode in ("camera", "camera_inline"):
-                result[mode] = run_camera(folder, args.fps, "inline" if mode == "camera_inline" else "process")
+                result[mode] = run_camera(
+                    folder, args.fps, "inline" if mode == "camera_inline" else "process", args.tracker
+                )
             else:
                 result[mode] = run_mode(folder, mode, args.fps)
         if args.compare_replay:
