@@ -327,10 +327,8 @@ class FileBuffer:
         """The bytes of ``path`` as :func:`read_bytes_file` reads them, as a view of this buffer that the next
         read overwrites."""
         p = Path(path)
-        fd = _open_regular(p, error, expected, max_bytes, missing)
-        too_big = f"{p}: larger than {_size_text(max_bytes)}, too large for {expected}"
+        fd, size = _open_regular(p, error, expected, max_bytes, missing)
         try:
-            size = os.fstat(fd).st_size
             if len(self._buffer) < size + 1:  # one byte more than the file: its end is seen in the same read
                 self._buffer = bytearray(min(size + 1, max_bytes + 1))
             total = 0
@@ -345,16 +343,20 @@ class FileBuffer:
                     return view[:total]
                 total += n
                 if total > max_bytes:
-                    raise error(too_big)
+                    raise error(_too_big(p, max_bytes, expected))
         except OSError as exc:
             raise error(f"{p}: cannot read ({exc.strerror or exc})") from None
         finally:
             os.close(fd)
 
 
-def _open_regular(p: Path, error: type[Exception], expected: str, max_bytes: int, missing: str) -> int:
+def _too_big(p: Path, max_bytes: int, expected: str) -> str:
+    return f"{p}: larger than {_size_text(max_bytes)}, too large for {expected}"
+
+
+def _open_regular(p: Path, error: type[Exception], expected: str, max_bytes: int, missing: str) -> tuple[int, int]:
     """``p`` opened for reading without blocking, once ``fstat`` shows a regular file of at most ``max_bytes``
-    (else ``error``, nothing read)."""
+    (else ``error``, nothing read): the descriptor and the size ``fstat`` gave."""
     flags = os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOCTTY", 0) | getattr(os, "O_CLOEXEC", 0)
     try:
         fd = os.open(p, flags)
@@ -373,14 +375,14 @@ def _open_regular(p: Path, error: type[Exception], expected: str, max_bytes: int
         if not stat.S_ISREG(info.st_mode):
             raise error(f"{p}: {_file_kind(info.st_mode)}, not a regular file; expected {expected}")
         if info.st_size > max_bytes:
-            raise error(f"{p}: larger than {_size_text(max_bytes)}, too large for {expected}")
+            raise error(_too_big(p, max_bytes, expected))
     except OSError as exc:
         os.close(fd)
         raise error(f"{p}: cannot read ({exc.strerror or exc})") from None
     except BaseException:
         os.close(fd)
         raise
-    return fd
+    return fd, info.st_size
 
 
 def read_text_file(path: Path, error: type[Exception], expected: str, *, max_bytes: int = MAX_CONFIG_BYTES) -> str:
