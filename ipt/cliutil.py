@@ -162,5 +162,6 @@ def run_main(
         return 130
     finally:
         if main_thread:
+            signals.at_end()
             _launcher("hold")
         restore()

@@ -110,7 +110,7 @@ def _handle(signum: int, frame: FrameType | None) -> None:
         # Raising inside an import can come out as an ImportError (a C extension's initialisation turns
         # any exception into one) or vanish (in the import locks' weakref callbacks): a traceback or a
         # signal lost. The signal comes again once the import is over.
-        retry = threading.Timer(IMPORT_RETRY_S, os.kill, (os.getpid(), signum))
+        retry = threading.Timer(IMPORT_RETRY_S, _deliver_again, (signum,))
         retry.daemon = True
         retry.start()
         return
@@ -128,6 +128,19 @@ def _handle(signum: int, frame: FrameType | None) -> None:
         raise Interrupted(signum) from None
     # An event loop runs: raising now could land in one of its callbacks, which would only log it.
     # The loop's owner picks the signal up when it routes the signals (route_to_loop).
+
+
+def _deliver_again(signum: int) -> None:
+    """A signal that landed in an import, sent again, unless the program has reached its end meanwhile."""
+    if not _state.quiet:
+        os.kill(os.getpid(), signum)
+
+
+def at_end() -> None:
+    """The program is at its end (:func:`ipt.cliutil.run_main` returns): a stop signal from now on is only
+    noted, never raised (one sent again after landing in an import reached the end of a quick tool, between
+    ``run_main``'s last ``except`` and its return, as an :class:`Interrupted` traceback)."""
+    _state.quiet = True
 
 
 def install() -> Callable[[], None]:
