@@ -1,0 +1,72 @@
+"""When the pipeline takes the track for lost (``Pipeline._lost``: AprilTag again, or the search of the whole map) while
+the sparse chain waits for frames: those frames have not failed, so a dense pair beside them does not search the map
+(on moving-content the search ran 37 times there, each in vain, 27 ms each); a frame that did fail since the newest
+pose still counts, as it does with the dense tracker."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ipt.config.camera_info import load_camera_info
+from ipt.config.models import PipelineConfig, load_arena_config
+from ipt.receiver.core.history import Candidate, Frame
+from ipt.receiver.core.pipeline import SEARCH_AFTER_US, Pipeline
+from ipt.receiver.core.pose import PoseEstimate
+from ipt.receiver.detect.detector import pipeline_detector
+from ipt.tagmap import grid_tag_map
+
+STEP_US = 8_333  # 120 FPS
+
+
+@pytest.fixture(scope="module")
+def sparse_pipeline(short_flight: Path) -> Iterator[Pipeline]:
+    arena = load_arena_config(short_flight / "arena.yaml")
+    tag_map = grid_tag_map(arena)
+    cfg = PipelineConfig(tracker="sparse")
+    p = Pipeline(
+        tag_map,
+        load_camera_info(short_flight / "camera.yaml"),
+        cfg,
+        arena.projector.rate_hz,
+        pipeline_detector(cfg.detector, tag_map.by_id),
+    )
+    yield p
+    p.close()
+
+
+def _history(p: Pipeline, states: str) -> Frame:
+    """Frames one camera period apart, one per letter: P posed, W waited for by the chain, F failed (tried, no
+    pose); then the target frame (tried, no pose yet), which is returned."""
+    p.history.clear()
+    pose = PoseEstimate(np.array([0.0, 0.0, 1.0]), np.eye(3), (0, 1), 0.5)
+    rt = (np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    lum = np.zeros((4, 4), np.uint8)
+    for k, state in enumerate(states):
+        f = Frame(k, k * STEP_US, lum)
+        if state == "P":
+            f.best = Candidate(pose, rt, 2, "sparse", k - 1, 0.8)
+        f.waiting = state == "W"
+        if state == "F":
+            f.tried.add(k - 1)
+        p.history.append(f)
+    target = Frame(len(states), len(states) * STEP_US, lum)
+    target.tried.add(len(states) - 1)
+    p.history.append(target)
+    return target
+
+
+def test_frames_the_chain_waits_for_do_not_make_the_track_lost(sparse_pipeline: Pipeline) -> None:
+    target = _history(sparse_pipeline, "PWW")  # the newest pose 25 ms before the target
+    assert target.time_us - 0 > SEARCH_AFTER_US
+    assert not sparse_pipeline._lost(target, SEARCH_AFTER_US)
+
+
+def test_a_frame_that_failed_since_the_newest_pose_still_makes_it_lost(sparse_pipeline: Pipeline) -> None:
+    assert sparse_pipeline._lost(_history(sparse_pipeline, "PFW"), SEARCH_AFTER_US)
+    assert sparse_pipeline._lost(_history(sparse_pipeline, "PFF"), SEARCH_AFTER_US)
+    assert sparse_pipeline._lost(_history(sparse_pipeline, "WWW"), SEARCH_AFTER_US)  # no pose at all
+    assert not sparse_pipeline._lost(_history(sparse_pipeline, "PF"), SEARCH_AFTER_US)  # 17 ms: not yet
