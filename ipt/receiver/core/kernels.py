@@ -130,6 +130,7 @@ class _SparseKernel(_Kernel):
                 if self.compiled is None:
                     # Each helper before its callers, as sparsekernels' global when they compile.
                     sparsekernels.distort = _jit(sparsekernels.distort_py, inline=True)
+                    sparsekernels.distort_point = _jit(sparsekernels.distort_point_py, inline=True)
                     sparsekernels.bilinear_u8 = _jit(sparsekernels.bilinear_u8_py, inline=True)
                     sparsekernels.project_floor = _jit(sparsekernels.project_floor_py, inline=True)
                     sparsekernels.read_profile = _jit(sparsekernels.read_profile_py, inline=True)

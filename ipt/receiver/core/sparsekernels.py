@@ -56,24 +56,37 @@ def bilinear_u8_py(image: U8, x: float, y: float) -> float:
     y0 = int(y)
     fx = x - x0
     fy = y - y0
-    top = image[y0, x0] * (1.0 - fx) + image[y0, x0 + 1] * fx
-    bottom = image[y0 + 1, x0] * (1.0 - fx) + image[y0 + 1, x0 + 1] * fx
+    # unsigned indices (x, y are never negative): no check for an index counted from the end
+    xa, xb, ya, yb = np.uint64(x0), np.uint64(x0 + 1), np.uint64(y0), np.uint64(y0 + 1)
+    top = image[ya, xa] * (1.0 - fx) + image[ya, xb] * fx
+    bottom = image[yb, xa] * (1.0 - fx) + image[yb, xb] * fx
     return float(top * (1.0 - fy) + bottom * fy)
 
 
 bilinear_u8: Any = bilinear_u8_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
 
 
-def project_floor_py(r: F64, t: F64, k: F64, dist: F64, px: float, py: float, jac: F64, out: F64) -> bool:
-    """The image place of the floor point (px, py, 0) seen at the pose (r, t) into ``out`` (2); False behind
-    the camera. ``jac`` is scratch (2x2)."""
+def distort_point_py(x: float, y: float, dist: F64) -> tuple[float, float]:
+    """:func:`distort_py`'s point alone (the same arithmetic, to the bit), without its Jacobian."""
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return xd, yd
+
+
+distort_point: Any = distort_point_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+
+
+def project_floor_py(r: F64, t: F64, k: F64, dist: F64, px: float, py: float) -> tuple[bool, float, float]:
+    """The image place (u, v) of the floor point (px, py, 0) seen at the pose (r, t); False (and zeros) behind
+    the camera. The arithmetic of :func:`edge_row_py`'s place, to the bit."""
     z = r[2, 0] * px + r[2, 1] * py + t[2]
     if z <= 1e-6:
-        return False
-    xd, yd = distort((r[0, 0] * px + r[0, 1] * py + t[0]) / z, (r[1, 0] * px + r[1, 1] * py + t[1]) / z, dist, jac)
-    out[0] = k[0, 0] * xd + k[0, 1] * yd + k[0, 2]
-    out[1] = k[1, 1] * yd + k[1, 2]
-    return True
+        return False, 0.0, 0.0
+    xd, yd = distort_point((r[0, 0] * px + r[0, 1] * py + t[0]) / z, (r[1, 0] * px + r[1, 1] * py + t[1]) / z, dist)
+    return True, k[0, 0] * xd + k[0, 1] * yd + k[0, 2], k[1, 1] * yd + k[1, 2]
 
 
 project_floor: Any = project_floor_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
@@ -89,43 +102,47 @@ def read_profile_py(
     oy: float,
     dx: float,
     dy: float,
-    jac: F64,
-    ends: F64,
+    mid_u: float,
+    mid_v: float,
     lines: int,
     out: F32,
+    row: int,
 ) -> bool:
-    """``image`` at the ``len(out)`` floor points (ox, oy) + o·(dx, dy), o = −radius..radius, seen at the pose
-    (r, t): three points projected exactly (the ends and the middle), the others placed on the parabola
+    """``image`` into row ``row`` of ``out``: at its width's floor points (ox, oy) + o·(dx, dy),
+    o = −radius..radius, seen at the pose (r, t): three points projected exactly (the ends, and the middle
+    (``mid_u``, ``mid_v``): the caller's :func:`edge_row_py` place of (ox, oy)), the others placed on the parabola
     through them (the lens and the perspective bend a few pixels' profile by far less than a hundredth of a
     pixel), bilinear, averaged over ``lines`` parallel lines a pixel apart across the profile (along the edge:
     the dense difference's smoothing, a camera's noise is several times the map's step). False where the
-    profile leaves the image or the floor is behind the camera. ``jac`` (2x2) and ``ends`` (3x2) are scratch."""
+    profile leaves the image or the floor is behind the camera."""
     h, w = image.shape
-    radius = len(out) // 2
-    for e in range(3):
-        s = (e - 1) * radius
-        if not project_floor(r, t, k, dist, ox + s * dx, oy + s * dy, jac, ends[e]):
-            return False
-    for c in range(2):  # the parabola's coefficients in each coordinate: p(λ) = p0 + λ·b + λ²·a
-        lo, mid, hi = ends[0, c], ends[1, c], ends[2, c]
-        jac[c, 0] = 0.5 * (hi - lo)
-        jac[c, 1] = 0.5 * (hi + lo) - mid
-    along = math.hypot(jac[0, 0], jac[1, 0])
+    width = out.shape[1]
+    radius = width // 2
+    ok, lo_u, lo_v = project_floor(r, t, k, dist, ox - radius * dx, oy - radius * dy)
+    if not ok:
+        return False
+    ok, hi_u, hi_v = project_floor(r, t, k, dist, ox + radius * dx, oy + radius * dy)
+    if not ok:
+        return False
+    # the parabola's coefficients in each coordinate: p(λ) = p0 + λ·b + λ²·a
+    b_u, a_u = 0.5 * (hi_u - lo_u), 0.5 * (hi_u + lo_u) - mid_u
+    b_v, a_v = 0.5 * (hi_v - lo_v), 0.5 * (hi_v + lo_v) - mid_v
+    along = math.hypot(b_u, b_v)
     if along <= 0.0:
         return False
-    tx, ty = -jac[1, 0] / along, jac[0, 0] / along  # a pixel along the edge
+    tx, ty = -b_v / along, b_u / along  # a pixel along the edge
     first = -(lines // 2)
-    for o in range(len(out)):
+    for o in range(width):
         lam = (o - radius) / radius
-        u = ends[1, 0] + lam * (jac[0, 0] + lam * jac[0, 1])
-        v = ends[1, 1] + lam * (jac[1, 0] + lam * jac[1, 1])
+        u = mid_u + lam * (b_u + lam * a_u)
+        v = mid_v + lam * (b_v + lam * a_v)
         total = 0.0
         for line in range(lines):
             ul, vl = u + (first + line) * tx, v + (first + line) * ty
             if not (0.0 <= ul < w - 1.0 and 0.0 <= vl < h - 1.0):
                 return False
             total += bilinear_u8(image, ul, vl)
-        out[o] = total / lines
+        out[row, o] = total / lines
     return True
 
 
@@ -133,13 +150,25 @@ read_profile: Any = read_profile_py  # compiled by :func:`ipt.receiver.core.kern
 
 
 def edge_row_py(
-    r: F64, t: F64, k: F64, dist: F64, ox: float, oy: float, mx: float, my: float, out: F64, res: F64, jac: F64
+    r: F64,
+    t: F64,
+    k: F64,
+    dist: F64,
+    ox: float,
+    oy: float,
+    mx: float,
+    my: float,
+    rows: F64,
+    row: int,
+    col: int,
+    res: F64,
+    jac: F64,
 ) -> None:
     """The floor point (ox, oy, 0) with floor normal (mx, my) seen at the pose (r, t) through ``k`` and lens
-    ``dist``: its image place (u, v), the image length of one metre along the normal, and into ``out`` the row
-    of the linear system, d(displacement along the image normal, pixels)/d(δ rotation, Δt), the rotation
-    applied on the arena → camera side. (u, v, length) into ``res``, length 0 when the point is behind the
-    camera; ``jac`` is scratch (2x2)."""
+    ``dist``: its image place (u, v), the image length of one metre along the normal, and into
+    ``rows[row, col:col + 6]`` the row of the linear system, d(displacement along the image normal,
+    pixels)/d(δ rotation, Δt), the rotation applied on the arena → camera side. (u, v, length) into ``res``,
+    length 0 when the point is behind the camera; ``jac`` is scratch (2x2)."""
     res[2] = 0.0
     p0 = r[0, 0] * ox + r[0, 1] * oy
     p1 = r[1, 0] * ox + r[1, 1] * oy
@@ -168,12 +197,12 @@ def edge_row_py(
     g0 = nx * d00 + ny * d10
     g1 = nx * d01 + ny * d11
     g2 = nx * d02 + ny * d12
-    out[0] = p1 * g2 - p2 * g1
-    out[1] = p2 * g0 - p0 * g2
-    out[2] = p0 * g1 - p1 * g0
-    out[3] = g0
-    out[4] = g1
-    out[5] = g2
+    rows[row, col + 0] = p1 * g2 - p2 * g1
+    rows[row, col + 1] = p2 * g0 - p0 * g2
+    rows[row, col + 2] = p0 * g1 - p1 * g0
+    rows[row, col + 3] = g0
+    rows[row, col + 4] = g1
+    rows[row, col + 5] = g2
     res[2] = length
 
 
@@ -212,17 +241,16 @@ def profiles(
     pj = np.empty((n, width), np.float32)
     a_rows = np.empty((n, 14))
     scratch = np.empty((2, 2))
-    ends = np.empty((3, 2))
     here = np.empty(3)
     there = np.empty(3)
     count = 0
     for i in range(n):
         ox, oy, mx, my = obj[i, 0], obj[i, 1], nrm[i, 0], nrm[i, 1]
-        edge_row(r, t, k, dist, ox, oy, mx, my, a_rows[count, :6], here, scratch)
+        edge_row(r, t, k, dist, ox, oy, mx, my, a_rows, count, 0, here, scratch)
         u, v, length = here[0], here[1], here[2]
         if length <= 0.0 or not (border_px < u < w - 1 - border_px and border_px < v < h - 1 - border_px):
             continue
-        edge_row(r_other, t_other, k, dist, ox, oy, mx, my, a_rows[count, 6:], there, scratch)
+        edge_row(r_other, t_other, k, dist, ox, oy, mx, my, a_rows, count, 6, there, scratch)
         if there[2] <= 0.0:
             continue
         step_m = 1.0 / length  # floor metres per pixel of ``image`` along the normal
@@ -233,9 +261,9 @@ def profiles(
         a_rows[count, 12] = mx / step_m
         a_rows[count, 13] = my / step_m
         dx, dy = step_m * mx, step_m * my
-        if not read_profile(image, r, t, k, dist, ox, oy, dx, dy, scratch, ends, lines, pk[count]):
+        if not read_profile(image, r, t, k, dist, ox, oy, dx, dy, u, v, lines, pk, count):
             continue
-        if not read_profile(other, r_other, t_other, k, dist, ox, oy, dx, dy, scratch, ends, lines, pj[count]):
+        if not read_profile(other, r_other, t_other, k, dist, ox, oy, dx, dy, there[0], there[1], lines, pj, count):
             continue
         idx[count] = i
         count += 1
@@ -409,12 +437,18 @@ def detrend_py(v: F64, line: F64) -> None:
 detrend: Any = detrend_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
 
 
-def normal_py(gram: F64, uy: F64, a_rows: F64, keep: npt.NDArray[np.bool_]) -> tuple[F64, F64, F64, F64]:
+def normal_py(
+    gram: F64, uy: F64, a_rows: F64, keep: npt.NDArray[np.bool_], fit_gain: bool, fit_flow: bool
+) -> tuple[F64, F64, F64, F64]:
     """The normal equations (16x16, and the right-hand side) of the kept profiles from their moments: the
     unknowns are the gain's change, the step's, this frame's pose change (6, through its rows ``a_rows[:, :6]``),
     the partner's (6, ``a_rows[:, 6:12]``) and the content's motion on the floor (2, ``a_rows[:, 12:]``). Also
-    Σ aaᵀ of the partner's rows and of the content's (their priors' shapes)."""
+    Σ aaᵀ of the partner's rows and of the content's (their priors' shapes). The gain's change (unless
+    ``fit_gain``) and the content's motion (unless ``fit_flow``) are left out: rows and columns of zeros,
+    which :func:`solve_step` holds at zero."""
     n = gram.shape[0]
+    first = 0 if fit_gain else 1
+    last = 16 if fit_flow else 14
     big = np.zeros((16, 16))
     rhs = np.zeros(16)
     held = np.zeros((6, 6))
@@ -429,19 +463,23 @@ def normal_py(gram: F64, uy: F64, a_rows: F64, keep: npt.NDArray[np.bool_]) -> t
             v[8 + p] = a_rows[i, 6 + p]
         v[14] = a_rows[i, 12]
         v[15] = a_rows[i, 13]
-        for p in range(16):
+        for p in range(first, last):
             rhs[p] += v[p] * uy[i, col[p]]
-            for q in range(p, 16):
+            for q in range(p, last):
                 big[p, q] += v[p] * v[q] * gram[i, col[p], col[q]]
         for p in range(6):
-            for q in range(6):
+            for q in range(p, 6):
                 held[p, q] += a_rows[i, 6 + p] * a_rows[i, 6 + q]
-        for p in range(2):
-            for q in range(2):
-                flow[p, q] += a_rows[i, 12 + p] * a_rows[i, 12 + q]
+        if fit_flow:
+            for p in range(2):
+                for q in range(2):
+                    flow[p, q] += a_rows[i, 12 + p] * a_rows[i, 12 + q]
     for p in range(16):
         for q in range(p):
             big[p, q] = big[q, p]
+    for p in range(6):
+        for q in range(p):
+            held[p, q] = held[q, p]
     return big, rhs, held, flow
 
 
@@ -525,7 +563,7 @@ def solve_step(
     ``other_sigma_px`` at each sample), the content's motion near none (σ ``flow_sigma_px``; 0: held at none),
     the gain's change held at zero unless ``fit_gain``; solved. Returns
     the change, each profile's sum of squared residuals after it, the normal matrix, and False if singular."""
-    big, rhs, held, flow = normal(gram, uy, a_rows, keep)
+    big, rhs, held, flow = normal(gram, uy, a_rows, keep, fit_gain, flow_sigma_px > 0.0)
     count = 0
     total = 0.0
     for i in range(len(keep)):
