@@ -275,23 +275,35 @@ def centred_moments_py(u: F64, y: F64, mean_u: F64, gram: F64, uy: F64, yy: F64,
     the profile (the constant's share): the upper triangle of Σ u uᵀ into ``gram``, Σ u y into ``uy``, Σ y²
     into ``yy[i]``; ``mean_u`` is scratch."""
     width = y.shape[0]
-    mean_u[:] = 0.0
     mean_y = 0.0
     for o in range(width):
-        for c in range(5):
-            mean_u[c] += u[o, c]
         mean_y += y[o]
     mean_y /= width
     for c in range(5):
-        mean_u[c] /= width
+        total = 0.0
+        for o in range(width):
+            total += u[o, c]
+        mean_u[c] = total / width
+    # Centred in place (``u`` and ``y`` are scratch), then each sum in a register of its own: the same terms
+    # added in the same order as one running sum in memory per entry, to the bit, without a store per term.
+    total = yy[i]
     for o in range(width):
         yc = y[o] - mean_y
-        yy[i] += yc * yc
-        for a in range(5):
-            ua = u[o, a] - mean_u[a]
-            uy[a] += ua * yc
-            for b in range(a, 5):
-                gram[a, b] += ua * (u[o, b] - mean_u[b])
+        y[o] = yc
+        total += yc * yc
+        for c in range(5):
+            u[o, c] = u[o, c] - mean_u[c]
+    yy[i] = total
+    for a in range(5):
+        total = uy[a]
+        for o in range(width):
+            total += u[o, a] * y[o]
+        uy[a] = total
+        for b in range(a, 5):
+            total = gram[a, b]
+            for o in range(width):
+                total += u[o, a] * u[o, b]
+            gram[a, b] = total
 
 
 centred_moments: Any = centred_moments_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
@@ -329,13 +341,15 @@ def moments(
         for o in range(width):
             lo = o - 1 if o > 0 else 0
             hi = o + 1 if o < width - 1 else width - 1
-            slope = (pj[i, hi] - pj[i, lo]) / (hi - lo)
+            # / (hi − lo), 2 or 1, as a product: the same to the bit (halving is exact), no division
+            inverse = 0.5 if hi - lo == 2 else 1.0
+            slope = (pj[i, hi] - pj[i, lo]) * inverse
             m = sv[i] * cdf[o]
             u[o, 0] = pj[i, o]
             u[o, 1] = m
             # this frame's slope: the model's and its own, averaged (second order, as ESM: a noisy slope
             # of either alone makes the steps overshoot and swing)
-            own = (pk[i, hi] - pk[i, lo]) / (hi - lo)
+            own = (pk[i, hi] - pk[i, lo]) * inverse
             u[o, 2] = -0.5 * (gain * slope + step * sv[i] * pdf[o] + own)
             # the partner's: its slope and, where it will be, this frame's less the step's (ESM as above), so
             # that both frames moved together see the map's step alone (the content's slopes cancel)
@@ -409,13 +423,16 @@ def own_step_py(
     if weights[frame] < 0.0:
         weights[frame] = min(1.0, noise2 * width / max(left, 1e-9))
     weight = weights[frame]
+    # each sum in a register of its own (the same terms in the same order as a running sum in memory)
+    yy_i, uy_1, uy_c, g_11, g_1c, g_cc = yy[i], uy[1], uy[col], gram[1, 1], gram[1, col], gram[col, col]
     for o in range(width):
-        yy[i] += weight * y[o] * y[o]
-        uy[1] += weight * u[o, 1] * y[o]
-        uy[col] += weight * u[o, col] * y[o]
-        gram[1, 1] += weight * u[o, 1] * u[o, 1]
-        gram[1, col] += weight * u[o, 1] * u[o, col]
-        gram[col, col] += weight * u[o, col] * u[o, col]
+        yy_i += weight * y[o] * y[o]
+        uy_1 += weight * u[o, 1] * y[o]
+        uy_c += weight * u[o, col] * y[o]
+        g_11 += weight * u[o, 1] * u[o, 1]
+        g_1c += weight * u[o, 1] * u[o, col]
+        g_cc += weight * u[o, col] * u[o, col]
+    yy[i], uy[1], uy[col], gram[1, 1], gram[1, col], gram[col, col] = yy_i, uy_1, uy_c, g_11, g_1c, g_cc
 
 
 own_step: Any = own_step_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
