@@ -107,6 +107,7 @@ def read_profile_py(
     lines: int,
     out: F32,
     row: int,
+    lams: F64,
 ) -> bool:
     """``image`` into row ``row`` of ``out``: at its width's floor points (ox, oy) + o·(dx, dy),
     o = −radius..radius, seen at the pose (r, t): three points projected exactly (the ends, and the middle
@@ -114,7 +115,7 @@ def read_profile_py(
     through them (the lens and the perspective bend a few pixels' profile by far less than a hundredth of a
     pixel), bilinear, averaged over ``lines`` parallel lines a pixel apart across the profile (along the edge:
     the dense difference's smoothing, a camera's noise is several times the map's step). False where the
-    profile leaves the image or the floor is behind the camera."""
+    profile leaves the image or the floor is behind the camera. ``lams``: (o − radius) / radius for each o."""
     h, w = image.shape
     width = out.shape[1]
     radius = width // 2
@@ -133,7 +134,7 @@ def read_profile_py(
     tx, ty = -b_v / along, b_u / along  # a pixel along the edge
     first = -(lines // 2)
     for o in range(width):
-        lam = (o - radius) / radius
+        lam = lams[o]
         u = mid_u + lam * (b_u + lam * a_u)
         v = mid_v + lam * (b_v + lam * a_v)
         total = 0.0
@@ -241,6 +242,9 @@ def profiles(
     pj = np.empty((n, width), np.float32)
     a_rows = np.empty((n, 14))
     scratch = np.empty((2, 2))
+    lams = np.empty(width)  # each profile point's place on the parabola, −1..1
+    for o in range(width):
+        lams[o] = (o - radius) / radius
     here = np.empty(3)
     there = np.empty(3)
     count = 0
@@ -261,9 +265,10 @@ def profiles(
         a_rows[count, 12] = mx / step_m
         a_rows[count, 13] = my / step_m
         dx, dy = step_m * mx, step_m * my
-        if not read_profile(image, r, t, k, dist, ox, oy, dx, dy, u, v, lines, pk, count):
+        if not read_profile(image, r, t, k, dist, ox, oy, dx, dy, u, v, lines, pk, count, lams):
             continue
-        if not read_profile(other, r_other, t_other, k, dist, ox, oy, dx, dy, there[0], there[1], lines, pj, count):
+        u, v = there[0], there[1]
+        if not read_profile(other, r_other, t_other, k, dist, ox, oy, dx, dy, u, v, lines, pj, count, lams):
             continue
         idx[count] = i
         count += 1
