@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -16,7 +16,7 @@ from floorview import render_view
 
 from ipt.config.models import ArenaConfig
 from ipt.geometry import R_BODY_CAM_DOWNWARD, rot_x, rot_y, rot_z, rotation_angle_rad
-from ipt.receiver.core import kernels, sparsechain
+from ipt.receiver.core import kernels, sparse, sparsechain
 from ipt.receiver.core.demodulator import lightness
 from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.pose import pose_of, rt_of
@@ -323,3 +323,51 @@ def test_a_fit_that_reads_half_the_samples_while_far_off_ends_on_all_of_them(
     assert halved is not None, why
     assert halved.tried == full.tried
     assert _image_error_px(halved.rvec, halved.tvec) < 0.2
+
+
+#: A joint fit's settings (the chain's: 12 iterations, the first coarse, the partner only predicted).
+JOINT = SparseSettings(iterations=12, coarse_iterations=1, other_sigma_px=10.0, max_partner_px=30.0, esm_partner=True)
+
+
+def _iterations_of(
+    monkeypatch: pytest.MonkeyPatch, pair: Pair, edges: MapEdges, start: tuple[F64, F64], settings: SparseSettings
+) -> tuple[SparseResult | None, str, int]:
+    """The fit, and how many Gauss-Newton steps it took (its pose updates)."""
+    count = [0]
+    update = sparse._update
+
+    def counted(st: object, sol: F64) -> None:
+        count[0] += 1
+        update(st, sol)  # type: ignore[arg-type]
+
+    with monkeypatch.context() as patch:
+        patch.setattr(sparse, "_update", counted)
+        result, why = _fit(pair, edges, start, settings)
+    return result, why, count[0]
+
+
+def test_a_joint_fit_whose_steps_stay_large_gives_up_early(
+    pinhole_pair: Pair, edges: MapEdges, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Started 12 px off, a joint fit's steps grow (4–6 px a sample from its 7th on): it gives up after its 9th
+    instead of running all 12 to be refused unsettled."""
+    start = _guess_off_by(12.0)
+    result, why, steps = _iterations_of(monkeypatch, pinhole_pair, edges, start, replace(JOINT, give_up_px=0.0))
+    assert (result, why, steps) == (None, "not_converged", 12)
+    result, why, steps = _iterations_of(monkeypatch, pinhole_pair, edges, start, JOINT)
+    assert (result, why) == (None, "gave_up")
+    assert steps == JOINT.give_up_from == 9
+
+
+def test_a_good_start_is_fitted_as_without_giving_up(
+    pinhole_pair: Pair, edges: MapEdges, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    start = _guess_off_by(3.0)
+    never, why, steps_never = _iterations_of(monkeypatch, pinhole_pair, edges, start, replace(JOINT, give_up_px=0.0))
+    assert never is not None, why
+    given, why, steps = _iterations_of(monkeypatch, pinhole_pair, edges, start, JOINT)
+    assert given is not None, why
+    assert steps == steps_never
+    assert given.rvec.tobytes() == never.rvec.tobytes()
+    assert given.tvec.tobytes() == never.tvec.tobytes()
+    assert _image_error_px(given.rvec, given.tvec) < 0.2
