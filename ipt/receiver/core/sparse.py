@@ -103,8 +103,8 @@ class SparseSettings:
     this (pixels), from its ``give_up_from``-th iteration on (0: never). Traced on the joint fits (12
     iterations, settled at 0.6 px) of moving-content, fast, realcam, shadow-vibration and takeoff-open-floor:
     of 708 that were taken none had three steps running above 2.5 px from the 9th on, of 750 refused unsettled
-    371 did (a refused fit's steps do shrink, to just above the settled mark: a rule that cut them sooner, at
-    any threshold tried, also cut fits that would have been taken)."""
+    340 did before their last (a refused fit's steps do shrink, to just above the settled mark: a rule that
+    cut them sooner, at any threshold tried, also cut fits that would have been taken)."""
     give_up_from: int = 9
     give_up_steps: int = 3
 
