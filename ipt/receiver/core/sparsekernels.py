@@ -80,8 +80,8 @@ distort_point: Any = distort_point_py  # compiled by :func:`ipt.receiver.core.ke
 
 
 def project_floor_py(r: F64, t: F64, k: F64, dist: F64, px: float, py: float) -> tuple[bool, float, float]:
-    """The image place (u, v) of the floor point (px, py, 0) seen at the pose (r, t); False (and zeros) behind
-    the camera. The arithmetic of :func:`edge_row_py`'s place, to the bit."""
+    """The image place (u, v) of the floor point (px, py, 0) at the pose (r, t) (:func:`edge_row_py`'s, to the
+    bit); False (and zeros) behind the camera."""
     z = r[2, 0] * px + r[2, 1] * py + t[2]
     if z <= 1e-6:
         return False, 0.0, 0.0
@@ -109,13 +109,13 @@ def read_profile_py(
     row: int,
     lams: F64,
 ) -> bool:
-    """``image`` into row ``row`` of ``out``: at its width's floor points (ox, oy) + o·(dx, dy),
-    o = −radius..radius, seen at the pose (r, t): three points projected exactly (the ends, and the middle
+    """``image`` into row ``row`` of ``out``: at its width's floor points (ox, oy) + o·(dx, dy), o = −radius..radius
+    (``lams``: o / radius), seen at the pose (r, t): three points projected exactly (the ends, and the middle
     (``mid_u``, ``mid_v``): the caller's :func:`edge_row_py` place of (ox, oy)), the others placed on the parabola
     through them (the lens and the perspective bend a few pixels' profile by far less than a hundredth of a
-    pixel), bilinear, averaged over ``lines`` parallel lines a pixel apart across the profile (along the edge:
-    the dense difference's smoothing, a camera's noise is several times the map's step). False where the
-    profile leaves the image or the floor is behind the camera. ``lams``: (o − radius) / radius for each o."""
+    pixel), bilinear, averaged over ``lines`` parallel lines a pixel apart across the profile (along the edge: the
+    dense difference's smoothing, a camera's noise is several times the map's step). False where the profile
+    leaves the image or the floor is behind the camera."""
     h, w = image.shape
     width = out.shape[1]
     radius = width // 2
@@ -151,25 +151,13 @@ read_profile: Any = read_profile_py  # compiled by :func:`ipt.receiver.core.kern
 
 
 def edge_row_py(
-    r: F64,
-    t: F64,
-    k: F64,
-    dist: F64,
-    ox: float,
-    oy: float,
-    mx: float,
-    my: float,
-    rows: F64,
-    row: int,
-    col: int,
-    res: F64,
-    jac: F64,
+    r: F64, t: F64, k: F64, dist: F64, ox: float, oy: float, mx: float, my: float, out: F64, res: F64, jac: F64
 ) -> None:
     """The floor point (ox, oy, 0) with floor normal (mx, my) seen at the pose (r, t) through ``k`` and lens
-    ``dist``: its image place (u, v), the image length of one metre along the normal, and into
-    ``rows[row, col:col + 6]`` the row of the linear system, d(displacement along the image normal,
-    pixels)/d(δ rotation, Δt), the rotation applied on the arena → camera side. (u, v, length) into ``res``,
-    length 0 when the point is behind the camera; ``jac`` is scratch (2x2)."""
+    ``dist``: its image place (u, v), the image length of one metre along the normal, and into ``out`` the row
+    of the linear system, d(displacement along the image normal, pixels)/d(δ rotation, Δt), the rotation
+    applied on the arena → camera side. (u, v, length) into ``res``, length 0 when the point is behind the
+    camera; ``jac`` is scratch (2x2)."""
     res[2] = 0.0
     p0 = r[0, 0] * ox + r[0, 1] * oy
     p1 = r[1, 0] * ox + r[1, 1] * oy
@@ -198,12 +186,12 @@ def edge_row_py(
     g0 = nx * d00 + ny * d10
     g1 = nx * d01 + ny * d11
     g2 = nx * d02 + ny * d12
-    rows[row, col + 0] = p1 * g2 - p2 * g1
-    rows[row, col + 1] = p2 * g0 - p0 * g2
-    rows[row, col + 2] = p0 * g1 - p1 * g0
-    rows[row, col + 3] = g0
-    rows[row, col + 4] = g1
-    rows[row, col + 5] = g2
+    out[0] = p1 * g2 - p2 * g1
+    out[1] = p2 * g0 - p0 * g2
+    out[2] = p0 * g1 - p1 * g0
+    out[3] = g0
+    out[4] = g1
+    out[5] = g2
     res[2] = length
 
 
@@ -242,19 +230,17 @@ def profiles(
     pj = np.empty((n, width), np.float32)
     a_rows = np.empty((n, 14))
     scratch = np.empty((2, 2))
-    lams = np.empty(width)  # each profile point's place on the parabola, −1..1
-    for o in range(width):
-        lams[o] = (o - radius) / radius
+    lams = (np.arange(width) - radius) / radius  # each profile point's place on the parabola, −1..1
     here = np.empty(3)
     there = np.empty(3)
     count = 0
     for i in range(n):
         ox, oy, mx, my = obj[i, 0], obj[i, 1], nrm[i, 0], nrm[i, 1]
-        edge_row(r, t, k, dist, ox, oy, mx, my, a_rows, count, 0, here, scratch)
+        edge_row(r, t, k, dist, ox, oy, mx, my, a_rows[count, :6], here, scratch)
         u, v, length = here[0], here[1], here[2]
         if length <= 0.0 or not (border_px < u < w - 1 - border_px and border_px < v < h - 1 - border_px):
             continue
-        edge_row(r_other, t_other, k, dist, ox, oy, mx, my, a_rows, count, 6, there, scratch)
+        edge_row(r_other, t_other, k, dist, ox, oy, mx, my, a_rows[count, 6:], there, scratch)
         if there[2] <= 0.0:
             continue
         step_m = 1.0 / length  # floor metres per pixel of ``image`` along the normal
@@ -289,9 +275,7 @@ def centred_moments_py(u: F64, y: F64, mean_u: F64, gram: F64, uy: F64, yy: F64,
         for o in range(width):
             total += u[o, c]
         mean_u[c] = total / width
-    # Centred in place (``u`` and ``y`` are scratch), then each sum in a register of its own: the same terms
-    # added in the same order as one running sum in memory per entry, to the bit, without a store per term.
-    total = yy[i]
+    total = yy[i]  # centred in place, each sum in a register (the same terms in the same order as in memory)
     for o in range(width):
         yc = y[o] - mean_y
         y[o] = yc
@@ -346,8 +330,7 @@ def moments(
         for o in range(width):
             lo = o - 1 if o > 0 else 0
             hi = o + 1 if o < width - 1 else width - 1
-            # / (hi − lo), 2 or 1, as a product: the same to the bit (halving is exact), no division
-            inverse = 0.5 if hi - lo == 2 else 1.0
+            inverse = 0.5 if hi - lo == 2 else 1.0  # 1 / (hi − lo): halving is exact, to the bit
             slope = (pj[i, hi] - pj[i, lo]) * inverse
             m = sv[i] * cdf[o]
             u[o, 0] = pj[i, o]
@@ -428,7 +411,6 @@ def own_step_py(
     if weights[frame] < 0.0:
         weights[frame] = min(1.0, noise2 * width / max(left, 1e-9))
     weight = weights[frame]
-    # each sum in a register of its own (the same terms in the same order as a running sum in memory)
     yy_i, uy_1, uy_c, g_11, g_1c, g_cc = yy[i], uy[1], uy[col], gram[1, 1], gram[1, col], gram[col, col]
     for o in range(width):
         yy_i += weight * y[o] * y[o]
@@ -466,8 +448,7 @@ def normal_py(
     unknowns are the gain's change, the step's, this frame's pose change (6, through its rows ``a_rows[:, :6]``),
     the partner's (6, ``a_rows[:, 6:12]``) and the content's motion on the floor (2, ``a_rows[:, 12:]``). Also
     Σ aaᵀ of the partner's rows and of the content's (their priors' shapes). The gain's change (unless
-    ``fit_gain``) and the content's motion (unless ``fit_flow``) are left out: rows and columns of zeros,
-    which :func:`solve_step` holds at zero."""
+    ``fit_gain``) and the content's motion (unless ``fit_flow``) are left as zeros (:func:`solve_step` holds them)."""
     n = gram.shape[0]
     first = 0 if fit_gain else 1
     last = 16 if fit_flow else 14
