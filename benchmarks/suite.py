@@ -171,11 +171,13 @@ def seam_points_m(truth: ArenaConfig) -> npt.NDArray[np.float64] | None:
     return np.array(out) if out else None
 
 
-def receiver_config(profile: str, rolling_shutter: bool) -> PipelineConfig:
+def receiver_config(profile: str, rolling_shutter: bool, tracker: str | None = None) -> PipelineConfig:
     """The receiver's pipeline for ``profile``, told that the camera has a rolling shutter if it has one
     (``pose.track.rolling_shutter``, as a lab sets it for its camera; the ``paper`` profile has no such
-    setting)."""
+    setting), with the ``ipt`` profile's ``tracker`` (dense or sparse; None: the profile's own)."""
     cfg = PipelineConfig.profile(profile)
+    if profile == "ipt" and tracker is not None:
+        cfg = cfg.model_copy(update={"tracker": tracker})
     if rolling_shutter and profile == "ipt":
         track = cfg.pose.track.model_copy(update={"rolling_shutter": True})
         cfg = cfg.model_copy(update={"pose": cfg.pose.model_copy(update={"track": track})})
@@ -188,13 +190,14 @@ def score(
     profile: str,
     seam_m: npt.NDArray[np.float64] | None = None,
     rolling_shutter: bool = False,
+    tracker: str | None = None,
 ) -> dict[str, Any]:
     camera = load_camera_info(folder / "camera.yaml")
     truth = read_tum(folder / "groundtruth.tum")
     rate = 1.0 / float(np.median(np.diff(truth.times_s)))
     times, positions, quats, busy_s = [], [], [], 0.0
     with one_core():
-        cfg = receiver_config(profile, rolling_shutter)
+        cfg = receiver_config(profile, rolling_shutter, tracker)
         tag_map = grid_tag_map(arena)
         detector = pipeline_detector(cfg.detector, tag_map.by_id)
         pipeline = Pipeline(tag_map, camera, cfg, arena.projector.rate_hz, detector)
@@ -339,7 +342,9 @@ def frames_folder(folder: Path) -> Path:
     return out
 
 
-def whole_process(folder: Path, arena_path: Path, profile: str, receiver: Path | None) -> dict[str, Any]:
+def whole_process(
+    folder: Path, arena_path: Path, profile: str, receiver: Path | None, tracker: str | None = None
+) -> dict[str, Any]:
     """``ipt-receiver replay`` of the rendering's BMP frames as a process of its own pinned to core 0, its
     processor time (user + sys, the AprilTag helper process included) by ``/usr/bin/time``, and the yield and
     errors of the poses that run wrote. ``receiver``: another checkout's ``ipt`` to run instead (a baseline).
@@ -357,7 +362,7 @@ def whole_process(folder: Path, arena_path: Path, profile: str, receiver: Path |
         cmd = ["taskset", "-c", "0", "/usr/bin/time", "-f", "%U %S", "-o", str(timing), *command, "replay",
                "--config", str(arena_path.resolve()), "--camera", str((folder / "camera.yaml").resolve()),
                "--video", str(frames_dir.resolve()), "--fps", f"{rate:.2f}", "--output", str(poses),
-               "--profile", profile]  # fmt: skip
+               "--profile", profile, *(["--tracker", tracker] if profile == "ipt" and tracker else [])]  # fmt: skip
         load = os.getloadavg()[0]
         # In a folder of its own: ``python -m`` puts the working directory first on the path, which in a checkout
         # would import that checkout's ipt instead of ``receiver``'s.
@@ -469,6 +474,11 @@ def main() -> int:
         type=Path,
         help="run the whole-process replay with the ipt package of this checkout (PYTHONPATH), e.g. a baseline",
     )
+    p.add_argument(
+        "--tracker",
+        choices=("dense", "sparse"),
+        help="the ipt profile's tracker (default: the profile's own, dense)",
+    )
     args = p.parse_args()
     if not 0 < args.seconds <= 600:
         print(f"suite: --seconds must be in (0, 600], got {args.seconds:g}", file=sys.stderr)
@@ -480,7 +490,7 @@ def main() -> int:
     base = load_arena_config(args.arena or shipped_config_path("arena.yaml"))
     args.cache.mkdir(parents=True, exist_ok=True)
     digest = _source_digest()
-    results: dict[str, Any] = {"seconds": args.seconds, "flights": {}}
+    results: dict[str, Any] = {"seconds": args.seconds, "tracker": args.tracker or "profile", "flights": {}}
     for path in scenario_files(args.only.split(",") if args.only else None, args.flights):
         sim = load_yaml_model(path, SimConfig)
         arena = apply_arena_changes(base, sim.arena)
@@ -489,10 +499,10 @@ def main() -> int:
         seam = seam_points_m(true_arena(arena, sim))
         for profile in profiles:
             start = time.monotonic()
-            flight["profiles"][profile] = score(folder, arena, profile, seam, sim.camera.readout_ms > 0)
+            flight["profiles"][profile] = score(folder, arena, profile, seam, sim.camera.readout_ms > 0, args.tracker)
             r = flight["profiles"][profile]
             if not args.no_whole_process:
-                r["whole_process"] = whole_process(folder, folder / "arena.yaml", profile, args.receiver)
+                r["whole_process"] = whole_process(folder, folder / "arena.yaml", profile, args.receiver, args.tracker)
             print(
                 f"suite: {path.stem} / {profile}: yield {r['yield_pct']:.1f} %, MAE {_cell_mm(r['mae_mm'])} mm, "
                 f"{r['frames_per_s']} frames/s{_whole(r)} ({time.monotonic() - start:.0f} s){_seam(r)}",
@@ -524,11 +534,11 @@ def main() -> int:
                     entry["calibration"] = said
                 for profile in profiles:
                     entry["profiles"][profile] = r = score(
-                        where, scored_arena, profile, seam, sim.camera.readout_ms > 0
+                        where, scored_arena, profile, seam, sim.camera.readout_ms > 0, args.tracker
                     )
                     if not args.no_whole_process:
                         arena_yaml = folder / "calibrated.yaml" if where is folder else where / "arena.yaml"
-                        r["whole_process"] = whole_process(where, arena_yaml, profile, args.receiver)
+                        r["whole_process"] = whole_process(where, arena_yaml, profile, args.receiver, args.tracker)
                     print(
                         f"suite: {name} / {profile}: yield {r['yield_pct']:.1f} %, MAE {_cell_mm(r['mae_mm'])} mm"
                         f"{_seam(r)}",
