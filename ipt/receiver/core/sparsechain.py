@@ -292,13 +292,26 @@ def chain_settings(
     joint_radius_px: int = SparseSettings.radius_px,
     joint_smooth_px: float = SparseSettings.coarse_smooth_px,
     joint_half_until_px: float = 0.0,
+    known_sigma_px: float = 3.0,
+    known_iterations: int = 5,
 ) -> tuple[SparseSettings, SparseSettings]:
     """The fits' settings for a camera ``width_px`` wide (pixel figures are stated at 640): with a partner whose
-    pose is known, and for a joint fit (the partner only predicted, held near it by ``partner_sigma_px``). The
-    defaults are the prototype's best measured chain (docs/receiver-cores.md, rounds two and three)."""
+    pose is known (held near it by ``known_sigma_px``, refused if moved by more than 1.5 times that), and for a
+    joint fit (the partner only predicted, held near it by ``partner_sigma_px``). The defaults are the
+    prototype's best measured chain (docs/receiver-cores.md, rounds two and three), with the known partner
+    held looser than the prototype's 1 px and 3 iterations: a partner's pose is a fit too, and held at 1 px
+    its error passed on to the next frame along the chain (dark-scene's sparse MAE 2.68 / 2.05 / 0.73 mm
+    against the dense tracker's 2.08 / 1.52 / 0.49; 3 px and 5 iterations: 2.16 / 1.75 / 0.62)."""
     s = base if base is not None else SparseSettings(esm_partner=esm_partner)
     scale = width_px / 640
-    known = replace(s, blur_px=s.blur_px * scale, border_px=s.border_px * scale)
+    known = replace(
+        s,
+        blur_px=s.blur_px * scale,
+        border_px=s.border_px * scale,
+        other_sigma_px=known_sigma_px * scale,
+        max_partner_px=1.5 * known_sigma_px * scale,
+        iterations=known_iterations,
+    )
     ratio = known.blur_px / SparseSettings.blur_px
     joint = replace(
         known,
