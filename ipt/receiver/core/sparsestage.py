@@ -135,6 +135,7 @@ class SparseStage:
         elif posed(f) and all(self.gates.doubt(f.time_us, c.pose) is not None for c in f.candidates):
             self.reset(False)
             self.dense_late(f)
+            drop_sparse(f)
         elif f.tried and not posed(f) and (f.best is None or f.best.quality < WEAK_DENSE):
             self.dense_late(f)
 
@@ -146,6 +147,16 @@ class SparseStage:
         for f in self.history:
             self._prepare(f)
         return True
+
+
+def drop_sparse(f: Frame) -> None:
+    """``f`` without the chain's candidates (the gates doubted them all): the dense ones, if any, are judged alone,
+    and a doubted sparse pose does not join the gates' motion (where a dense fit's does: a sparse fit holds to
+    the pose the chain predicted, so one the gates doubt is the chain gone astray, and fed to the motion it
+    leads the dense way's guesses astray too: two-projectors uncalibrated lost frames 862-901 after one)."""
+    f.candidates = [c for c in f.candidates if c.method != "sparse"]
+    f.best = max(f.candidates, key=lambda c: c.quality, default=None)
+    f.rt = f.best.rt if f.best is not None else None
 
 
 def posed(f: Frame) -> bool:
