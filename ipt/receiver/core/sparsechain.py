@@ -292,20 +292,21 @@ def chain_settings(
     joint_radius_px: int = SparseSettings.radius_px,
     joint_smooth_px: float = SparseSettings.coarse_smooth_px,
     joint_half_until_px: float = 0.0,
-    known_sigma_px: float = 3.0,
+    known_sigma_px: float = 2.0,
     known_iterations: int = 5,
-    min_inlier_fraction: float = 0.85,
+    min_inlier_fraction: float = 0.8,
 ) -> tuple[SparseSettings, SparseSettings]:
     """The fits' settings for a camera ``width_px`` wide (pixel figures are stated at 640): with a partner whose
     pose is known (held near it by ``known_sigma_px``, refused if moved by more than 1.5 times that), and for a
     joint fit (the partner only predicted, held near it by ``partner_sigma_px``). The defaults are the
     prototype's best measured chain (docs/receiver-cores.md, rounds two and three), with the known partner
     held looser than the prototype's 1 px and 3 iterations: a partner's pose is a fit too, and held at 1 px
-    its error passed on to the next frame along the chain (dark-scene's sparse MAE 2.68 / 2.05 / 0.73 mm
-    against the dense tracker's 2.08 / 1.52 / 0.49; 3 px and 5 iterations: 2.16 / 1.75 / 0.62). A fit that
-    keeps fewer than ``min_inlier_fraction`` of its samples is refused (the prototype's 0.5): on dark-scene the
-    tenth of the fits below 0.86 had a median error of 4.7 mm against 1.8-2.9 for the rest, and passed it on
-    (2.16 / 1.82 / 0.66 -> 2.04 / 1.63 / 0.54 mm, 681 -> 708 sparse poses)."""
+    its error passed on to the next frame along the chain; and a fit that keeps fewer than
+    ``min_inlier_fraction`` of its samples refused (the prototype's 0.5): on dark-scene the tenth of the fits
+    below 0.86 were 4.7 mm off at the median (the rest 1.8-2.9), and passed it on. dark-scene's sparse MAE
+    (in-process, truth's times) 2.71 / 1.94 / 0.74 mm -> 2.11 / 1.69 / 0.62 (the dense tracker's 2.08 / 1.52 /
+    0.49); 3 px and 0.85 did 2.04 / 1.63 / 0.54 but cost shadow-vibration 127 of its 873 sparse poses (2 px and
+    0.8: 45)."""
     s = base if base is not None else SparseSettings(esm_partner=esm_partner)
     scale = width_px / 640
     known = replace(
