@@ -147,18 +147,10 @@ def test_a_chain_drifting_off_is_caught_by_the_dense_check_and_reseeded(
     """After frame 20 each sparse pose is pushed 3 mm further off than the chain's one before (a chain that drifts,
     slowly enough for the gates' motion to follow it): the dense check (here every 8 sparse poses) finds it more
     than 2 cm off the dense pose, restarts the chain from the dense pose, and few poses more than 2 cm off go out.
-    Without the check the drift would go on (``CHECK_EVERY`` 10**6: this test fails). The fits' own share of
-    samples kept (``chain_settings``' ``min_inlier_fraction``, 0.85) refuses a drifted chain's fits early; it is
-    left at the prototype's 0.5 here, so that the dense check alone is what catches the drift."""
-    import functools
-
-    # (not in the code the reference was recorded with)
-    from ipt.receiver.core import pipeline, sparsechain, sparsestage
+    Without the check the drift would go on (``CHECK_EVERY`` 10**6: this test fails)."""
+    from ipt.receiver.core import sparsestage  # (not in the code the reference was recorded with)
 
     monkeypatch.setattr(sparsestage, "CHECK_EVERY", CHECK_EVERY)
-    monkeypatch.setattr(
-        pipeline, "chain_settings", functools.partial(sparsechain.chain_settings, min_inlier_fraction=0.5)
-    )
     truth = read_tum(short_flight / "groundtruth.tum")
     p = _pipeline(short_flight, PipelineConfig(tracker="sparse"))
     assert p.sparse is not None

@@ -171,8 +171,7 @@ class Pipeline:
         """The sparse tracker (``cfg.tracker`` "sparse", tracking only): poses a frame first, the dense way second."""
         if self.edges is not None and cfg.tracker == "sparse":
             lens = SparseCamera.of(camera.camera_matrix, camera.dist_coeffs, size)
-            rolling = cfg.pose.track.rolling_shutter
-            fit = fitter(lens, self.edges, *chain_settings(camera.width_px, rolling_shutter=rolling))
+            fit = fitter(lens, self.edges, *chain_settings(camera.width_px))
             chain = LiveChain(lens, self.edges, fit, projector_hz)
             self.sparse = SparseStage(
                 chain, self.history, self.gates, self._solve, self._dense, self.add_candidate, self.lap, self._tracked

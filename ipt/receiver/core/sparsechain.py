@@ -46,8 +46,6 @@ STILL_SPREAD = 1.0
 WAIT_FRAMES = 3
 #: Frames of chain state kept behind the newest.
 KEEP_FRAMES = 16
-#: The share of its samples a fit must keep with a rolling shutter (:func:`chain_settings`).
-ROLLING_MIN_INLIER_FRACTION = 0.5
 
 
 @dataclass
@@ -294,23 +292,16 @@ def chain_settings(
     joint_radius_px: int = SparseSettings.radius_px,
     joint_smooth_px: float = SparseSettings.coarse_smooth_px,
     joint_half_until_px: float = 0.0,
-    known_sigma_px: float = 2.0,
+    known_sigma_px: float = 3.0,
     known_iterations: int = 5,
-    min_inlier_fraction: float = 0.8,
-    rolling_shutter: bool = False,
 ) -> tuple[SparseSettings, SparseSettings]:
     """The fits' settings for a camera ``width_px`` wide (pixel figures are stated at 640): with a partner whose
     pose is known (held near it by ``known_sigma_px``, refused if moved by more than 1.5 times that), and for a
     joint fit (the partner only predicted, held near it by ``partner_sigma_px``). The defaults are the
     prototype's best measured chain (docs/receiver-cores.md, rounds two and three), with the known partner
     held looser than the prototype's 1 px and 3 iterations: a partner's pose is a fit too, and held at 1 px
-    its error passed on to the next frame along the chain; and a fit that keeps fewer than
-    ``min_inlier_fraction`` of its samples refused (the prototype's 0.5): on dark-scene the tenth of the fits
-    below 0.86 were 4.7 mm off at the median (the rest 1.8-2.9), and passed it on. dark-scene's sparse MAE
-    (in-process, truth's times) 2.71 / 1.94 / 0.74 mm -> 2.11 / 1.69 / 0.62 (the dense tracker's 2.08 / 1.52 /
-    0.49); 3 px and 0.85 did 2.04 / 1.63 / 0.54 but cost shadow-vibration 127 of its 873 sparse poses (2 px and
-    0.8: 45). With a ``rolling_shutter`` the prototype's 0.5 stays: the fit has no model of the sweep, so a right
-    fit keeps fewer of its samples (the rolling flight: 97.29 % at 0.5, 94.69 % at 0.8)."""
+    its error passed on to the next frame along the chain (dark-scene's sparse MAE 2.68 / 2.05 / 0.73 mm
+    against the dense tracker's 2.08 / 1.52 / 0.49; 3 px and 5 iterations: 2.16 / 1.75 / 0.62)."""
     s = base if base is not None else SparseSettings(esm_partner=esm_partner)
     scale = width_px / 640
     known = replace(
@@ -320,7 +311,6 @@ def chain_settings(
         other_sigma_px=known_sigma_px * scale,
         max_partner_px=1.5 * known_sigma_px * scale,
         iterations=known_iterations,
-        min_inlier_fraction=ROLLING_MIN_INLIER_FRACTION if rolling_shutter else min_inlier_fraction,
     )
     ratio = known.blur_px / SparseSettings.blur_px
     joint = replace(
