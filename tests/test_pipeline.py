@@ -9,9 +9,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from flightpipeline import flight_frames, flight_pipeline
 
-from ipt.config.camera_info import load_camera_info
-from ipt.config.models import ConfigError, DemodulationConfig, PipelineConfig, load_arena_config
+from ipt.config.models import ConfigError, DemodulationConfig, PipelineConfig
 from ipt.receiver.core.bridge import ContentBridge
 from ipt.receiver.core.detection import DetectorError
 from ipt.receiver.core.history import Frame, FrameHistory
@@ -20,10 +20,7 @@ from ipt.receiver.core.pipeline import FrameResult, Pipeline
 from ipt.receiver.core.pose import PoseEstimate, rt_of
 from ipt.receiver.core.reasons import FrameReason
 from ipt.receiver.core.secondlook import SecondLook
-from ipt.receiver.detect.detector import pipeline_detector
-from ipt.tagmap import grid_tag_map
 from ipt.tum import read_tum
-from ipt.videoio import open_frames
 
 FPS = 120.0
 
@@ -34,15 +31,7 @@ def _t_us(k: int) -> int:
 
 @pytest.fixture(scope="module")
 def frames(short_flight: Path) -> list[np.ndarray]:
-    with open_frames(short_flight / "frames.mkv") as src:
-        return list(src)
-
-
-def _pipeline(short_flight: Path, cfg: PipelineConfig) -> Pipeline:
-    arena = load_arena_config(short_flight / "arena.yaml")
-    tag_map = grid_tag_map(arena)
-    camera = load_camera_info(short_flight / "camera.yaml")
-    return Pipeline(tag_map, camera, cfg, 60.0, pipeline_detector(cfg.detector, tag_map.by_id))
+    return flight_frames(short_flight)
 
 
 def _run(p: Pipeline, frames: list[np.ndarray]) -> list[FrameResult]:
@@ -54,7 +43,7 @@ def _run(p: Pipeline, frames: list[np.ndarray]) -> list[FrameResult]:
 
 
 def test_opposite_phase_pairing_prefers_one_projector_period(short_flight: Path) -> None:
-    p = _pipeline(short_flight, PipelineConfig())
+    p = flight_pipeline(short_flight, PipelineConfig())
     # (capture times are whole microseconds, hence the tolerance)
     assert p.history.phase_error(_t_us(2)) == pytest.approx(0.0, abs=1e-4)  # lag 2 at 120 FPS: one 60 Hz period
     assert p.history.phase_error(_t_us(1)) == pytest.approx(0.5, abs=1e-4)
@@ -72,7 +61,7 @@ def test_ipt_profile_beats_the_paper_profile_on_the_same_frames(short_flight: Pa
     yields, errors = {}, {}
     settled = {}
     for name in ("ipt", "paper"):
-        results = _run(_pipeline(short_flight, PipelineConfig.profile(name)), frames)
+        results = _run(flight_pipeline(short_flight, PipelineConfig.profile(name)), frames)
         posed = [r for r in results if r.pose is not None]
         yields[name] = len(posed) / len(frames)
         settled[name] = sum(r.index >= START_UP_FRAMES for r in posed)
@@ -88,7 +77,7 @@ def test_ipt_profile_beats_the_paper_profile_on_the_same_frames(short_flight: Pa
 
 
 def test_the_track_needs_apriltag_only_to_start_and_to_check(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]
-    tracked = _pipeline(short_flight, PipelineConfig())
+    tracked = flight_pipeline(short_flight, PipelineConfig())
     results = []
     for k, f in enumerate(frames):
         results += tracked.process(k, f, _t_us(k))
@@ -98,13 +87,13 @@ def test_the_track_needs_apriltag_only_to_start_and_to_check(short_flight: Path,
     assert sum(r.method == "track" for r in results) >= 0.85 * len(frames)
     # AprilTag acquires in the first frames; once the track runs, it only checks it now and then.
     assert tracked.detector_runs - at_half <= 30 // PipelineConfig().pose.track.verify_every + 2
-    both = _pipeline(short_flight, PipelineConfig.profile("paper"))
+    both = flight_pipeline(short_flight, PipelineConfig.profile("paper"))
     _run(both, frames)
     assert both.detector_runs == 2 * (len(frames) - 1)
 
 
 def test_results_come_out_once_each_and_in_frame_order(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]
-    p = _pipeline(short_flight, PipelineConfig())
+    p = flight_pipeline(short_flight, PipelineConfig())
     waiting = 0
     out: list[FrameResult] = []
     for k, f in enumerate(frames):
@@ -119,7 +108,7 @@ def test_results_come_out_once_each_and_in_frame_order(short_flight: Path, frame
 
 def test_without_lookahead_each_frame_comes_out_at_once(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]
     cfg = PipelineConfig().model_copy(update={"demodulation": DemodulationConfig(lookahead_frames=0)})
-    p = _pipeline(short_flight, cfg)
+    p = flight_pipeline(short_flight, cfg)
     for k, f in enumerate(frames[:20]):
         assert [r.index for r in p.process(k, f, _t_us(k))] == [k]
 
@@ -128,15 +117,15 @@ def test_grey_frames_give_the_same_poses_as_their_rgb(short_flight: Path, frames
     # A mono camera's frames are its luminance: the ipt profile takes them as they come.
     grey = [np.asarray(cv2.cvtColor(f, cv2.COLOR_RGB2GRAY), np.uint8) for f in frames[:30]]
     cfg = PipelineConfig()
-    from_grey = [r for r in _run(_pipeline(short_flight, cfg), grey) if r.pose is not None]
-    from_rgb = [r for r in _run(_pipeline(short_flight, cfg), frames[:30]) if r.pose is not None]
+    from_grey = [r for r in _run(flight_pipeline(short_flight, cfg), grey) if r.pose is not None]
+    from_rgb = [r for r in _run(flight_pipeline(short_flight, cfg), frames[:30]) if r.pose is not None]
     assert len(from_grey) >= 0.8 * len(from_rgb) > 0
     truth = read_tum(short_flight / "groundtruth.tum")
     assert max(np.linalg.norm(r.pose.position_m - truth.positions_m[r.index]) for r in from_grey) < 0.02
 
 
 def test_bad_frames_are_counted_not_raised(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]
-    p = _pipeline(short_flight, PipelineConfig())
+    p = flight_pipeline(short_flight, PipelineConfig())
     h, w = frames[0].shape[:2]
     inputs = [
         frames[0],
@@ -158,7 +147,7 @@ def test_bad_frames_are_counted_not_raised(short_flight: Path, frames: list) -> 
 
 
 def test_a_jump_in_time_restarts_pairing(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]
-    p = _pipeline(short_flight, PipelineConfig())
+    p = flight_pipeline(short_flight, PipelineConfig())
     out: list[FrameResult] = []
     for k in range(4):
         out += p.process(k, frames[k], _t_us(k))
@@ -182,7 +171,7 @@ def test_motion_gate_rejects_a_jump_then_reinitialises(short_flight: Path) -> No
     # Poses 8 ms apart: three at the origin, then the solver "jumps" 0.5 m (more than 3 m/s allows).
     cfg = PipelineConfig()
     cfg = cfg.model_copy(update={"pose": cfg.pose.model_copy(update={"max_prediction_error_m": None})})
-    results = _gate(_pipeline(short_flight, cfg), [0.0, 0.001, 0.002, 0.5, 0.5, 0.5, 0.5, 0.5])
+    results = _gate(flight_pipeline(short_flight, cfg), [0.0, 0.001, 0.002, 0.5, 0.5, 0.5, 0.5, 0.5])
     reasons = [r.reason for r in results]
     assert reasons[:3] == ["pose"] * 3
     assert reasons[3:6] == ["motion_jump"] * 3
@@ -197,7 +186,7 @@ def test_consistency_gate_rejects_a_pose_off_the_recent_motion(short_flight: Pat
     # 5 cm + 3 m/s, so only the consistency gate can catch it).
     xs = [0.005 * k for k in range(12)]
     xs[8] += 0.025
-    reasons = [r.reason for r in _gate(_pipeline(short_flight, PipelineConfig()), xs)]
+    reasons = [r.reason for r in _gate(flight_pipeline(short_flight, PipelineConfig()), xs)]
     assert reasons[8] == "inconsistent"
     assert reasons[:8] == ["pose"] * 8
     assert reasons[9:] == ["pose"] * 3  # the doubtful pose did not drag the prediction along
@@ -217,24 +206,24 @@ def test_with_a_rolling_shutter_the_consistency_gate_allows_for_the_pose_s_own_u
             "pose": cfg.pose.model_copy(update={"track": cfg.pose.track.model_copy(update={"rolling_shutter": True})})
         }
     )
-    assert [r.reason for r in _gate(_pipeline(short_flight, rolling), xs, stds)] == ["pose"] * 12
-    assert _gate(_pipeline(short_flight, cfg), xs, stds)[8].reason == "inconsistent"
+    assert [r.reason for r in _gate(flight_pipeline(short_flight, rolling), xs, stds)] == ["pose"] * 12
+    assert _gate(flight_pipeline(short_flight, cfg), xs, stds)[8].reason == "inconsistent"
     xs[8] += 0.020
-    assert _gate(_pipeline(short_flight, rolling), xs, stds)[8].reason == "inconsistent"
+    assert _gate(flight_pipeline(short_flight, rolling), xs, stds)[8].reason == "inconsistent"
 
 
 def test_consistency_gate_follows_a_track_that_really_moved(short_flight: Path) -> None:
     # The first poses were a wrong lock 40 mm off; every later one agrees on the true place. The gate
     # rejects them only until they outnumber the wrong ones in its window, then follows.
     xs = [0.04] * 8 + [0.0] * 30
-    reasons = [r.reason for r in _gate(_pipeline(short_flight, PipelineConfig()), xs)]
+    reasons = [r.reason for r in _gate(flight_pipeline(short_flight, PipelineConfig()), xs)]
     assert reasons[:8] == ["pose"] * 8
     assert "inconsistent" in reasons[8:]
     assert reasons[-10:] == ["pose"] * 10
 
 
 def test_poses_carry_a_covariance_that_grows_with_fewer_tags(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]
-    results = [r for r in _run(_pipeline(short_flight, PipelineConfig()), frames) if r.pose is not None]
+    results = [r for r in _run(flight_pipeline(short_flight, PipelineConfig()), frames) if r.pose is not None]
     by_tags: dict[int, list[float]] = {}
     for r in results:
         std = r.pose.position_std_m
@@ -260,7 +249,7 @@ def test_profiles_are_named() -> None:
 def test_an_uncertain_first_pose_waits_for_the_track(short_flight: Path) -> None:
     # Nothing to check the first poses against: a two-tag view with 3 cm of uncertainty is held back
     # (it still feeds the motion fit), a well-determined one goes out.
-    reasons = [r.reason for r in _gate(_pipeline(short_flight, PipelineConfig()), [0.0, 0.0], [0.03, 0.004])]
+    reasons = [r.reason for r in _gate(flight_pipeline(short_flight, PipelineConfig()), [0.0, 0.0], [0.03, 0.004])]
     assert reasons == ["unconfirmed", "pose"]
 
 
@@ -291,11 +280,11 @@ def test_a_frame_the_motion_doubts_is_tracked_again_from_where_the_motion_puts_i
                 target.failure = FrameResult(target.index, target.time_us, None, 0, FrameReason.LOST)
 
     monkeypatch.setattr(Pipeline, "_solve", spoiled_solve)
-    looked = _run(_pipeline(short_flight, PipelineConfig()), frames)[SPOILED]
+    looked = _run(flight_pipeline(short_flight, PipelineConfig()), frames)[SPOILED]
     assert looked.pose is not None
     assert np.linalg.norm(looked.pose.position_m - truth.positions_m[SPOILED]) < 0.005
     monkeypatch.setattr(SecondLook, "look", lambda self, f: None)
-    unlooked = _run(_pipeline(short_flight, PipelineConfig()), frames)[SPOILED]
+    unlooked = _run(flight_pipeline(short_flight, PipelineConfig()), frames)[SPOILED]
     assert unlooked.pose is None
     assert unlooked.reason == ("inconsistent" if spoil == "wrong" else "lost")
 
@@ -307,7 +296,7 @@ def test_a_detector_failure_is_flagged_on_exactly_one_result(
 ) -> None:
     # The first detection fails (its helper died): however many results come out after it, and whichever
     # frame it was for, one of them carries the failure, which is what the daemon reports (once).
-    p = _pipeline(short_flight, PipelineConfig())
+    p = flight_pipeline(short_flight, PipelineConfig())
     detect, calls = p.detector.detect, {"n": 0}
 
     def failing_once(gray: np.ndarray, decimate: float | None = None) -> tuple:  # type: ignore[type-arg]
@@ -350,7 +339,7 @@ def test_a_frame_whose_only_good_pair_is_with_a_later_frame_that_has_its_pose_st
     only, truth = 20, read_tum(short_flight / "groundtruth.tum")
     monkeypatch.setattr(Pipeline, "_solve", _pairs_lost_for(only, but_with=only + 1))
     monkeypatch.setattr(ContentBridge, "bridge", lambda self, before, target, after: None)
-    results = _run(_pipeline(short_flight, PipelineConfig()), frames)
+    results = _run(flight_pipeline(short_flight, PipelineConfig()), frames)
     assert results[only + 1].pose is not None
     assert results[only + 1].partner == only - 1
     assert results[only].partner == only + 1
@@ -377,7 +366,7 @@ def test_a_frame_no_pair_solved_waits_for_the_bridge_with_the_frame_three_on(
 
     monkeypatch.setattr(Pipeline, "_solve", _pairs_lost_for(failing))
     monkeypatch.setattr(ContentBridge, "bridge", last_bridge_only)
-    p = _pipeline(short_flight, PipelineConfig())
+    p = flight_pipeline(short_flight, PipelineConfig())
     came_out_with: dict[int, int] = {}
     results: dict[int, FrameResult] = {}
     for k, f in enumerate(frames[:40]):
@@ -430,7 +419,7 @@ def test_the_bridge_is_not_tried_when_neither_neighbour_has_a_pose(
     # Its warps would all come from the recent motion (the fast flight's dark scenes: 1 pose in 128 tries).
     import ipt.receiver.core.bridge as bridge_module
 
-    p = _pipeline(short_flight, PipelineConfig())
+    p = flight_pipeline(short_flight, PipelineConfig())
     lum, down = np.zeros((360, 640), np.uint8), np.diag([1.0, -1.0, -1.0])
     for k in range(9, 14):  # frames 9 and 13 have poses, 10-12 none (each could be put between 9 and 13)
         p.history.append(Frame(k, _t_us(k), lum, lum))
@@ -461,7 +450,7 @@ def test_finishing_before_a_later_frame_gives_what_processing_it_gives_only_soon
             for r in results
         ]
 
-    early, late = _pipeline(short_flight, PipelineConfig()), _pipeline(short_flight, PipelineConfig())
+    early, late = flight_pipeline(short_flight, PipelineConfig()), flight_pipeline(short_flight, PipelineConfig())
     got_early = [r for k in runs for r in early.process(k, frames[k], _t_us(k))]
     assert said([r for k in runs for r in late.process(k, frames[k], _t_us(k))]) == said(got_early)
     waiting = [k for k in runs if k not in {r.index for r in got_early}]
@@ -485,8 +474,8 @@ def test_frames_prepared_on_another_thread_give_the_same_poses(short_flight: Pat
     from concurrent.futures import ThreadPoolExecutor
 
     feed = [*frames[:20], np.zeros_like(frames[0]), *frames[20:40]]  # a black frame midway: "dark"
-    direct = _run(_pipeline(short_flight, PipelineConfig()), feed)
-    p = _pipeline(short_flight, PipelineConfig())
+    direct = _run(flight_pipeline(short_flight, PipelineConfig()), feed)
+    p = flight_pipeline(short_flight, PipelineConfig())
     with ThreadPoolExecutor(max_workers=1) as ahead:
         prepared = [ahead.submit(p.prepare, f) for f in feed]
         ahead_results: list[FrameResult] = []
@@ -512,7 +501,7 @@ def test_a_frame_mostly_in_shadow_says_so(short_flight: Path, frames: list) -> N
     dark = [f.copy() for f in frames[:40]]
     for k in range(20, 32):
         dark[k][shadow > 0] = 6  # the floor under the drone: only a little room light
-    p = _pipeline(short_flight, PipelineConfig())
+    p = flight_pipeline(short_flight, PipelineConfig())
     results = _run(p, dark)
     shadowed = [r.index for r in results if r.reason == FrameReason.SHADOWED]
     assert shadowed, [r.reason for r in results[20:32]]

@@ -9,24 +9,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from flightpipeline import flight_pipeline
 
-from ipt.config.camera_info import load_camera_info
-from ipt.config.models import PipelineConfig, load_arena_config
+from ipt.config.models import PipelineConfig
 from ipt.receiver.core.demodulator import PairDifference
 from ipt.receiver.core.history import Frame
 from ipt.receiver.core.pipeline import Pipeline
 from ipt.receiver.core.reasons import SHADOWED_SHARE
-from ipt.receiver.detect.detector import pipeline_detector
-from ipt.tagmap import grid_tag_map
 
 
 @pytest.fixture(scope="module")
 def pipeline(short_flight: Path) -> Iterator[Pipeline]:
-    arena = load_arena_config(short_flight / "arena.yaml")
-    tag_map = grid_tag_map(arena)
-    cfg = PipelineConfig()
-    camera = load_camera_info(short_flight / "camera.yaml")
-    p = Pipeline(tag_map, camera, cfg, arena.projector.rate_hz, pipeline_detector(cfg.detector, tag_map.by_id))
+    p = flight_pipeline(short_flight, PipelineConfig())
     yield p
     p.close()
 

@@ -10,30 +10,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from flightpipeline import flight_pipeline
 
-from ipt.config.camera_info import load_camera_info
-from ipt.config.models import PipelineConfig, load_arena_config
+from ipt.config.models import PipelineConfig
 from ipt.receiver.core.history import Candidate, Frame
 from ipt.receiver.core.pipeline import SEARCH_AFTER_US, Pipeline
 from ipt.receiver.core.pose import PoseEstimate
-from ipt.receiver.detect.detector import pipeline_detector
-from ipt.tagmap import grid_tag_map
 
 STEP_US = 8_333  # 120 FPS
 
 
 @pytest.fixture(scope="module")
 def sparse_pipeline(short_flight: Path) -> Iterator[Pipeline]:
-    arena = load_arena_config(short_flight / "arena.yaml")
-    tag_map = grid_tag_map(arena)
-    cfg = PipelineConfig(tracker="sparse")
-    p = Pipeline(
-        tag_map,
-        load_camera_info(short_flight / "camera.yaml"),
-        cfg,
-        arena.projector.rate_hz,
-        pipeline_detector(cfg.detector, tag_map.by_id),
-    )
+    p = flight_pipeline(short_flight, PipelineConfig(tracker="sparse"))
     yield p
     p.close()
 

@@ -12,12 +12,10 @@ from typing import Any
 
 import numpy as np
 import pytest
+from flightpipeline import flight_frames, flight_pipeline
 
-from ipt.config.camera_info import load_camera_info
-from ipt.config.models import PipelineConfig, load_arena_config
+from ipt.config.models import PipelineConfig
 from ipt.receiver.core.pipeline import FrameResult, Pipeline
-from ipt.receiver.detect.detector import pipeline_detector
-from ipt.tagmap import grid_tag_map
 from ipt.tum import read_tum
 from ipt.videoio import open_frames
 
@@ -33,15 +31,7 @@ def _t_us(k: int) -> int:
 
 @pytest.fixture(scope="module")
 def frames(short_flight: Path) -> list[Any]:
-    with open_frames(short_flight / "frames.mkv") as src:
-        return list(src)
-
-
-def _pipeline(folder: Path, cfg: PipelineConfig) -> Pipeline:
-    arena = load_arena_config(folder / "arena.yaml")
-    tag_map = grid_tag_map(arena)
-    camera = load_camera_info(folder / "camera.yaml")
-    return Pipeline(tag_map, camera, cfg, arena.projector.rate_hz, pipeline_detector(cfg.detector, tag_map.by_id))
+    return flight_frames(short_flight)
 
 
 def _run(p: Pipeline, frames: list[Any], times_us: list[int] | None = None) -> list[FrameResult]:
@@ -56,7 +46,7 @@ def results_record(folder: Path, cfg: PipelineConfig) -> dict[str, Any]:
     with open_frames(folder / "frames.mkv") as src:
         frames = list(src)
     digest = hashlib.sha256(b"".join(np.ascontiguousarray(f).tobytes() for f in frames)).hexdigest()
-    p = _pipeline(folder, cfg)
+    p = flight_pipeline(folder, cfg)
     try:
         results = _run(p, frames)
     finally:
@@ -86,7 +76,7 @@ def test_the_sparse_tracker_poses_most_frames_near_the_truth_without_their_dense
     frames: list,  # type: ignore[type-arg]
 ) -> None:
     truth = read_tum(short_flight / "groundtruth.tum")
-    p = _pipeline(short_flight, PipelineConfig(tracker="sparse"))
+    p = flight_pipeline(short_flight, PipelineConfig(tracker="sparse"))
     try:
         results = _run(p, frames)
         prepared = p.dense_prepared
@@ -106,7 +96,7 @@ def test_the_sparse_tracker_poses_most_frames_near_the_truth_without_their_dense
 
 
 def _dense_results(folder: Path, frames: list[Any]) -> list[FrameResult]:
-    p = _pipeline(folder, PipelineConfig(tracker="dense"))
+    p = flight_pipeline(folder, PipelineConfig(tracker="dense"))
     try:
         return _run(p, frames)
     finally:
@@ -117,7 +107,7 @@ def test_the_chain_starts_afresh_after_a_gap_in_time_and_after_a_bad_frame(
     short_flight: Path,
     frames: list,  # type: ignore[type-arg]
 ) -> None:
-    p = _pipeline(short_flight, PipelineConfig(tracker="sparse"))
+    p = flight_pipeline(short_flight, PipelineConfig(tracker="sparse"))
     assert p.sparse is not None
     try:
         gap_at, bad_at = 24, 44
@@ -153,7 +143,7 @@ def test_a_chain_drifting_off_is_caught_and_restarted(
 
     monkeypatch.setattr(sparsestage, "CHECK_EVERY", CHECK_EVERY)
     truth = read_tum(short_flight / "groundtruth.tum")
-    p = _pipeline(short_flight, PipelineConfig(tracker="sparse"))
+    p = flight_pipeline(short_flight, PipelineConfig(tracker="sparse"))
     assert p.sparse is not None
     chain = p.sparse.chain
     feed, reset = chain.feed, chain.reset
