@@ -23,6 +23,9 @@ from ipt.receiver.core.secondlook import SecondLook
 from ipt.tum import read_tum
 
 FPS = 120.0
+DENSE = PipelineConfig(tracker="dense")
+"""For the tests of the dense way's own mechanics (its pairs, the second look, the bridge): with the sparse tracker
+(the default) most frames never take it."""
 
 
 def _t_us(k: int) -> int:
@@ -76,15 +79,22 @@ def test_ipt_profile_beats_the_paper_profile_on_the_same_frames(short_flight: Pa
     assert errors["ipt"] < errors["paper"]
 
 
-def test_the_track_needs_apriltag_only_to_start_and_to_check(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]
-    tracked = flight_pipeline(short_flight, PipelineConfig())
+@pytest.mark.parametrize("tracker", ["dense", "sparse"])
+def test_the_track_needs_apriltag_only_to_start_and_to_check(
+    short_flight: Path,
+    frames: list,  # type: ignore[type-arg]
+    tracker: str,
+) -> None:
+    tracked = flight_pipeline(short_flight, PipelineConfig(tracker=tracker))
     results = []
     for k, f in enumerate(frames):
         results += tracked.process(k, f, _t_us(k))
         if k == 29:
             at_half = tracked.detector_runs
     results += tracked.flush()
-    assert sum(r.method == "track" for r in results) >= 0.85 * len(frames)
+    assert sum(r.method in ("track", tracker) for r in results) >= 0.85 * len(frames)
+    if tracker == "sparse":  # most frames never take the dense way
+        assert sum(r.method == "sparse" for r in results) >= 0.7 * len(frames)
     # AprilTag acquires in the first frames; once the track runs, it only checks it now and then.
     assert tracked.detector_runs - at_half <= 30 // PipelineConfig().pose.track.verify_every + 2
     both = flight_pipeline(short_flight, PipelineConfig.profile("paper"))
@@ -222,18 +232,32 @@ def test_consistency_gate_follows_a_track_that_really_moved(short_flight: Path) 
     assert reasons[-10:] == ["pose"] * 10
 
 
-def test_poses_carry_a_covariance_that_grows_with_fewer_tags(short_flight: Path, frames: list) -> None:  # type: ignore[type-arg]
-    results = [r for r in _run(flight_pipeline(short_flight, PipelineConfig()), frames) if r.pose is not None]
+@pytest.mark.parametrize(("tracker", "method"), [("dense", "track"), ("sparse", "sparse")])
+def test_poses_carry_a_covariance_that_grows_with_fewer_tags(
+    short_flight: Path,
+    frames: list,  # type: ignore[type-arg]
+    tracker: str,
+    method: str,
+) -> None:
+    cfg = PipelineConfig().model_copy(update={"tracker": tracker})
+    results = [r for r in _run(flight_pipeline(short_flight, cfg), frames) if r.pose is not None]
+    truth = np.loadtxt(short_flight / "groundtruth.tum", comments="#")
     by_tags: dict[int, list[float]] = {}
+    z: list[np.ndarray] = []
     for r in results:
         std = r.pose.position_std_m
         assert np.all(np.isfinite(std))
         assert np.all(std > 0)
         assert np.all(np.isfinite(r.pose.attitude_std_rad))
-        by_tags.setdefault(len(r.pose.tag_ids), []).append(float(np.linalg.norm(std)))
+        if r.method == method:  # (each fit's own noise model: compared within one)
+            by_tags.setdefault(len(r.pose.tag_ids), []).append(float(np.linalg.norm(std)))
+            z.append((r.pose.position_m - truth[r.index, 1:4]) / std)
     counts = sorted(by_tags)
     assert len(counts) >= 2
     assert np.median(by_tags[counts[0]]) > np.median(by_tags[counts[-1]])
+    # ... and it says how far off the poses are: errors in standard deviations, RMS per axis, near 1.
+    assert np.all(np.sqrt(np.mean(np.square(z), axis=0)) < 4.0)
+    assert np.all(np.sqrt(np.mean(np.square(z), axis=0)) > 0.25)
 
 
 def test_profiles_are_named() -> None:
@@ -280,11 +304,11 @@ def test_a_frame_the_motion_doubts_is_tracked_again_from_where_the_motion_puts_i
                 target.failure = FrameResult(target.index, target.time_us, None, 0, FrameReason.LOST)
 
     monkeypatch.setattr(Pipeline, "_solve", spoiled_solve)
-    looked = _run(flight_pipeline(short_flight, PipelineConfig()), frames)[SPOILED]
+    looked = _run(flight_pipeline(short_flight, DENSE), frames)[SPOILED]
     assert looked.pose is not None
     assert np.linalg.norm(looked.pose.position_m - truth.positions_m[SPOILED]) < 0.005
     monkeypatch.setattr(SecondLook, "look", lambda self, f: None)
-    unlooked = _run(flight_pipeline(short_flight, PipelineConfig()), frames)[SPOILED]
+    unlooked = _run(flight_pipeline(short_flight, DENSE), frames)[SPOILED]
     assert unlooked.pose is None
     assert unlooked.reason == ("inconsistent" if spoil == "wrong" else "lost")
 
@@ -339,7 +363,7 @@ def test_a_frame_whose_only_good_pair_is_with_a_later_frame_that_has_its_pose_st
     only, truth = 20, read_tum(short_flight / "groundtruth.tum")
     monkeypatch.setattr(Pipeline, "_solve", _pairs_lost_for(only, but_with=only + 1))
     monkeypatch.setattr(ContentBridge, "bridge", lambda self, before, target, after: None)
-    results = _run(flight_pipeline(short_flight, PipelineConfig()), frames)
+    results = _run(flight_pipeline(short_flight, DENSE), frames)
     assert results[only + 1].pose is not None
     assert results[only + 1].partner == only - 1
     assert results[only].partner == only + 1
@@ -366,7 +390,7 @@ def test_a_frame_no_pair_solved_waits_for_the_bridge_with_the_frame_three_on(
 
     monkeypatch.setattr(Pipeline, "_solve", _pairs_lost_for(failing))
     monkeypatch.setattr(ContentBridge, "bridge", last_bridge_only)
-    p = flight_pipeline(short_flight, PipelineConfig())
+    p = flight_pipeline(short_flight, DENSE)
     came_out_with: dict[int, int] = {}
     results: dict[int, FrameResult] = {}
     for k, f in enumerate(frames[:40]):
@@ -419,7 +443,7 @@ def test_the_bridge_is_not_tried_when_neither_neighbour_has_a_pose(
     # Its warps would all come from the recent motion (the fast flight's dark scenes: 1 pose in 128 tries).
     import ipt.receiver.core.bridge as bridge_module
 
-    p = flight_pipeline(short_flight, PipelineConfig())
+    p = flight_pipeline(short_flight, DENSE)
     lum, down = np.zeros((360, 640), np.uint8), np.diag([1.0, -1.0, -1.0])
     for k in range(9, 14):  # frames 9 and 13 have poses, 10-12 none (each could be put between 9 and 13)
         p.history.append(Frame(k, _t_us(k), lum, lum))
@@ -435,14 +459,20 @@ def test_the_bridge_is_not_tried_when_neither_neighbour_has_a_pose(
     assert tried == [1]
 
 
+@pytest.mark.parametrize(("tracker", "taken", "next_taken"), [("dense", 13, 18), ("sparse", 49, 54)])
 def test_finishing_before_a_later_frame_gives_what_processing_it_gives_only_sooner(
     short_flight: Path,
     frames: list,  # type: ignore[type-arg]
+    tracker: str,
+    taken: int,
+    next_taken: int,
 ) -> None:
-    # A live daemon that fell behind its camera after frame 12 dropped 13-17 and takes 18 next (50 ms later,
-    # past the 43 ms in which a frame may pair): the results waiting for later partners are the same whether
-    # they come out before frame 18 is processed or with it.
-    runs = list(range(13))
+    # A live daemon that fell behind its camera after frame ``taken - 1`` dropped the next five and takes
+    # ``next_taken`` next (50 ms later, past the 43 ms in which a frame may pair): the results waiting for later
+    # partners are the same whether they come out before that frame is processed or with it. (Dense: 13-17
+    # dropped, frames wait for the look-ahead; sparse: 49-53 dropped, frame 47 is a frame the sparse chain refused
+    # and takes the dense way, 48 came after it.)
+    runs = list(range(taken))
 
     def said(results: list[FrameResult]) -> list[tuple[object, ...]]:
         return [
@@ -450,21 +480,24 @@ def test_finishing_before_a_later_frame_gives_what_processing_it_gives_only_soon
             for r in results
         ]
 
-    early, late = flight_pipeline(short_flight, PipelineConfig()), flight_pipeline(short_flight, PipelineConfig())
+    cfg = PipelineConfig(tracker=tracker)
+    early, late = flight_pipeline(short_flight, cfg), flight_pipeline(short_flight, cfg)
     got_early = [r for k in runs for r in early.process(k, frames[k], _t_us(k))]
     assert said([r for k in runs for r in late.process(k, frames[k], _t_us(k))]) == said(got_early)
     waiting = [k for k in runs if k not in {r.index for r in got_early}]
-    assert waiting, "some results wait for later frames (the lookahead)"
-    # Frame 16 could still pair with 11 and 12 (42 and 33 ms before it): they stay; a frame further back that
-    # still waits (one no pair solved waits a frame longer, for the bridge) is final.
-    at_16 = early.finish_before(_t_us(16))
-    assert [r.index for r in at_16] == [k for k in waiting if _t_us(16) - _t_us(k) > early.pair_span_us]
-    assert {11, 12} <= set(waiting) - {r.index for r in at_16}
-    finished = at_16 + early.finish_before(_t_us(18))
+    assert waiting, "some results wait for later frames"
+    # A frame 3 on could still pair with the last two taken (42 and 33 ms before it): they stay; a frame further
+    # back that still waits is final.
+    mid = taken + 3
+    at_mid = early.finish_before(_t_us(mid))
+    assert [r.index for r in at_mid] == [k for k in waiting if _t_us(mid) - _t_us(k) > early.pair_span_us]
+    if tracker == "dense":
+        assert {taken - 2, taken - 1} <= set(waiting) - {r.index for r in at_mid}
+    finished = at_mid + early.finish_before(_t_us(next_taken))
     assert [r.index for r in finished] == waiting
-    with_18 = late.process(18, frames[18], _t_us(18))
+    with_next = late.process(next_taken, frames[next_taken], _t_us(next_taken))
 
-    assert said([r for r in with_18 if r.index != 18]) == said(finished)
+    assert said([r for r in with_next if r.index != next_taken]) == said(finished)
     assert any(r.pose is not None for r in finished)  # not only failures: a pose came out sooner
 
 

@@ -115,6 +115,22 @@ def estimate_from(rvec: F64, tvec: F64, cov_rt: F64, tag_ids: tuple[int, ...], r
     return PoseEstimate(position_m, r_arena_cam, tag_ids, rms_px, cov_p, cov_a)
 
 
+def estimate_from_step(rvec: F64, tvec: F64, cov_step: F64, tag_ids: tuple[int, ...], rms_px: float) -> PoseEstimate:
+    """A :class:`PoseEstimate` from OpenCV's (rvec, tvec) and the covariance (6x6) of a fit's last step (δ, Δt): a
+    small rotation δ applied on the arena → camera side (R ← exp([δ]×)·R) and the change of ``tvec`` (the edge
+    fits' parametrisation, :mod:`~ipt.receiver.core.track` and :mod:`~ipt.receiver.core.sparse`)."""
+    r, _ = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3, 1))
+    rt = np.asarray(r, np.float64).T
+    # p = −Rᵀt: dp/dδ = −Rᵀ[t]×, dp/dΔt = −Rᵀ; the arena-axis rotation of Rᵀ is −Rᵀδ.
+    j_p = np.hstack([-rt @ _skew(tvec), -rt])
+    j_a = np.hstack([-rt, np.zeros((3, 3))])
+    return PoseEstimate(-rt @ tvec, rt, tag_ids, rms_px, j_p @ cov_step @ j_p.T, j_a @ cov_step @ j_a.T)
+
+
+def _skew(v: F64) -> F64:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
 def correspondences(detections: Sequence[TagDetection], tag_map: TagMap) -> tuple[F64, F64, tuple[int, ...]]:
     """Arena points (N×3) and image points (N×2) of every corner of every detected tag in the map."""
     obj, img, ids = [], [], []

@@ -34,7 +34,7 @@ import numpy.typing as npt
 
 from ipt.receiver.core import kernels
 from ipt.receiver.core.mapedges import MapEdges
-from ipt.receiver.core.pose import PoseEstimate, pose_of
+from ipt.receiver.core.pose import PoseEstimate, estimate_from_step
 from ipt.receiver.core.track import MIN_CELL_PX, fast_median
 
 F32 = npt.NDArray[np.float32]
@@ -133,10 +133,15 @@ class SparseResult:
     """The partner's pose as the fit left it (its prior held it near the one given): a pose of its own when
     the partner's given pose was only a prediction (a pair of which neither frame had a pose)."""
     other_tvec: F64
+    cov_rt: F64
+    """6x6 covariance of the fit's last step of this frame's pose (δ, Δt: as
+    :attr:`~ipt.receiver.core.track.TrackResult.cov_rt`): the residual's variance times the inverse normal matrix,
+    the partner's pose free within its prior."""
+    other_cov_rt: F64
+    """The same for the partner's pose."""
 
     def estimate(self) -> PoseEstimate:
-        position, r_arena_cam = pose_of(self.rvec, self.tvec)
-        return PoseEstimate(position, r_arena_cam, self.tags, self.rms_px)
+        return estimate_from_step(self.rvec, self.tvec, self.cov_rt, self.tags, self.rms_px)
 
     def partner(self) -> SparseResult:
         """The partner frame's pose from the same fit, as a result of its own (its phase the other)."""
@@ -147,6 +152,8 @@ class SparseResult:
             sign=-self.sign,
             other_rvec=self.rvec,
             other_tvec=self.tvec,
+            cov_rt=self.other_cov_rt,
+            other_cov_rt=self.cov_rt,
         )
 
 
@@ -377,9 +384,11 @@ def _finish(
         return None, "not_converged"
     sigma = float(np.sqrt(np.mean(rms[keep] ** 2)))
     try:
-        step_var = float(np.linalg.inv(normal)[_STEP, _STEP])
+        inverse = np.linalg.inv(normal)
     except np.linalg.LinAlgError:
         return None, "weak_step"
+    step_var = float(inverse[_STEP, _STEP])
+    cov = sigma * sigma * inverse
     if abs(st.step) < s.min_step_sigmas * sigma * math.sqrt(step_var) or abs(st.step) < s.min_amplitude:
         return None, "weak_step"
     if float(np.abs(other_rows[keep] @ st.other_moved).max()) > s.max_partner_px:
@@ -403,6 +412,8 @@ def _finish(
         tags,
         np.asarray(other_rvec, np.float64).reshape(3),
         st.t_other.copy(),
+        np.asarray(cov[_THIS, _THIS], np.float64),
+        np.asarray(cov[_OTHER, _OTHER], np.float64),
     ), ""
 
 

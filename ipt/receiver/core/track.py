@@ -26,7 +26,7 @@ import numpy.typing as npt
 from ipt.receiver.core import kernels
 from ipt.receiver.core.kernels import band_signs, cell_agreement, measure, peaks
 from ipt.receiver.core.mapedges import MapEdges
-from ipt.receiver.core.pose import PoseEstimate
+from ipt.receiver.core.pose import PoseEstimate, estimate_from_step
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -112,14 +112,7 @@ class TrackResult:
     def estimate(self) -> PoseEstimate:
         """The camera's pose in the arena, with the fit's covariance carried to its position (m²) and to a
         small rotation about the arena axes (rad²)."""
-        r, _ = cv2.Rodrigues(self.rvec.reshape(3, 1))
-        rt = np.asarray(r, np.float64).T
-        # p = −Rᵀt: dp/dδ = −Rᵀ[t]×, dp/dΔt = −Rᵀ; the arena-axis rotation of Rᵀ is −Rᵀδ.
-        j_p = np.hstack([-rt @ _skew(self.tvec), -rt])
-        j_a = np.hstack([-rt, np.zeros((3, 3))])
-        return PoseEstimate(
-            -rt @ self.tvec, rt, self.tags, self.rms_px, j_p @ self.cov_rt @ j_p.T, j_a @ self.cov_rt @ j_a.T
-        )
+        return estimate_from_step(self.rvec, self.tvec, self.cov_rt, self.tags, self.rms_px)
 
 
 @dataclass(frozen=True)
@@ -274,10 +267,6 @@ def track_pose(
 
 _NO_MASK = np.zeros((0, 0), np.uint8)
 """No valid mask: every pixel may be measured."""
-
-
-def _skew(v: F64) -> F64:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 class _Fit:
