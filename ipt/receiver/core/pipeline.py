@@ -172,7 +172,7 @@ class Pipeline:
         if self.edges is not None and cfg.tracker == "sparse":
             lens = SparseCamera.of(camera.camera_matrix, camera.dist_coeffs, size)
             fit = fitter(lens, self.edges, *chain_settings(camera.width_px))
-            chain = LiveChain(lens, self.edges, fit, projector_hz)
+            chain = LiveChain(lens, self.edges, fit, projector_hz, wait=self.lookahead > 0)
             self.sparse = SparseStage(
                 chain, self.history, self.gates, self._solve, self._dense, self.add_candidate, self.lap, self._tracked
             )

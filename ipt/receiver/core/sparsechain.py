@@ -377,16 +377,17 @@ class LiveChain:
     """The chain fed one frame at a time: its raw (distorted) lightness, capture time and predicted projector
     phase (+1, −1, or None if not known yet). It starts from a pose given by :meth:`seed` (the dense pipeline's),
     is re-seeded the same way for frames it gives up on, and starts afresh on :meth:`reset` (a restart, a gap in
-    time, a bad frame, a pose the caller found it wrong on)."""
+    time, a bad frame, a pose the caller found it wrong on). ``wait`` False: no frame waits for a later partner
+    (each is paired with its past ones: a pipeline without look-ahead)."""
 
-    def __init__(self, camera: SparseCamera, edges: MapEdges, fit: Fit, projector_hz: float) -> None:
+    def __init__(self, camera: SparseCamera, edges: MapEdges, fit: Fit, projector_hz: float, wait: bool = True) -> None:
         self.camera, self.edges, self.fit, self.projector_hz = camera, edges, fit, projector_hz
         self.chain = Chain()
         self._lum: dict[int, U8] = {}
         self._times_us: dict[int, int] = {}
         self._phase: dict[int, int] = {}
         self._pending: list[int] = []
-        self.pairing = auto_pairing(self._phase)
+        self.pairing = auto_pairing(self._phase) if wait else replace(past_pairing(self._phase), known_first=True)
         self.posed = 0
         """Frames posed by the chain since it was made."""
 
