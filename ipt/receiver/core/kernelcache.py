@@ -105,6 +105,7 @@ def warm() -> KernelStatus:
 
     kernels.ensure()
     kernels.warm()
+    kernels.warm_sparse()
     result = status()
     stamp = _stamp_path()
     if result.compiled and result.cache_dir and stamp is not None:

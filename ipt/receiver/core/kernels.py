@@ -120,8 +120,9 @@ difference_pass = _Kernel(diffkernels.difference_pass, diffkernels.difference_pa
 
 
 class _SparseKernel(_Kernel):
-    """The sparse tracker's kernel (a prototype, :mod:`ipt.receiver.core.sparse`): compiled apart from the
-    others on its first use, so that it adds nothing to a daemon's start-up."""
+    """The sparse tracker's kernel (:mod:`ipt.receiver.core.sparse`): compiled (or loaded from the cache) apart
+    from the others on its first use, after the first pose (which the dense way finds), so that it adds nothing
+    to a daemon's start-up; ``ipt-receiver warm`` compiles it ahead (:func:`warm_sparse`)."""
 
     def __call__(self, *args: Any) -> Any:
         if self.compiled is None:
@@ -174,6 +175,20 @@ def warm() -> None:
     align_system(
         image, image, image, no_mask, rt, ints, ints, f32, f32, f32, 0.1, 0.5, 3.0, np.zeros((1, 8)), np.zeros(1)
     )
+
+
+def warm_sparse() -> None:
+    """Compile (or load from numba's disk cache) the sparse tracker's kernels now, with the argument types its
+    fits pass (the default tracker's: ``ipt-receiver warm`` leaves none to compile in flight). An edge sample out
+    of view: no profile is read, the solve finds nothing to solve."""
+    one = np.array([[1e3, 1e3, 0.0]])
+    eye, t = np.eye(3), np.array([0.0, 0.0, 1.0])
+    u8 = np.zeros((8, 8), np.uint8)
+    idx, pk, pj, a_rows = sparse_profiles(one, one, eye, t, eye, t, eye, np.zeros(5), u8, u8, 4, 3.0, 3)
+    n, width = len(idx), pk.shape[1]
+    model = np.zeros(width)
+    gram, uy, yy = sparse_moments(pk, pj, np.zeros(n), 1.0, 0.0, model, model, 1.0, np.zeros((n, 2)), False)
+    sparse_solve_step(gram, uy, yy, a_rows, np.ones(n, np.bool_), np.zeros(6), 1.0, 0.0, False, width)
 
 
 _warming = False
