@@ -187,7 +187,7 @@ class _MemoryCamera:
         pass
 
 
-def run_camera(folder: Path, fps: float, isolation: str = "process", tracker: str = "dense") -> dict[str, Any]:
+def run_camera(folder: Path, fps: float, isolation: str = "process", tracker: str = "sparse") -> dict[str, Any]:
     import asyncio
     import io
 
@@ -252,8 +252,8 @@ def main() -> int:
     p.add_argument(
         "--tracker",
         choices=("dense", "sparse"),
-        default="dense",
-        help="the pipeline's tracker in the camera modes (default dense, the ipt profile's)",
+        default="sparse",
+        help="the pipeline's tracker in the camera modes (default sparse, the ipt profile's)",
     )
     p.add_argument(
         "--modes", default="camera,fast", help="comma-separated: camera, camera_inline, realtime, fast"

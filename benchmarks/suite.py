@@ -477,7 +477,7 @@ def main() -> int:
     p.add_argument(
         "--tracker",
         choices=("dense", "sparse"),
-        help="the ipt profile's tracker (default: the profile's own, dense)",
+        help="the ipt profile's tracker (default: the profile's own, sparse)",
     )
     args = p.parse_args()
     if not 0 < args.seconds <= 600:

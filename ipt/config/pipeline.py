@@ -251,12 +251,13 @@ class PipelineConfig(StrictModel):
     detector: DetectorConfig = Field(default_factory=DetectorConfig, description="Tag detection.")
     pose: PoseConfig = Field(default_factory=PoseConfig, description="Pose estimation.")
     tracker: Literal["dense", "sparse"] = Field(
-        "dense",
-        description="How a frame is posed once the track runs ('track' pose method). 'dense': every frame "
-        "undistorted, aligned with its partners by their content and their difference tracked "
-        "(ipt.receiver.core.track). 'sparse': first the sparse chain (ipt.receiver.core.sparsechain), which "
-        "reads the raw frames only along the map's edges; a frame it does not pose, acquisition and a check every "
-        "few frames take the dense way (docs/receiver-cores.md, 'The sparse tracker in the pipeline').",
+        "sparse",
+        description="How a frame is posed once the track runs ('track' pose method). 'sparse' (the default): "
+        "first the sparse chain (ipt.receiver.core.sparsechain), which reads the raw frames only along the map's "
+        "edges; a frame it does not pose, acquisition and a check every few frames take the dense way "
+        "(docs/receiver-cores.md, 'The sparse tracker in the pipeline'). 'dense': every frame undistorted, aligned "
+        "with its partners by their content and their difference tracked (ipt.receiver.core.track): slower, for "
+        "comparison.",
     )
 
     @property

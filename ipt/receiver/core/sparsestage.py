@@ -1,4 +1,4 @@
-"""The sparse tracker in the pipeline (``tracker: sparse``; :class:`SparseStage`, held by
+"""The sparse tracker in the pipeline (``tracker: sparse``, the default; :class:`SparseStage`, held by
 :class:`~ipt.receiver.core.pipeline.Pipeline`).
 
 Each frame goes to the sparse chain first (:class:`~ipt.receiver.core.sparsechain.LiveChain`: raw lightness, no
