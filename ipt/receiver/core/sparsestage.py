@@ -97,9 +97,12 @@ class SparseStage:
                 self.reset(False)
             new.candidates, new.best, new.rt = dense, best, best.rt
         for f in self.history:
-            if f.final or f.best is None or f.best.method == "sparse" or f.phase is None:
+            if f.best is None or f.best.method == "sparse" or f.phase is None:
                 continue
-            if self.gates.doubt(f.time_us, f.best.pose) is None:
+            if f.final:  # (gone out already: a seed if its pose did)
+                if f.result is not None and f.result.pose is not None:
+                    self.chain.seed(f.index, f.best.rt, f.phase)
+            elif self.gates.doubt(f.time_us, f.best.pose) is None:
                 self.chain.seed(f.index, f.best.rt, f.phase)
                 f.waiting = False
 
