@@ -47,6 +47,7 @@ three on alone, without the other two bridges, cost a third of the difference st
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Protocol
 
@@ -298,25 +299,26 @@ class ContentBridge:
         """Forget the frames not in ``live`` (indices of the frames still kept)."""
         self._bridged = {k: n for k, n in self._bridged.items() if k in live}
 
-    def offer(self, new: Frame) -> None:
+    def offer(self, new: Frame, prepare: Callable[[Frame], None] | None = None) -> None:
         """Try the bridge on each frame that ``new`` has just been paired with, that no pair gave a pose and
         that was paired with an earlier frame too: its earliest partner, it and ``new``; once with each of its
         first :data:`MAX_BRIDGES` later partners; and on the frame :data:`WIDE_AFTER` before ``new``, with the
         frame before it and ``new`` when those two show the same phase (see the module's note on which
-        neighbours keep the tags)."""
+        neighbours keep the tags). ``prepare``: the dense preparation of a frame (the sparse tracker's frames
+        have only their lightness), called on the three frames of a bridge that is tried."""
         for target in self.history:
             if target.final or target.best is not None:
                 continue
             if new.index - target.index == WIDE_AFTER:
                 before = next((f for f in self.history if f.index == target.index - 1), None)
                 if before is not None and self.history.same_phase(before, new):
-                    self.bridge(before, target, new)
+                    self.bridge(before, target, new, prepare)
                 continue
             befores = [f for f in self.history if f.index < target.index and f.index in target.tried]
             if self._bridged.get(target.index, 0) >= MAX_BRIDGES or new.index not in target.tried or not befores:
                 continue
             self._bridged[target.index] = self._bridged.get(target.index, 0) + 1
-            self.bridge(min(befores, key=lambda f: f.index), target, new)
+            self.bridge(min(befores, key=lambda f: f.index), target, new, prepare)
 
     def wait(self, frame: Frame) -> int:
         """How many frames longer than the pipeline's lookahead ``frame`` waits: one for a frame no pair gave a
@@ -342,7 +344,9 @@ class ContentBridge:
         partial, _ = cv2.Rodrigues(s * turn)
         return p0 + s * (p1 - p0), np.asarray(r0 @ partial, np.float64)
 
-    def bridge(self, before: Frame, target: Frame, after: Frame) -> None:
+    def bridge(
+        self, before: Frame, target: Frame, after: Frame, prepare: Callable[[Frame], None] | None = None
+    ) -> None:
         """A candidate pose of ``target`` from the bridge with ``before`` and ``after``, unless neither of those
         has a pose: the warps would all come from the recent motion, and on the suite's fast flight such
         bridges gave 1 pose in 128 tries (a third of the bridge's time there, in its dark scenes)."""
@@ -358,6 +362,10 @@ class ContentBridge:
         )
         if to_target[0] is None or to_target[1] is None:
             return
+        if prepare is not None:
+            for f in (before, target, after):
+                prepare(f)
+            t0 = time.thread_time()  # (the preparation counts as its own stage)
         assert before.signal is not None
         assert target.signal is not None
         assert after.signal is not None
