@@ -136,10 +136,11 @@ def test_a_bridge_prepares_its_three_frames_only_when_it_is_tried(monkeypatch: p
         f.signal = lum
 
     monkeypatch.setattr(bridge_module, "bridge_difference", lambda *a, **k: None)
-    bridge.bridge(frames[1], frames[2], frames[3], prepare)  # no neighbour has a pose: not tried
+    bridge.prepare = prepare  # (as offer sets it)
+    bridge.bridge(frames[1], frames[2], frames[3])  # no neighbour has a pose: not tried
     assert prepared == []
     down = np.diag([1.0, -1.0, -1.0])
     frames[1].rt = rt_of(np.array([0.0, 0.0, 1.0]), down)
     frames[3].rt = rt_of(np.array([0.002, 0.0, 1.0]), down)
-    bridge.bridge(frames[1], frames[2], frames[3], prepare)
+    bridge.bridge(frames[1], frames[2], frames[3])
     assert prepared == [1, 2, 3]

@@ -294,6 +294,8 @@ class ContentBridge:
         self.coverage, self.lookahead = coverage, lookahead
         self._bridged: dict[int, int] = {}
         """How many times the bridge has been tried on each frame with a later partner."""
+        self.prepare: Callable[[Frame], None] | None = None
+        """The dense preparation of the frames of a bridge that is tried (:meth:`offer`'s), if they may lack it."""
 
     def keep_only(self, live: set[int]) -> None:
         """Forget the frames not in ``live`` (indices of the frames still kept)."""
@@ -305,20 +307,21 @@ class ContentBridge:
         first :data:`MAX_BRIDGES` later partners; and on the frame :data:`WIDE_AFTER` before ``new``, with the
         frame before it and ``new`` when those two show the same phase (see the module's note on which
         neighbours keep the tags). ``prepare``: the dense preparation of a frame (the sparse tracker's frames
-        have only their lightness), called on the three frames of a bridge that is tried."""
+        have only their lightness), called on the three frames of a bridge that is tried (:attr:`prepare`)."""
+        self.prepare = prepare
         for target in self.history:
             if target.final or target.best is not None:
                 continue
             if new.index - target.index == WIDE_AFTER:
                 before = next((f for f in self.history if f.index == target.index - 1), None)
                 if before is not None and self.history.same_phase(before, new):
-                    self.bridge(before, target, new, prepare)
+                    self.bridge(before, target, new)
                 continue
             befores = [f for f in self.history if f.index < target.index and f.index in target.tried]
             if self._bridged.get(target.index, 0) >= MAX_BRIDGES or new.index not in target.tried or not befores:
                 continue
             self._bridged[target.index] = self._bridged.get(target.index, 0) + 1
-            self.bridge(min(befores, key=lambda f: f.index), target, new, prepare)
+            self.bridge(min(befores, key=lambda f: f.index), target, new)
 
     def wait(self, frame: Frame) -> int:
         """How many frames longer than the pipeline's lookahead ``frame`` waits: one for a frame no pair gave a
@@ -344,9 +347,7 @@ class ContentBridge:
         partial, _ = cv2.Rodrigues(s * turn)
         return p0 + s * (p1 - p0), np.asarray(r0 @ partial, np.float64)
 
-    def bridge(
-        self, before: Frame, target: Frame, after: Frame, prepare: Callable[[Frame], None] | None = None
-    ) -> None:
+    def bridge(self, before: Frame, target: Frame, after: Frame) -> None:
         """A candidate pose of ``target`` from the bridge with ``before`` and ``after``, unless neither of those
         has a pose: the warps would all come from the recent motion, and on the suite's fast flight such
         bridges gave 1 pose in 128 tries (a third of the bridge's time there, in its dark scenes)."""
@@ -362,9 +363,9 @@ class ContentBridge:
         )
         if to_target[0] is None or to_target[1] is None:
             return
-        if prepare is not None:
+        if self.prepare is not None:
             for f in (before, target, after):
-                prepare(f)
+                self.prepare(f)
             t0 = time.thread_time()  # (the preparation counts as its own stage)
         assert before.signal is not None
         assert target.signal is not None
