@@ -29,8 +29,6 @@ CHECK_M = 0.02
 #: A frame that took the dense way and whose best dense candidate fits less than this share of the map's edges
 #: (the pipeline's ``GOOD_QUALITY``) is paired with its untried partners on both sides before it is judged.
 WEAK_DENSE = 0.3
-#: A frame paired late (:meth:`SparseStage.dense_late`) takes no more partners once a dense fit fits this share.
-ENOUGH_DENSE = 0.8
 
 
 class SparseStage:
@@ -110,14 +108,10 @@ class SparseStage:
 
     def dense_late(self, f: Frame) -> None:
         """``f``'s dense pairs with the partners on both sides it has not been paired with (a frame the chain waited
-        for in vain, or whose sparse poses the gates doubt), earlier ones first, until one fits well (at least
-        :data:`ENOUGH_DENSE`): the frames the chain waited for in vain took 3.5 dense pairs each on fast and
-        moving-content. (Stopping at the pipeline's ``GOOD_QUALITY``, 0.3, as its own pairs do, cost takeoff-open-floor
-        0.2 mm of MAE: these poses re-seed the chain, and a better one of several partners carries on.)"""
+        for in vain, or whose sparse poses the gates doubt). (All of them: stopping at the first that fitted 0.8 of
+        the map's edges took two-projectors uncalibrated from 99.17 to 96.35 %; these poses re-seed the chain.)"""
         partners = [*self.history.partners(f, earlier=True), *self.history.partners(f, earlier=False)]
         for other in partners:
-            if good(f):
-                break
             if other.index not in f.tried:
                 a, b = (other, f) if other.index < f.index else (f, other)
                 self._solve(a, b, f)
@@ -168,12 +162,6 @@ def drop_sparse(f: Frame) -> None:
     f.candidates = [c for c in f.candidates if c.method != "sparse"]
     f.best = max(f.candidates, key=lambda c: c.quality, default=None)
     f.rt = f.best.rt if f.best is not None else None
-
-
-def good(f: Frame) -> bool:
-    """``f`` has a dense fit good enough (fitting at least :data:`ENOUGH_DENSE` of the map's edges) to take no more
-    partners late."""
-    return any(c.method != "sparse" and c.quality >= ENOUGH_DENSE for c in f.candidates)
 
 
 def posed(f: Frame) -> bool:
