@@ -351,10 +351,8 @@ class Pipeline:
                 good = new.best is not None and new.best.quality >= GOOD_QUALITY
             if self.sparse is not None:
                 self.sparse.after_dense(new)
-        if self.tracking and self.sparse is None:
-            self.bridge.offer(new)
-        elif self.sparse is not None and self.sparse.bridge_ready():
-            self.bridge.offer(new, self.sparse.prepare)
+        if self.tracking and (self.sparse is None or self.sparse.bridge_ready()):
+            self.bridge.offer(new, None if self.sparse is None else self.sparse.prepare)
         for f in self._pending:
             if f.final or f.waiting:
                 continue
