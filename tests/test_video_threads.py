@@ -32,6 +32,12 @@ def _frame_threads() -> int:
     return count
 
 
+MANY_CPUS = pytest.mark.skipif(
+    len(os.sched_getaffinity(0)) < 2,
+    reason="FFmpeg's automatic threading starts no frame threads for a process allowed one CPU (taskset -c N)",
+)
+
+
 @pytest.fixture
 def video(tmp_path: Path) -> Path:
     rng = np.random.default_rng(3)
@@ -55,6 +61,7 @@ def _read_all(cap: VideoCapture) -> tuple[list[np.ndarray], int]:
     return frames, most
 
 
+@MANY_CPUS
 def test_paced_recording_decodes_without_frame_threads_and_gives_the_same_frames(video: Path) -> None:
     before = _frame_threads()
     now = [0.0]
@@ -67,6 +74,7 @@ def test_paced_recording_decodes_without_frame_threads_and_gives_the_same_frames
     assert fast_threads > before  # (the count sees them when they are there)
 
 
+@MANY_CPUS
 def test_open_frames_starts_frame_threads_only_unpaced(video: Path) -> None:
     before = _frame_threads()
     with open_frames(video, paced=True) as source:
