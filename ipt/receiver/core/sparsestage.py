@@ -87,7 +87,7 @@ class SparseStage:
     def after_dense(self, new: Frame) -> None:
         """After ``new``'s dense pairs: the check of a sparse pose (the chain starts afresh if the two are more than
         :data:`CHECK_M` apart; the dense pose is taken either way); then the dense poses the gates do not doubt
-        re-seed the chain."""
+        re-seed the chain, and those of frames that went out already (a dense frame goes out once its pose is good)."""
         dense = [c for c in new.candidates if c.method != "sparse"]
         if dense and len(dense) < len(new.candidates):
             best = max(dense, key=lambda c: c.quality)
