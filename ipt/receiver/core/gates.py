@@ -24,9 +24,6 @@ GATE_RESET_AFTER = 4
 #: pose's own position uncertainty: the sweep's six unknowns make a right pose less certain (its σ about
 #: 8 mm, not 1), and a fixed 15 mm turned away a third of the rolling flight's right poses.
 ROLLING_GATE_SIGMAS = 3.0
-#: A pose held back as inconsistent joins the gates' motion with a standard deviation of at least its distance from
-#: the prediction over this.
-HELD_SIGMAS = 3.0
 
 
 class PoseGates:
@@ -69,16 +66,8 @@ class PoseGates:
         hold it back; the pose joins the motion either way."""
         doubt = self.doubt(t_us, pose)
         # Every solved pose goes into the track, gated or not: its fit is robust, and a gate that fed only
-        # on what it let through could lock onto a wrong track and reject every good pose after it. One held back
-        # as inconsistent counts as uncertain as it is far from the prediction (HELD_SIGMAS): a run of fits gone
-        # astray (an arena file wrong by centimetres at a seam: 107-173 mm off) no longer drags the motion until
-        # one of them agrees with it and goes out, while a right track that the motion lost still takes over.
-        std_m = float(np.linalg.norm(pose.position_std_m))
-        predicted = self.motion.pose_at(t_us) if doubt == FrameReason.INCONSISTENT else None
-        if predicted is not None:
-            far_m = float(np.linalg.norm(pose.position_m - predicted[0])) / HELD_SIGMAS
-            std_m = far_m if not np.isfinite(std_m) else max(std_m, far_m)
-        self.motion.add(t_us, pose.position_m, pose.r_arena_cam, std_m)
+        # on what it let through could lock onto a wrong track and reject every good pose after it.
+        self.motion.add(t_us, pose.position_m, pose.r_arena_cam, float(np.linalg.norm(pose.position_std_m)))
         reset = False
         if doubt in (FrameReason.INCONSISTENT, FrameReason.UNCONFIRMED):
             return FrameResult(index, t_us, None, tags, doubt, method=method, partner=partner)
