@@ -102,7 +102,7 @@ def test_a_bridge_prepares_its_three_frames_only_when_it_is_tried(monkeypatch: p
         f.signal = lum
 
     monkeypatch.setattr(bridge_module, "bridge_difference", lambda *a, **k: None)
-    bridge.prepare = prepare  # (as offer sets it)
+    bridge.prepare = prepare  # (as the pipeline sets it with the sparse tracker)
     bridge.bridge(frames[1], frames[2], frames[3])  # no neighbour has a pose: not tried
     assert prepared == []
     down = np.diag([1.0, -1.0, -1.0])

@@ -295,20 +295,19 @@ class ContentBridge:
         self._bridged: dict[int, int] = {}
         """How many times the bridge has been tried on each frame with a later partner."""
         self.prepare: Callable[[Frame], None] | None = None
-        """The dense preparation of the frames of a bridge that is tried (:meth:`offer`'s), if they may lack it."""
+        """The dense preparation of the three frames of a bridge that is tried, where frames may lack it (the sparse
+        tracker's have only their lightness: the pipeline sets it then); None: every frame has it."""
 
     def keep_only(self, live: set[int]) -> None:
         """Forget the frames not in ``live`` (indices of the frames still kept)."""
         self._bridged = {k: n for k, n in self._bridged.items() if k in live}
 
-    def offer(self, new: Frame, prepare: Callable[[Frame], None] | None = None) -> None:
+    def offer(self, new: Frame) -> None:
         """Try the bridge on each frame that ``new`` has just been paired with, that no pair gave a pose and
         that was paired with an earlier frame too: its earliest partner, it and ``new``; once with each of its
         first :data:`MAX_BRIDGES` later partners; and on the frame :data:`WIDE_AFTER` before ``new``, with the
         frame before it and ``new`` when those two show the same phase (see the module's note on which
-        neighbours keep the tags). ``prepare``: the dense preparation of a frame (the sparse tracker's frames
-        have only their lightness), called on the three frames of a bridge that is tried (:attr:`prepare`)."""
-        self.prepare = prepare
+        neighbours keep the tags)."""
         for target in self.history:
             if target.final or target.best is not None:
                 continue

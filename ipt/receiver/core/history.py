@@ -35,6 +35,10 @@ MAX_PHASE_ERROR = 0.55
 MAX_PARTNERS = 2
 #: Pairs further apart than this many projector periods are not tried (the content changes in between).
 MAX_PAIR_PERIODS = 2.6
+#: A candidate fitting this share of the map's visible edges is a good one: the pipeline takes it without trying more
+#: partners, and sends it out without waiting for later ones (sparse tracker); below it, a frame that took the sparse
+#: tracker's dense way is paired with its untried partners on both sides.
+GOOD_QUALITY = 0.3
 
 
 @dataclass

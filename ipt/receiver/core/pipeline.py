@@ -52,7 +52,7 @@ from ipt.receiver.core.detection import Detector, DetectorError
 from ipt.receiver.core.framecheck import RESTARTS, frame_problem
 from ipt.receiver.core.frameresult import FrameResult
 from ipt.receiver.core.gates import PoseGates
-from ipt.receiver.core.history import Candidate, Frame, FrameHistory, Pair
+from ipt.receiver.core.history import GOOD_QUALITY, Candidate, Frame, FrameHistory, Pair
 from ipt.receiver.core.imagealign import AlignTarget, alignment_features, floor_warp_between, warp_image
 from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.motion import MotionTrack, floor_warp
@@ -87,8 +87,6 @@ Guess = tuple[tuple[F64, F64], bool]
 MAX_GAP_US = 100_000
 #: A predicted warp that moves the image centre further than this fraction of the width is not trusted.
 MAX_PREDICTED_MOVE = 0.25
-#: A candidate fitting this share of the map's visible edges is taken without trying more partners.
-GOOD_QUALITY = 0.3
 #: Without a pose for this long the track is lost, and AprilTag looks for tags again.
 LOST_AFTER_US = 50_000
 #: A coarse search whose normalised correlation peak is weaker than this is not followed.
@@ -176,6 +174,7 @@ class Pipeline:
             self.sparse = SparseStage(
                 chain, self.history, self.gates, self._solve, self._dense, self.add_candidate, self.lap, self._tracked
             )
+            self.bridge.prepare = self.sparse.prepare  # (a bridge it tries prepares its three frames)
         self.dense_prepared = 0
         """Frames given the dense preparation after their arrival (sparse tracker), for tests and benchmarks."""
         self.paper = PaperWay(cfg, camera, tag_map, detector, self.history, self.gates, self.lap)
@@ -352,7 +351,7 @@ class Pipeline:
             if self.sparse is not None:
                 self.sparse.after_dense(new)
         if self.tracking and (self.sparse is None or self.sparse.bridge_ready()):
-            self.bridge.offer(new, None if self.sparse is None else self.sparse.prepare)
+            self.bridge.offer(new)
         for f in self._pending:
             if f.final or f.waiting:
                 continue

@@ -19,16 +19,13 @@ from collections.abc import Callable
 import numpy as np
 
 from ipt.receiver.core.gates import PoseGates
-from ipt.receiver.core.history import Candidate, Frame, FrameHistory
+from ipt.receiver.core.history import GOOD_QUALITY, Candidate, Frame, FrameHistory
 from ipt.receiver.core.sparsechain import LiveChain
 
 #: Every this many sparse poses one frame is posed the dense way too, as a check.
 CHECK_EVERY = 16
 #: ... and a sparse pose further than this from the dense one restarts the chain from the dense pose.
 CHECK_M = 0.02
-#: A frame that took the dense way and whose best dense candidate fits less than this share of the map's edges
-#: (the pipeline's ``GOOD_QUALITY``) is paired with its untried partners on both sides before it is judged.
-WEAK_DENSE = 0.3
 
 
 class SparseStage:
@@ -129,10 +126,11 @@ class SparseStage:
     def before_finish(self, f: Frame) -> None:
         """Before ``f`` is judged: if the chain still waits for it, or the gates doubt every candidate and its best
         is the chain's, the dense way (the chain restarts in the second case); if it took the dense way and its
-        best dense fit is weak (below :data:`WEAK_DENSE`), its untried partners too. (The dense tracker pairs a
-        frame with its partners on both sides; here the later ones pose themselves sparsely and never pair with
-        it, and a frame's earlier partner may show other content: realcam's frames that took the dense way had
-        MAE 2.50 / 2.11 mm against the dense tracker's 1.30 / 1.24 on the same frames.)"""
+        best dense fit is weak (below :data:`~ipt.receiver.core.history.GOOD_QUALITY`), its untried partners too.
+        (The dense tracker pairs a frame with its partners on both sides; here the later ones pose themselves
+        sparsely and never pair with it, and a frame's earlier partner may show other content: realcam's frames
+        that took the dense way had MAE 2.50 / 2.11 mm against the dense tracker's 1.30 / 1.24 on the same
+        frames.)"""
         if f.waiting:
             f.waiting = False
             self.dense_late(f)
@@ -140,13 +138,14 @@ class SparseStage:
             self.reset(False)
             self.dense_late(f)
             drop_sparse(f)
-        elif f.tried and not posed(f) and (f.best is None or f.best.quality < WEAK_DENSE):
+        elif f.tried and not posed(f) and (f.best is None or f.best.quality < GOOD_QUALITY):
             self.dense_late(f)
 
     def bridge_ready(self) -> bool:
         """Whether the bridge may look at the frames kept: once a frame may want it (its dense pairs failed). The
-        bridge prepares the three frames of a bridge it tries (:meth:`prepare`), not every frame kept: on fast,
-        the frames the chain refused took 1.9 dense preparations each when every kept frame was prepared."""
+        bridge prepares the three frames of a bridge it tries (:meth:`prepare`, its ``prepare``), not every frame
+        kept: on fast, the frames the chain refused took 1.9 dense preparations each when every kept frame was
+        prepared."""
         return any(not f.final and f.best is None and f.tried for f in self.history)
 
     def prepare(self, f: Frame) -> None:
