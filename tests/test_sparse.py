@@ -371,3 +371,42 @@ def test_a_good_start_is_fitted_as_without_giving_up(
     assert given.rvec.tobytes() == never.rvec.tobytes()
     assert given.tvec.tobytes() == never.tvec.tobytes()
     assert _image_error_px(given.rvec, given.tvec) < 0.2
+
+
+def test_a_step_that_swings_back_is_shortened_to_the_swings_limit() -> None:
+    """Steps that swing about the answer (each turning back a share q of the last) are scaled to where the
+    swinging sequence ends, 1 / (1 + q) of the way; a step along the last one, or the first, is kept."""
+    idx = np.arange(4)
+    keep = np.ones(4, np.bool_)
+    last = np.full(4, np.nan)
+    sol = np.arange(16, dtype=np.float64)
+    push = np.array([1.0, -2.0, 0.5, 1.5])
+    assert np.array_equal(sparse.damped(sol, push, last, idx, keep), sol)  # the first step
+    assert np.array_equal(last, push)
+    swung = sparse.damped(sol, -0.6 * push, last, idx, keep)
+    assert np.allclose(swung, sol / 1.6)
+    assert np.allclose(last, -0.6 * push)
+    assert np.array_equal(sparse.damped(sol, -0.3 * push, last, idx, keep), sol)  # along the last one
+    far = sparse.damped(sol, 2.0 * push, last, idx, keep)  # takes back more than the whole last step
+    assert np.allclose(far, sol / 2.0)
+    unread = np.full(4, np.nan)
+    unread[2] = 1.0  # the only sample read last time is not kept now
+    keep2 = np.array([True, True, False, True])
+    assert np.array_equal(sparse.damped(sol, -push, unread, idx, keep2), sol)
+
+
+def test_damping_the_swings_settles_a_guess_sooner(pinhole_pair: Pair, edges: MapEdges) -> None:
+    """The known-partner fit as the chain runs it (steps that swing back damped) against the same fit undamped,
+    from guesses 2-4 px off: fewer iterations in all, each as close to the true pose."""
+    known, _ = sparsechain.chain_settings(SIZE[0])
+    assert known.damp_swings
+    iterations = {}
+    for damp in (False, True):
+        total = 0
+        for px in (2.0, 3.0, 4.0):
+            result, why = _fit(pinhole_pair, edges, _guess_off_by(px), replace(known, damp_swings=damp))
+            assert result is not None, why
+            assert _image_error_px(result.rvec, result.tvec) < 0.15
+            total += result.iterations
+        iterations[damp] = total
+    assert iterations[True] < iterations[False]

@@ -301,7 +301,9 @@ def chain_settings(
     prototype's best measured chain (docs/receiver-cores.md, rounds two and three), with the known partner
     held looser than the prototype's 1 px and 3 iterations: a partner's pose is a fit too, and held at 1 px
     its error passed on to the next frame along the chain (dark-scene's sparse MAE 2.68 / 2.05 / 0.73 mm
-    against the dense tracker's 2.08 / 1.52 / 0.49; 3 px and 5 iterations: 2.16 / 1.75 / 0.62)."""
+    against the dense tracker's 2.08 / 1.52 / 0.49; 3 px and 5 iterations: 2.16 / 1.75 / 0.62). The known-partner
+    fits damp their swinging steps (:attr:`~ipt.receiver.core.sparse.SparseSettings.damp_swings`; the joint fits
+    do not: damped too, two-projectors uncalibrated gave a pose 115 mm off)."""
     s = base if base is not None else SparseSettings(esm_partner=esm_partner)
     scale = width_px / 640
     known = replace(
@@ -311,6 +313,7 @@ def chain_settings(
         other_sigma_px=known_sigma_px * scale,
         max_partner_px=1.5 * known_sigma_px * scale,
         iterations=known_iterations,
+        damp_swings=True,
     )
     ratio = known.blur_px / SparseSettings.blur_px
     joint = replace(
@@ -323,6 +326,7 @@ def chain_settings(
         radius_px=round(joint_radius_px * ratio),
         half_until_px=joint_half_until_px * ratio,
         coarse_smooth_px=joint_smooth_px * ratio,
+        damp_swings=False,
     )
     return known, joint
 
