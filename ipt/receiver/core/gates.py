@@ -24,6 +24,11 @@ GATE_RESET_AFTER = 4
 #: pose's own position uncertainty: the sweep's six unknowns make a right pose less certain (its σ about
 #: 8 mm, not 1), and a fixed 15 mm turned away a third of the rolling flight's right poses.
 ROLLING_GATE_SIGMAS = 3.0
+#: A pose held back as inconsistent with a confirmed motion joins the gates' motion with a standard deviation of at
+#: least its distance from the prediction over this.
+HELD_SIGMAS = 3.0
+#: The motion counts as confirmed once this many poses went out within :data:`GATE_WINDOW_US` before the pose judged.
+CONFIRMED_POSES = 8
 
 
 class PoseGates:
@@ -66,8 +71,13 @@ class PoseGates:
         hold it back; the pose joins the motion either way."""
         doubt = self.doubt(t_us, pose)
         # Every solved pose goes into the track, gated or not: its fit is robust, and a gate that fed only
-        # on what it let through could lock onto a wrong track and reject every good pose after it.
-        self.motion.add(t_us, pose.position_m, pose.r_arena_cam, float(np.linalg.norm(pose.position_std_m)))
+        # on what it let through could lock onto a wrong track and reject every good pose after it. But one held
+        # back as inconsistent with a motion that poses going out confirm counts as uncertain as it is far from
+        # the prediction (HELD_SIGMAS): a run of fits gone astray (an arena file wrong by centimetres at a seam)
+        # no longer drags the motion until one of them agrees with it and goes out. At a flight's start (the
+        # motion not confirmed yet) and once a right track has kept the poses from going out for a while, every
+        # pose weighs in full, so a right track the motion lost still takes over.
+        self.motion.add(t_us, pose.position_m, pose.r_arena_cam, self._weight_std_m(t_us, pose, doubt))
         reset = False
         if doubt in (FrameReason.INCONSISTENT, FrameReason.UNCONFIRMED):
             return FrameResult(index, t_us, None, tags, doubt, method=method, partner=partner)
@@ -80,3 +90,16 @@ class PoseGates:
         self._gated_in_a_row = 0
         self._accepted.append((t_us, pose))
         return FrameResult(index, t_us, pose, tags, FrameReason.POSE, reset, method, partner)
+
+    def _weight_std_m(self, t_us: int, pose: PoseEstimate, doubt: str | None) -> float:
+        """The position uncertainty (m) ``pose`` joins the motion with: its own, or at least its distance from the
+        prediction over :data:`HELD_SIGMAS` if it is held back as inconsistent with a confirmed motion."""
+        std_m = float(np.linalg.norm(pose.position_std_m))
+        if doubt != FrameReason.INCONSISTENT:
+            return std_m
+        recent = sum(1 for t, _ in self._accepted if 0 <= t_us - t <= GATE_WINDOW_US)
+        predicted = self.motion.pose_at(t_us)
+        if recent < CONFIRMED_POSES or predicted is None:
+            return std_m
+        far_m = float(np.linalg.norm(pose.position_m - predicted[0])) / HELD_SIGMAS
+        return far_m if not np.isfinite(std_m) else max(std_m, far_m)
