@@ -19,16 +19,20 @@ def _pose(x_m: float) -> PoseEstimate:
     return PoseEstimate(np.array([x_m, 0.0, 0.8]), np.eye(3), (1, 2, 3), 0.5, cov, cov * 1e-2)
 
 
+def _still_for_100_ms() -> tuple[PoseGates, int]:
+    """Gates that let 12 poses at x = 0 out (the motion confirmed); the next frame's number."""
+    gates = PoseGates(PoseConfig())
+    for k in range(12):
+        assert gates.judge(k, k * PERIOD_US, _pose(0.0), 3, "sparse", k - 1).reason == FrameReason.POSE
+    return gates, 12
+
+
 def test_fits_gone_astray_and_held_back_do_not_drag_the_motion() -> None:
     """Still camera at x = 0 for 100 ms; then, as at a seam of an arena file wrong by centimetres, every other frame's
     fit lands 11 cm off (held back) between right ones. The frames after must still be judged against x = 0: the
     right ones go out and a further fit 11 cm off is held back (it once went out, the motion having followed the
     wrong fits)."""
-    gates = PoseGates(PoseConfig())
-    k = 0
-    for _ in range(12):
-        gates.judge(k, k * PERIOD_US, _pose(0.0), 3, "sparse", k - 1)
-        k += 1
+    gates, k = _still_for_100_ms()
     reasons = []
     for i in range(16):
         x_m = 0.11 if i % 2 == 0 else 0.0
@@ -45,14 +49,29 @@ def test_fits_gone_astray_and_held_back_do_not_drag_the_motion() -> None:
 def test_a_right_track_the_motion_lost_still_takes_over() -> None:
     """The other way round: the camera really is at x = 0.11 from some frame on (the motion had it wrong): once the
     poses before have left the motion's window, the new place goes out again."""
-    gates = PoseGates(PoseConfig())
-    k = 0
-    for _ in range(12):
-        gates.judge(k, k * PERIOD_US, _pose(0.0), 3, "sparse", k - 1)
-        k += 1
+    gates, k = _still_for_100_ms()
     reasons = []
     for _ in range(60):  # half a second at the new place
         reasons.append(gates.judge(k, k * PERIOD_US, _pose(0.11), 3, "track", k - 1).reason)
         k += 1
     assert reasons[0] == FrameReason.INCONSISTENT
     assert reasons[-10:] == [FrameReason.POSE] * 10
+
+
+def test_at_a_flights_start_a_held_back_pose_weighs_in_full() -> None:
+    """Before 8 poses went out the motion is not confirmed: poses it holds back join it at their own weight (a
+    flight's first poses may be the wrong ones) and a new place takes over within frames; after 12 it does not."""
+    followed = {}
+    for before in (5, 12):
+        gates = PoseGates(PoseConfig())
+        for k in range(before):
+            gates.judge(k, k * PERIOD_US, _pose(0.0), 3, "sparse", k - 1)
+        first = gates.judge(before, before * PERIOD_US, _pose(0.11), 3, "track", before - 1).reason
+        assert first == FrameReason.INCONSISTENT
+        for k in range(before + 1, before + 4):
+            gates.judge(k, k * PERIOD_US, _pose(0.11), 3, "track", k - 1)
+        predicted = gates.motion.pose_at((before + 4) * PERIOD_US)
+        assert predicted is not None
+        followed[before] = float(predicted[0][0])
+    assert followed[5] > 0.1
+    assert followed[12] < 0.01
