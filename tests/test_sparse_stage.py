@@ -3,6 +3,8 @@ frame that took the dense way gets before it is judged."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from ipt.config.models import PoseConfig
@@ -34,10 +36,12 @@ def _candidate(method: str, partner: int, quality: float) -> Candidate:
     return Candidate(pose, (np.zeros(3), np.array([0.0, 0.0, 1.0])), 2, method, partner, quality)
 
 
-def _stage(quality: float) -> tuple[SparseStage, list[tuple[int, int, int]], Frame]:
+def _stage(
+    quality: float, prepare: Callable[[Frame], None] = lambda frame: None
+) -> tuple[SparseStage, list[tuple[int, int, int]], Frame]:
     """Frames 0..4 at 120 FPS against a 60 Hz projector; frame 2 took the dense way and has one candidate, with
     its earlier partner 0, of ``quality``; frames 3 and 4 were posed by the chain. The pairs solved, as (a, b,
-    target)."""
+    target); ``prepare``: the stage's dense preparation of a frame."""
     history = FrameHistory(60.0, "opposite_phase")
     frames = [Frame(k, k * PERIOD_US, np.zeros((2, 2), np.uint8)) for k in range(5)]
     for f in frames:
@@ -61,7 +65,7 @@ def _stage(quality: float) -> tuple[SparseStage, list[tuple[int, int, int]], Fra
         history,
         gates,
         solve,
-        lambda frame: None,
+        prepare,
         lambda frame, c: None,
         lambda stage, t0: t0,
         lambda: None,
@@ -126,3 +130,14 @@ def test_frames_that_went_out_with_a_dense_pose_still_seed_the_chain() -> None:
     assert out.index in seeded
     assert f.index in seeded
     assert held.index not in seeded
+
+
+def test_the_bridge_being_possible_prepares_no_frame() -> None:
+    """Issue 29: a frame whose dense pairs failed may want the bridge, which prepares the three frames of a bridge it
+    tries (tests/test_sparse_fail_cost.py); the stage itself prepares none. (Before: every kept frame was prepared
+    densely as soon as one frame might want the bridge.)"""
+    prepared: list[int] = []
+    stage, _, f = _stage(0.2, prepare=lambda frame: prepared.append(frame.index))
+    f.candidates, f.best = [], None  # its dense pairs failed: the bridge may want it
+    assert stage.bridge_ready()
+    assert prepared == []
