@@ -9,6 +9,7 @@ import sys
 import zlib
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -46,6 +47,15 @@ def test_the_header_size_is_read_without_decoding() -> None:
     why = too_many_pixels(png_header(20000, 20000))
     assert why is not None
     assert "20000x20000 pixels (400.0 megapixels)" in why
+
+
+@pytest.mark.parametrize("suffix", [".bmp", ".jpg", ".tiff", ".webp"])
+def test_the_header_size_of_every_format_pillow_reads(suffix: str) -> None:
+    """A camera's formats (BMP, JPEG) by Pillow's common plugins, loaded first; TIFF and WebP by the rest,
+    loaded when those find nothing."""
+    ok, data = cv2.imencode(suffix, np.zeros((30, 40), np.uint8))
+    assert ok
+    assert header_size(data.tobytes()) == (40, 30)
 
 
 def test_a_still_image_bomb_is_refused_with_one_line(tmp_path: Path) -> None:
