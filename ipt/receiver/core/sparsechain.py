@@ -345,14 +345,17 @@ def fitter(camera: SparseCamera, edges: MapEdges, known: SparseSettings, joint: 
 def clock_phase(times_us: list[int], signs: list[int], at_us: int, projector_hz: float) -> int | None:
     """The projector phase at ``at_us`` from the phases ``signs`` of frames captured at ``times_us``: the phase
     is ±(−1)^⌊t·f + φ⌋ (f the projector's rate), φ the unknown offset of its clock against the camera's; the
-    offsets (twentieths of a period) and signs that agree with the most of the given phases (all but at most one)
-    must all predict the same phase, else None. (At 120 FPS against 60 Hz a frame is half a period from its
-    neighbours, so a single known phase does not tell whether its neighbour flipped.)"""
+    offsets (twentieths of a period, each in the middle of its twentieth) and signs that agree with the most of
+    the given phases (all but at most one) must all predict the same phase, else None. (At 120 FPS against
+    60 Hz a frame is half a period from its neighbours, so a single known phase does not tell whether its
+    neighbour flipped.)"""
     if len(signs) < 2:
         return None
     ref = times_us[-1]
     t = (np.asarray(times_us, np.float64) - ref) * 1e-6 * projector_hz
-    offsets = np.arange(20) / 20.0
+    # Not 0 nor 1/2: a camera at twice the projector's rate captures every frame half a period after the last,
+    # so those offsets put every frame on a flip, where a microsecond of the clocks' rounding decides its side.
+    offsets = (np.arange(20) + 0.5) / 20.0
     pattern = 1.0 - 2.0 * (np.floor(t[None, :] + offsets[:, None]) % 2)
     agree = pattern @ np.asarray(signs, np.float64)
     best = float(np.abs(agree).max())
