@@ -29,6 +29,9 @@ ROLLING_GATE_SIGMAS = 3.0
 HELD_SIGMAS = 3.0
 #: The motion counts as confirmed once this many poses went out within :data:`GATE_WINDOW_US` before the pose judged.
 CONFIRMED_POSES = 8
+#: ... but poses held back in a row that agree with each other (their offsets from the prediction within the
+#: consistency gate's bound, this close in time) weigh in full: a right track the motion lost.
+AGREE_US = 50_000
 
 
 class PoseGates:
@@ -41,6 +44,9 @@ class PoseGates:
         self._accepted: deque[tuple[int, PoseEstimate]] = deque(maxlen=16)
         """The poses let through lately, with their capture times."""
         self._gated_in_a_row = 0
+        self._held: tuple[int, np.ndarray] | None = None
+        """The last pose held back as inconsistent since one went out: its capture time, its offset from the
+        prediction (m)."""
 
     def doubt(self, t_us: int, pose: PoseEstimate) -> str | None:
         """Why ``pose`` disagrees with the recent motion (the reason counted), or None if it does not."""
@@ -75,8 +81,8 @@ class PoseGates:
         # back as inconsistent with a motion that poses going out confirm counts as uncertain as it is far from
         # the prediction (HELD_SIGMAS): a run of fits gone astray (an arena file wrong by centimetres at a seam)
         # no longer drags the motion until one of them agrees with it and goes out. At a flight's start (the
-        # motion not confirmed yet) and once a right track has kept the poses from going out for a while, every
-        # pose weighs in full, so a right track the motion lost still takes over.
+        # motion not confirmed yet), and for poses held back in a row that agree with each other (AGREE_US: a
+        # right track the motion lost, after a few wrong poses went out), every pose weighs in full.
         self.motion.add(t_us, pose.position_m, pose.r_arena_cam, self._weight_std_m(t_us, pose, doubt))
         reset = False
         if doubt in (FrameReason.INCONSISTENT, FrameReason.UNCONFIRMED):
@@ -88,6 +94,7 @@ class PoseGates:
             reset = True
             self._accepted.clear()
         self._gated_in_a_row = 0
+        self._held = None
         self._accepted.append((t_us, pose))
         return FrameResult(index, t_us, pose, tags, FrameReason.POSE, reset, method, partner)
 
@@ -101,5 +108,11 @@ class PoseGates:
         predicted = self.motion.pose_at(t_us)
         if recent < CONFIRMED_POSES or predicted is None:
             return std_m
-        far_m = float(np.linalg.norm(pose.position_m - predicted[0])) / HELD_SIGMAS
+        offset = pose.position_m - predicted[0]
+        held, self._held = self._held, (t_us, offset)
+        if held is not None and 0 < t_us - held[0] <= AGREE_US:
+            bound_m = (self.cfg.max_prediction_error_m or 0.0) * gate_growth(float(pose.position_m[2]))
+            if float(np.linalg.norm(offset - held[1])) <= bound_m:
+                return std_m
+        far_m = float(np.linalg.norm(offset)) / HELD_SIGMAS
         return far_m if not np.isfinite(std_m) else max(std_m, far_m)
