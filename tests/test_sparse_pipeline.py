@@ -103,30 +103,36 @@ def _dense_results(folder: Path, frames: list[Any]) -> list[FrameResult]:
         p.close()
 
 
+def _chain_started(folder: Path, frames: list[Any], gap_at: int | None, bad_at: int | None) -> list[bool]:
+    """Whether the sparse chain had a pose to go on from after each frame, with a gap of 200 ms in the capture times
+    before frame ``gap_at`` and frame ``bad_at`` black ("dark")."""
+    p = flight_pipeline(folder, PipelineConfig(tracker="sparse"))
+    assert p.sparse is not None
+    started = []
+    try:
+        for k, f in enumerate(frames):
+            t_us = _t_us(k) + (200_000 if gap_at is not None and k >= gap_at else 0)
+            p.process(k, np.zeros_like(f) if k == bad_at else f, t_us)
+            started.append(p.sparse.chain.started)
+        p.flush()
+    finally:
+        p.close()
+    return started
+
+
+@pytest.mark.parametrize("gap", [True, False], ids=["gap_in_time", "bad_frame"])
 def test_the_chain_starts_afresh_after_a_gap_in_time_and_after_a_bad_frame(
     short_flight: Path,
     frames: list,  # type: ignore[type-arg]
+    gap: bool,
 ) -> None:
-    p = flight_pipeline(short_flight, PipelineConfig(tracker="sparse"))
-    assert p.sparse is not None
-    try:
-        gap_at, bad_at = 24, 44
-        times = [_t_us(k) + (200_000 if k >= gap_at else 0) for k in range(len(frames))]
-        started = []
-        for k, f in enumerate(frames):
-            frame = np.zeros_like(f) if k == bad_at else f  # black: "dark"
-            p.process(k, frame, times[k])
-            started.append(p.sparse.chain.started)
-        results = p.flush()
-    finally:
-        p.close()
-    assert started[gap_at - 1]  # the chain ran before each
-    assert started[bad_at - 1]
-    assert not started[gap_at]  # the frame after the gap: no pose to go on from yet
-    assert not started[bad_at]
-    assert any(started[gap_at + 1 : bad_at])  # re-seeded by the dense way
-    assert any(started[bad_at + 1 :])
-    del results
+    """Each in a run of its own (after a gap, the gates hold the first poses back while their motion settles, and
+    the chain may be restarted for that before a later bad frame could)."""
+    at = 24
+    started = _chain_started(short_flight, frames, at if gap else None, None if gap else at)
+    assert started[at - 1]  # the chain ran before
+    assert not started[at]  # the frame after the gap, or the bad frame: no pose to go on from yet
+    assert any(started[at + 1 :])  # re-seeded by the dense way
 
 
 def test_a_chain_drifting_off_is_caught_and_restarted(
