@@ -51,8 +51,8 @@ class PoseGates:
     def doubt(self, t_us: int, pose: PoseEstimate) -> str | None:
         """Why ``pose`` disagrees with the recent motion (the reason counted), or None if it does not."""
         cfg = self.cfg
-        if cfg.max_prediction_error_m is not None:
-            bound_m = cfg.max_prediction_error_m * gate_growth(float(pose.position_m[2]))
+        bound_m = self._consistency_bound_m(pose)
+        if bound_m is not None:
             if cfg.track.rolling_shutter:
                 bound_m = max(bound_m, ROLLING_GATE_SIGMAS * float(np.linalg.norm(pose.position_std_m)))
             predicted = self.motion.pose_at(t_us)
@@ -98,6 +98,12 @@ class PoseGates:
         self._accepted.append((t_us, pose))
         return FrameResult(index, t_us, pose, tags, FrameReason.POSE, reset, method, partner)
 
+    def _consistency_bound_m(self, pose: PoseEstimate) -> float | None:
+        """The consistency gate's bound (m) at ``pose``'s height, before a rolling shutter's widening; None: off."""
+        if self.cfg.max_prediction_error_m is None:
+            return None
+        return self.cfg.max_prediction_error_m * gate_growth(float(pose.position_m[2]))
+
     def _weight_std_m(self, t_us: int, pose: PoseEstimate, doubt: str | None) -> float:
         """The position uncertainty (m) ``pose`` joins the motion with: its own, or at least its distance from the
         prediction over :data:`HELD_SIGMAS` if it is held back as inconsistent with a confirmed motion."""
@@ -110,9 +116,13 @@ class PoseGates:
             return std_m
         offset = pose.position_m - predicted[0]
         held, self._held = self._held, (t_us, offset)
-        if held is not None and 0 < t_us - held[0] <= AGREE_US:
-            bound_m = (self.cfg.max_prediction_error_m or 0.0) * gate_growth(float(pose.position_m[2]))
-            if float(np.linalg.norm(offset - held[1])) <= bound_m:
-                return std_m
+        bound_m = self._consistency_bound_m(pose)
+        if (
+            held is not None
+            and 0 < t_us - held[0] <= AGREE_US
+            and bound_m is not None
+            and float(np.linalg.norm(offset - held[1])) <= bound_m
+        ):
+            return std_m  # it agrees with the pose held back just before it: a right track the motion lost
         far_m = float(np.linalg.norm(offset)) / HELD_SIGMAS
         return far_m if not np.isfinite(std_m) else max(std_m, far_m)
