@@ -84,19 +84,21 @@ def header_size(data: bytes | memoryview) -> tuple[int, int] | None:
     # Pillow's common formats first (BMP, GIF, JPEG, PPM, PNG: a camera's frames), as ``Image.open`` does:
     # loading all of its plugins costs a tenth of a second, on a restarted daemon's way to its first pose.
     Image.preinit()
-    found = _header_size(Image, data)
+    found = _header_size(data)
     if found is None:
         Image.init()
-        found = _header_size(Image, data)
+        found = _header_size(data)
     return found
 
 
-def _header_size(image_module: Any, data: bytes | memoryview) -> tuple[int, int] | None:
+def _header_size(data: bytes | memoryview) -> tuple[int, int] | None:
     """:func:`header_size` by the Pillow plugins loaded so far."""
+    from PIL import Image
+
     prefix = bytes(data[:16])
     plugins = []
-    for fmt in list(image_module.ID):
-        factory, accept = image_module.OPEN[fmt]
+    for fmt in list(Image.ID):
+        factory, accept = Image.OPEN[fmt]
         try:
             said = accept(prefix) if accept is not None else True
         except Exception:
