@@ -69,8 +69,8 @@ from ipt.receiver.core.track import (
     MaskRenderer,
     TrackResult,
     TrackSettings,
+    carried_pose,
     coarse_shift,
-    floor_points,
     shifted_pose,
     slope_noise,
     track_pose,
@@ -565,25 +565,12 @@ class Pipeline:
         """A first guess of ``target``'s pose and whether it is close (within a few pixels): the partner's
         pose carried by the pair's homography (close), else the recent motion's prediction (not)."""
         if other.rt is not None:
-            carried = self._carry(other.rt, warp_other_to_target)
+            size = (self.camera.width_px, self.camera.height_px)
+            carried = carried_pose(self.pinhole.camera_matrix, size, other.rt, warp_other_to_target)
             if carried is not None:
                 return carried, True
         predicted = self._guide.pose_at(target.time_us)
         return None if predicted is None else (rt_of(*predicted), False)
-
-    def _carry(self, rt: tuple[F64, F64], warp: F64) -> tuple[F64, F64] | None:
-        """The pose whose view of the floor is that of ``rt`` carried by the image homography ``warp``."""
-        k = self.pinhole.camera_matrix
-        w, h = self.camera.width_px, self.camera.height_px
-        img = np.array([[0.2 * w, 0.2 * h], [0.8 * w, 0.2 * h], [0.8 * w, 0.8 * h], [0.2 * w, 0.8 * h]])
-        floor = floor_points(k, rt[0], rt[1], img)
-        if floor is None:
-            return None
-        moved = cv2.perspectiveTransform(img.reshape(1, -1, 2), warp).reshape(-1, 2)
-        ok, rvec, tvec = cv2.solvePnP(floor, moved, k, None, flags=cv2.SOLVEPNP_IPPE)
-        if not ok:
-            return None
-        return np.asarray(rvec, np.float64).reshape(3), np.asarray(tvec, np.float64).reshape(3)
 
     def coarse(self, diff: PairDifference, init: tuple[F64, F64]) -> tuple[F64, F64]:
         """``init`` moved by the image shift that best lays the map on the difference."""

@@ -526,6 +526,20 @@ def shifted_pose(
     return np.asarray(rv, np.float64).reshape(3), np.asarray(tv, np.float64).reshape(3)
 
 
+def carried_pose(camera_matrix: F64, size: tuple[int, int], rt: tuple[F64, F64], warp: F64) -> tuple[F64, F64] | None:
+    """The pose whose view of the floor is that of ``rt`` (rvec, tvec) carried by the image homography ``warp``."""
+    w, h = size
+    img = np.array([[0.2 * w, 0.2 * h], [0.8 * w, 0.2 * h], [0.8 * w, 0.8 * h], [0.2 * w, 0.8 * h]])
+    floor = floor_points(camera_matrix, rt[0], rt[1], img)
+    if floor is None:
+        return None
+    moved = cv2.perspectiveTransform(img.reshape(1, -1, 2), warp).reshape(-1, 2)
+    ok, rvec, tvec = cv2.solvePnP(floor, moved, camera_matrix, None, flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        return None
+    return np.asarray(rvec, np.float64).reshape(3), np.asarray(tvec, np.float64).reshape(3)
+
+
 def floor_points(camera_matrix: F64, rvec: F64, tvec: F64, image_px: F64) -> F64 | None:
     """The floor points (N×3, z = 0) that the pinhole camera at (``rvec``, ``tvec``) sees at ``image_px``."""
     r_cam, _ = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3, 1))
