@@ -450,6 +450,10 @@ class Pipeline:
         """A candidate pose of ``target`` (``a`` or ``b``) from the pair (a earlier, b later)."""
         other = b if target is a else a
         target.tried.add(other.index)
+        if self._rests(target, other):
+            reason = FrameReason.NO_TAGS
+            target.failure = FrameResult(target.index, target.time_us, None, 0, reason, partner=other.index)
+            return
         pair = self.pair(a, b)
         if pair is None:
             target.failure = FrameResult(
@@ -494,6 +498,15 @@ class Pipeline:
             return
         self.lap("pose", t0)
         self.add_candidate(target, candidate)
+
+    def _rests(self, target: Frame, other: Frame) -> bool:
+        """Whether ``target``'s pair with ``other`` is left unmade: only AprilTag could use it (no partner's pose, no
+        recent motion) and it rests on this mostly unlit view (:meth:`~ipt.receiver.core.acquire.Acquisition.rests`)."""
+        self._dense(target)  # (its lit share)
+        if target.lit_share >= SHADOWED_SHARE or other.rt is not None:
+            return False
+        no_track = not self.tracking or self._guide.pose_at(target.time_us) is None or self._lost(target)
+        return no_track and self.acquisition.rests(target)
 
     def add_candidate(self, target: Frame, candidate: Candidate) -> None:
         target.candidates.append(candidate)

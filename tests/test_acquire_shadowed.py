@@ -1,0 +1,73 @@
+"""Without a track, AprilTag rests on views mostly in the drone's shadow (lit below ``SHADOWED_SHARE``): it is tried on
+one such frame in ``SEARCH_EVERY`` (with each of that frame's partners), and the pairs of the frames between are not
+made. Once the view is lit again, AprilTag is tried on every frame and the pose is found at once."""
+
+from __future__ import annotations
+
+import itertools
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from flightpipeline import flight_frames, flight_pipeline
+
+from ipt.config.models import PipelineConfig
+from ipt.receiver.core.acquire import SEARCH_EVERY
+from ipt.receiver.core.history import Frame
+from ipt.receiver.core.reasons import SHADOWED_SHARE
+
+SHADOWED = 24
+"""The first frames of the flight, each with all but a strip on its right in deep shadow."""
+
+
+def _shadowed(frame: Any) -> Any:
+    out = np.array(frame, copy=True)
+    w = out.shape[1]
+    out[:, : int(0.82 * w)] //= 25  # (below the signal mask's darkest lit level: no projector light there)
+    return out
+
+
+def test_apriltag_rests_on_shadowed_views_and_acquires_once_lit(short_flight: Path) -> None:
+    frames = flight_frames(short_flight)
+    p = flight_pipeline(short_flight, PipelineConfig())
+    tried: list[tuple[int, float]] = []
+    acquire = p.acquisition.acquire
+
+    def spy(target: Frame, other: Frame, diff: Any) -> Any:
+        tried.append((target.index, target.lit_share))
+        return acquire(target, other, diff)
+
+    p.acquisition.acquire = spy  # type: ignore[method-assign]
+    results = []
+    try:
+        for i, frame in enumerate(frames[:40]):
+            results += p.process(i, _shadowed(frame) if i < SHADOWED else frame, i * 8_333)
+        results += p.flush()
+    finally:
+        p.close()
+    shadowed = [(i, lit) for i, lit in tried if i < SHADOWED]
+    assert shadowed
+    assert all(lit < SHADOWED_SHARE for _, lit in shadowed)
+    tried_frames = sorted({i for i, _ in shadowed})
+    assert all(b - a >= SEARCH_EVERY for a, b in itertools.pairwise(tried_frames))
+    assert len(tried_frames) <= SHADOWED // SEARCH_EVERY + 1
+    by_index = {r.index: r for r in results}
+    assert all(by_index[i].pose is None and by_index[i].reason == "shadowed" for i in range(2, SHADOWED))
+    lit_tries = sorted({i for i, _ in tried if i >= SHADOWED})
+    assert lit_tries[:1] == [SHADOWED]  # the first lit frame is tried at once
+    assert any(by_index[i].pose is not None for i in range(SHADOWED, SHADOWED + 6))
+
+
+def test_a_lit_view_never_rests_and_a_shadowed_one_every_third(short_flight: Path) -> None:
+    p = flight_pipeline(short_flight, PipelineConfig())
+    p.close()
+    acq = p.acquisition
+    lit = Frame(5, 5 * 8_333, np.zeros((2, 2), np.uint8))
+    lit.lit_share = SHADOWED_SHARE
+    assert not acq.rests(lit)
+    dark = [Frame(i, i * 8_333, np.zeros((2, 2), np.uint8)) for i in range(10)]
+    for f in dark:
+        f.lit_share = SHADOWED_SHARE / 2
+    rested = [acq.rests(f) for f in dark]
+    assert rested == [False, True, True, False, True, True, False, True, True, False]
+    assert not acq.rests(dark[9])  # the frame tried is tried with each of its partners
