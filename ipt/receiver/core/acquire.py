@@ -100,7 +100,7 @@ class Acquisition:
         tried (whose every pair is tried); the scales' cycle moves on over it as over a frame tried, so the frames
         after meet the scales they would have. Of 2 106 AprilTag attempts on views lit below 40 % (takeoff-open-floor
         1 263, takeoff 835, the held-out low-fast-big-shadow 8; stop 43) none found a pose, at a pair's alignment and
-        difference and two AprilTag runs each: a shadowed frame of takeoff-open-floor cost 19 ms, a posed one 9 ms."""
+        difference and two AprilTag runs each: a shadowed frame of takeoff-open-floor cost 15 ms, a posed one 7 ms."""
         if target.lit_share >= SHADOWED_SHARE:
             return False
         if target.index != self.shadowed_at and target.index - self.shadowed_at < SEARCH_EVERY:
