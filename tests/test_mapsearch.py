@@ -126,3 +126,22 @@ def test_a_level_pose_looks_down_at_its_yaw() -> None:
 def test_a_map_without_tags_cannot_be_searched() -> None:
     with pytest.raises(MapSearchError, match="no tags"):
         MapSearch(np.zeros((100, 100), np.int8), np.eye(3), 0.02)
+
+
+@pytest.mark.parametrize("shape", [(36, 50), (35, 49)])
+def test_the_packed_correlation_is_the_circular_one(shape: tuple[int, int]) -> None:
+    """The search correlates in OpenCV's packed half spectrum of a real image (even and odd sizes pack differently):
+    corr(t) = sum over q of patch(q) * map(q + t), circularly, as numpy's complex transforms give it."""
+    from ipt.receiver.core.mapsearch import _correlate
+
+    rng = np.random.default_rng(3)
+    flat_map = rng.normal(size=shape).astype(np.float32)
+    patch = np.zeros(shape, np.float32)
+    patch[:7, :9] = rng.normal(size=(7, 9))
+    got = _correlate(patch, cv2.dft(flat_map))
+    want = np.real(np.fft.ifft2(np.fft.fft2(flat_map) * np.conj(np.fft.fft2(patch))))
+    assert got.shape == shape
+    assert np.abs(got - want).max() < 1e-4 * np.abs(want).max()
+    t = (3, 11)  # one shift by hand
+    rolled = np.roll(flat_map, (-t[0], -t[1]), axis=(0, 1))
+    assert got[t] == pytest.approx(float((patch * rolled).sum()), rel=1e-4, abs=1e-3)
