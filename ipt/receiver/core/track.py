@@ -517,24 +517,23 @@ def shifted_pose(
     """The pose whose view of the floor is that of (``rvec``, ``tvec``) moved by (dx, dy) pixels."""
     w, h = size
     img = np.array([[0.25 * w, 0.25 * h], [0.75 * w, 0.25 * h], [0.75 * w, 0.75 * h], [0.25 * w, 0.75 * h]])
-    floor = floor_points(camera_matrix, rvec, tvec, img)
-    if floor is None:
-        return None
-    ok, rv, tv = cv2.solvePnP(floor, img + np.array([dx, dy]), camera_matrix, None, flags=cv2.SOLVEPNP_IPPE)
-    if not ok:
-        return None
-    return np.asarray(rv, np.float64).reshape(3), np.asarray(tv, np.float64).reshape(3)
+    return _pose_seeing(camera_matrix, (rvec, tvec), img, img + np.array([dx, dy]))
 
 
 def carried_pose(camera_matrix: F64, size: tuple[int, int], rt: tuple[F64, F64], warp: F64) -> tuple[F64, F64] | None:
     """The pose whose view of the floor is that of ``rt`` (rvec, tvec) carried by the image homography ``warp``."""
     w, h = size
     img = np.array([[0.2 * w, 0.2 * h], [0.8 * w, 0.2 * h], [0.8 * w, 0.8 * h], [0.2 * w, 0.8 * h]])
-    floor = floor_points(camera_matrix, rt[0], rt[1], img)
+    return _pose_seeing(camera_matrix, rt, img, cv2.perspectiveTransform(img.reshape(1, -1, 2), warp).reshape(-1, 2))
+
+
+def _pose_seeing(camera_matrix: F64, rt: tuple[F64, F64], image_px: F64, moved_px: F64) -> tuple[F64, F64] | None:
+    """The pose that sees at ``moved_px`` the floor points the pose ``rt`` sees at ``image_px`` (a level view's
+    four points, IPPE); None if ``rt`` does not see them on the floor or the solve fails."""
+    floor = floor_points(camera_matrix, rt[0], rt[1], image_px)
     if floor is None:
         return None
-    moved = cv2.perspectiveTransform(img.reshape(1, -1, 2), warp).reshape(-1, 2)
-    ok, rvec, tvec = cv2.solvePnP(floor, moved, camera_matrix, None, flags=cv2.SOLVEPNP_IPPE)
+    ok, rvec, tvec = cv2.solvePnP(floor, moved_px, camera_matrix, None, flags=cv2.SOLVEPNP_IPPE)
     if not ok:
         return None
     return np.asarray(rvec, np.float64).reshape(3), np.asarray(tvec, np.float64).reshape(3)
