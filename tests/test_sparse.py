@@ -426,9 +426,54 @@ def test_damping_the_swings_settles_a_guess_sooner(pinhole_pair: Pair, edges: Ma
     for damp in (False, True):
         total = 0
         for px in (2.0, 3.0, 4.0):
-            result, why = _fit(pinhole_pair, edges, _guess_off_by(px), replace(known, damp_swings=damp))
+            # (the damping alone: without the RMS rule, which ends both at once on these noiseless frames)
+            settings = replace(known, damp_swings=damp, converged_rms_px=0.0)
+            result, why = _fit(pinhole_pair, edges, _guess_off_by(px), settings)
             assert result is not None, why
             assert _image_error_px(result.rvec, result.tvec) < 0.15
             total += result.iterations
         iterations[damp] = total
     assert iterations[True] < iterations[False]
+
+
+def test_a_fit_whose_step_is_small_on_average_stops_there(
+    pinhole_pair: Pair, edges: MapEdges, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The known-partner fit as the chain runs it stops once a step moved the samples by less than
+    ``converged_rms_px`` RMS, before its largest move falls below ``converged_px`` (on a camera's noise, 2 levels,
+    the largest of a few hundred samples' moves is several times their RMS): fewer steps from guesses 2-4 px off,
+    each pose as close to the true one; without the RMS rule it runs on."""
+    rng = np.random.default_rng(7)
+
+    def noisy(img: U8) -> U8:
+        return np.clip(img + rng.normal(0.0, 2.0, img.shape), 0, 255).round().astype(np.uint8)
+
+    pinhole_pair = Pair(noisy(pinhole_pair.image), noisy(pinhole_pair.other), pinhole_pair.camera)
+    known, joint = sparsechain.chain_settings(SIZE[0])
+    assert known.converged_rms_px > 0.0
+    assert joint.converged_rms_px == 0.0
+    steps = {}
+    for rms_px in (0.0, known.converged_rms_px):
+        total = 0
+        for px in (2.0, 3.0, 4.0):
+            result, why, n = _iterations_of(
+                monkeypatch, pinhole_pair, edges, _guess_off_by(px), replace(known, converged_rms_px=rms_px)
+            )
+            assert result is not None, why
+            assert _image_error_px(result.rvec, result.tvec) < 0.15
+            mm, _ = _errors(result.rvec, result.tvec)
+            assert mm < 1.0
+            total += n
+        steps[rms_px] = total
+    assert steps[known.converged_rms_px] < steps[0.0]
+
+
+def test_the_rms_rule_never_ends_a_fit_whose_largest_move_is_unsettled() -> None:
+    s = SparseSettings(converged_rms_px=0.1, settled_px=0.6)
+    small = np.full(100, 0.01)
+    assert sparse.settled(small, 0.01, s)
+    spike = small.copy()
+    spike[0] = 0.7  # RMS 0.07 px, but one sample moved beyond the settled mark
+    assert not sparse.settled(spike, 0.7, s)
+    assert not sparse.settled(np.full(100, 0.2), 0.2, s)
+    assert not sparse.settled(small, 0.01, SparseSettings())  # off by default

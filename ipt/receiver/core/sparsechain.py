@@ -294,6 +294,8 @@ def chain_settings(
     joint_half_until_px: float = 0.0,
     known_sigma_px: float = 3.0,
     known_iterations: int = 5,
+    known_converged_rms_px: float = 0.1,
+    joint_converged_rms_px: float = 0.0,
 ) -> tuple[SparseSettings, SparseSettings]:
     """The fits' settings for a camera ``width_px`` wide (pixel figures are stated at 640): with a partner whose
     pose is known (held near it by ``known_sigma_px``, refused if moved by more than 1.5 times that), and for a
@@ -303,7 +305,9 @@ def chain_settings(
     its error passed on to the next frame along the chain (dark-scene's sparse MAE 2.68 / 2.05 / 0.73 mm
     against the dense tracker's 2.08 / 1.52 / 0.49; 3 px and 5 iterations: 2.16 / 1.75 / 0.62). The known-partner
     fits damp their swinging steps (:attr:`~ipt.receiver.core.sparse.SparseSettings.damp_swings`; the joint fits
-    do not: damped too, two-projectors uncalibrated gave a pose 115 mm off)."""
+    do not: damped too, two-projectors uncalibrated gave a pose 115 mm off). The known-partner fits also stop once
+    a step moved the samples by less than ``known_converged_rms_px`` RMS (stop 44: shadow-vibration's known fits
+    4.71 -> 3.77 iterations, the same yield and MAE within 0.02 mm)."""
     s = base if base is not None else SparseSettings(esm_partner=esm_partner)
     scale = width_px / 640
     known = replace(
@@ -313,6 +317,7 @@ def chain_settings(
         other_sigma_px=known_sigma_px * scale,
         max_partner_px=1.5 * known_sigma_px * scale,
         iterations=known_iterations,
+        converged_rms_px=known_converged_rms_px,
         damp_swings=True,
     )
     ratio = known.blur_px / SparseSettings.blur_px
@@ -322,6 +327,7 @@ def chain_settings(
         max_partner_px=3.0 * partner_sigma_px * scale,
         iterations=joint_iterations,
         settled_px=joint_settled_px,
+        converged_rms_px=joint_converged_rms_px,
         coarse_iterations=joint_coarse,
         radius_px=round(joint_radius_px * ratio),
         half_until_px=joint_half_until_px * ratio,
