@@ -38,3 +38,28 @@ def test_a_known_partner_s_pose_off_by_pixels_is_not_passed_on(noisy_pair: Pair,
     )
     assert result is not None, why
     assert _image_error_px(result.rvec, result.tvec) < 0.3
+
+
+def test_pixel_marks_scale_with_the_cameras_width() -> None:
+    """A 1280-wide camera sees the same floor in twice the pixels: every pixel figure of both fits doubles (the
+    blur, the profiles' reach, the priors and the marks of convergence, settling and giving up), so that a fit
+    is not held to marks twice as strict as at 640 (the suite's 1280x720 flight, measured at stop 44: 434 of 960
+    frames posed by the chain with the marks unscaled, the rest the dense way at four times a 640 frame's cost)."""
+    marks = (
+        "blur_px",
+        "border_px",
+        "other_sigma_px",
+        "max_partner_px",
+        "radius_px",
+        "fine_radius_px",
+        "converged_px",
+        "converged_rms_px",
+        "settled_px",
+        "give_up_px",
+    )
+    for narrow, wide in zip(chain_settings(640), chain_settings(1280), strict=True):
+        for mark in marks:
+            assert getattr(wide, mark) == pytest.approx(2 * getattr(narrow, mark)), mark
+        assert wide.iterations == narrow.iterations
+        assert wide.max_samples == narrow.max_samples
+    assert chain_settings(1280)[1].coarse_smooth_px == pytest.approx(2 * chain_settings(640)[1].coarse_smooth_px)

@@ -297,8 +297,9 @@ def chain_settings(
     known_converged_rms_px: float = 0.15,
     joint_converged_rms_px: float = 0.0,
 ) -> tuple[SparseSettings, SparseSettings]:
-    """The fits' settings for a camera ``width_px`` wide (pixel figures are stated at 640): with a partner whose
-    pose is known (held near it by ``known_sigma_px``, refused if moved by more than 1.5 times that), and for a
+    """The fits' settings for a camera ``width_px`` wide (pixel figures are stated at 640 and scale with the width:
+    the blur, the profiles' reach, the priors, and the marks of convergence, settling and giving up): with a partner
+    whose pose is known (held near it by ``known_sigma_px``, refused if moved by more than 1.5 times that), and for a
     joint fit (the partner only predicted, held near it by ``partner_sigma_px``). The defaults are the
     prototype's best measured chain (docs/receiver-cores.md, rounds two and three), with the known partner
     held looser than the prototype's 1 px and 3 iterations: a partner's pose is a fit too, and held at 1 px
@@ -318,7 +319,12 @@ def chain_settings(
         other_sigma_px=known_sigma_px * scale,
         max_partner_px=1.5 * known_sigma_px * scale,
         iterations=known_iterations,
-        converged_rms_px=known_converged_rms_px,
+        radius_px=round(s.radius_px * scale),
+        fine_radius_px=round(s.fine_radius_px * scale),
+        converged_px=s.converged_px * scale,
+        converged_rms_px=known_converged_rms_px * scale,
+        settled_px=s.settled_px * scale,
+        give_up_px=s.give_up_px * scale,
         damp_swings=True,
     )
     ratio = known.blur_px / SparseSettings.blur_px
@@ -327,8 +333,8 @@ def chain_settings(
         other_sigma_px=partner_sigma_px * scale,
         max_partner_px=3.0 * partner_sigma_px * scale,
         iterations=joint_iterations,
-        settled_px=joint_settled_px,
-        converged_rms_px=joint_converged_rms_px,
+        settled_px=joint_settled_px * scale,
+        converged_rms_px=joint_converged_rms_px * scale,
         coarse_iterations=joint_coarse,
         radius_px=round(joint_radius_px * ratio),
         half_until_px=joint_half_until_px * ratio,
