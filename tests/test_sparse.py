@@ -477,3 +477,22 @@ def test_the_rms_rule_never_ends_a_fit_whose_largest_move_is_unsettled() -> None
     assert not sparse.settled(spike, 0.7, s)
     assert not sparse.settled(np.full(100, 0.2), 0.2, s)
     assert not sparse.settled(small, 0.01, SparseSettings())  # off by default
+
+
+def test_a_fit_that_sees_fewer_tags_carries_a_larger_covariance(pinhole_pair: Pair, edges: MapEdges) -> None:
+    """The same pair fitted on every tag in view and on the three nearest the view's middle alone: fewer edge
+    samples constrain the pose less, and the pose's standard deviation says so (both fits still near the truth)."""
+    known, _ = sparsechain.chain_settings(SIZE[0])
+    nearest = np.argsort(np.linalg.norm(edges.tag_centres_m[:, :2] - POSITION_M[:2], axis=1))[:3]
+    mask = np.isin(edges.tag, nearest)
+    few = replace(edges, points_m=edges.points_m[mask], normals_m=edges.normals_m[mask], step=edges.step[mask])
+    few = replace(few, tag=edges.tag[mask])
+    stds = []
+    for which in (edges, few):
+        result, why = _fit(pinhole_pair, which, _guess_off_by(1.0), known)
+        assert result is not None, why
+        assert _image_error_px(result.rvec, result.tvec) < 0.3
+        stds.append(float(np.linalg.norm(result.estimate().position_std_m)))
+        tags = len(result.tags)
+    assert tags == 3
+    assert stds[1] > 1.5 * stds[0]
