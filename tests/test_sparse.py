@@ -471,12 +471,12 @@ def test_a_fit_whose_step_is_small_on_average_stops_there(
 def test_the_rms_rule_never_ends_a_fit_whose_largest_move_is_unsettled() -> None:
     s = SparseSettings(converged_rms_px=0.1, settled_px=0.6)
     small = np.full(100, 0.01)
-    assert sparse.settled(small, 0.01, s)
+    assert sparse.converged_by_rms(small, 0.01, s)
     spike = small.copy()
     spike[0] = 0.7  # RMS 0.07 px, but one sample moved beyond the settled mark
-    assert not sparse.settled(spike, 0.7, s)
-    assert not sparse.settled(np.full(100, 0.2), 0.2, s)
-    assert not sparse.settled(small, 0.01, SparseSettings())  # off by default
+    assert not sparse.converged_by_rms(spike, 0.7, s)
+    assert not sparse.converged_by_rms(np.full(100, 0.2), 0.2, s)
+    assert not sparse.converged_by_rms(small, 0.01, SparseSettings())  # off by default
 
 
 def test_a_fit_that_sees_fewer_tags_carries_a_larger_covariance(pinhole_pair: Pair, edges: MapEdges) -> None:

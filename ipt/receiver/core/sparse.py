@@ -371,7 +371,8 @@ def fit_sparse(
         if s.damp_swings:
             sol = damped(sol, push, last_push, idx, keep)
         _update(st, sol)
-        if not coarse and len(active) == len(every) and (moved < s.converged_px or settled(push[keep], moved, s)):
+        done = moved < s.converged_px or converged_by_rms(push[keep], moved, s)
+        if not coarse and len(active) == len(every) and done:
             break
         large = large + 1 if moved > s.give_up_px > 0 else 0
         if large >= s.give_up_steps and it + 1 >= s.give_up_from and it + 1 < s.iterations:
@@ -381,7 +382,7 @@ def fit_sparse(
     return _finish(st, edges, chosen, idx, keep, rms, normal, moved, it, a_rows[:, 6:12], s)
 
 
-def settled(push: F64, moved: float, s: SparseSettings) -> bool:
+def converged_by_rms(push: F64, moved: float, s: SparseSettings) -> bool:
     """Whether a step that moved the kept samples by ``push`` (pixels; ``moved`` the largest) ends the fit by its
     RMS (:attr:`SparseSettings.converged_rms_px`)."""
     if s.converged_rms_px <= 0.0 or moved > s.settled_px:
