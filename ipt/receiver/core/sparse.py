@@ -367,12 +367,13 @@ def fit_sparse(
             keep = rms < s.outlier_factor * max(fast_median(rms[keep]), 0.5)
         kept[idx] = keep
         push = a_rows[:, :6] @ sol[_THIS]
-        moved = float(np.abs(push[keep]).max())
+        kept_push = push[keep]
+        moved = float(np.abs(kept_push).max())
         if s.damp_swings:
             sol = damped(sol, push, last_push, idx, keep)
         _update(st, sol)
-        done = moved < s.converged_px or converged_by_rms(push[keep], moved, s)
-        if not coarse and len(active) == len(every) and done:
+        may_end = not coarse and len(active) == len(every)
+        if may_end and (moved < s.converged_px or converged_by_rms(kept_push, moved, s)):
             break
         large = large + 1 if moved > s.give_up_px > 0 else 0
         if large >= s.give_up_steps and it + 1 >= s.give_up_from and it + 1 < s.iterations:
