@@ -1,5 +1,5 @@
 """Without a track, AprilTag rests on views mostly in the drone's shadow (lit below ``SHADOWED_SHARE``): it is tried on
-one such frame in ``SEARCH_EVERY`` (with each of that frame's partners), and the pairs of the frames between are not
+one such frame in ``REST_EVERY`` (with each of that frame's partners), and the pairs of the frames between are not
 made. Once the view is lit again, AprilTag is tried on every frame and the pose is found at once."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import numpy as np
 from flightpipeline import flight_frames, flight_pipeline
 
 from ipt.config.models import PipelineConfig
-from ipt.receiver.core.acquire import SEARCH_EVERY
+from ipt.receiver.core.acquire import REST_EVERY
 from ipt.receiver.core.history import Frame
 from ipt.receiver.core.reasons import SHADOWED_SHARE
 
@@ -49,8 +49,8 @@ def test_apriltag_rests_on_shadowed_views_and_acquires_once_lit(short_flight: Pa
     assert shadowed
     assert all(lit < SHADOWED_SHARE for _, lit in shadowed)
     tried_frames = sorted({i for i, _ in shadowed})
-    assert all(b - a >= SEARCH_EVERY for a, b in itertools.pairwise(tried_frames))
-    assert len(tried_frames) <= SHADOWED // SEARCH_EVERY + 1
+    assert all(b - a >= REST_EVERY for a, b in itertools.pairwise(tried_frames))
+    assert len(tried_frames) <= SHADOWED // REST_EVERY + 1
     by_index = {r.index: r for r in results}
     assert all(by_index[i].pose is None and by_index[i].reason == "shadowed" for i in range(2, SHADOWED))
     lit_tries = sorted({i for i, _ in tried if i >= SHADOWED})
@@ -58,16 +58,17 @@ def test_apriltag_rests_on_shadowed_views_and_acquires_once_lit(short_flight: Pa
     assert any(by_index[i].pose is not None for i in range(SHADOWED, SHADOWED + 6))
 
 
-def test_a_lit_view_never_rests_and_a_shadowed_one_every_third(short_flight: Path) -> None:
+def test_a_lit_view_never_rests_and_a_shadowed_one_every_eighth(short_flight: Path) -> None:
     p = flight_pipeline(short_flight, PipelineConfig())
     p.close()
     acq = p.acquisition
     lit = Frame(5, 5 * 8_333, np.zeros((2, 2), np.uint8))
     lit.lit_share = SHADOWED_SHARE
     assert not acq.rests(lit)
-    dark = [Frame(i, i * 8_333, np.zeros((2, 2), np.uint8)) for i in range(10)]
+    dark = [Frame(i, i * 8_333, np.zeros((2, 2), np.uint8)) for i in range(18)]
     for f in dark:
         f.lit_share = SHADOWED_SHARE / 2
     rested = [acq.rests(f) for f in dark]
-    assert rested == [False, True, True, False, True, True, False, True, True, False]
-    assert not acq.rests(dark[9])  # the frame tried is tried with each of its partners
+    assert REST_EVERY == 8
+    assert [i for i, r in enumerate(rested) if not r] == [0, 8, 16]
+    assert not acq.rests(dark[16])  # the frame tried is tried with each of its partners

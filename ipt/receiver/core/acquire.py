@@ -28,6 +28,11 @@ F64 = npt.NDArray[np.float64]
 
 #: While no pose and no whole tag is found, the map is searched on one pair every this many frames.
 SEARCH_EVERY = 3
+#: A frame without a track whose view is mostly unlit is tried (its pairs, AprilTag) only every this many frames
+#: (:meth:`Acquisition.rests`): 15 tries a second at 120 FPS. (Every :data:`SEARCH_EVERY`-th before stop 45: no try on
+#: such a view has ever found a pose, and the frames between cost a third of a tried one; the take-offs' poses are
+#: the same to the digit with 3, 8, 12 or 16, held-out low-fast-big-shadow's too.)
+REST_EVERY = 8
 
 
 class TrackStages(Protocol):
@@ -68,7 +73,7 @@ class Acquisition:
         self.map_search: MapSearch | None = None
         """The search of the whole map for a view without a whole tag (built at its first use)."""
         self.searched_at = -SEARCH_EVERY
-        self.shadowed_at = -SEARCH_EVERY
+        self.shadowed_at = -REST_EVERY
         """The last frame AprilTag was tried on while most of its view was unlit (:meth:`rests`)."""
 
     def acquire(self, target: Frame, other: Frame, diff: PairDifference) -> Candidate | None:
@@ -96,14 +101,14 @@ class Acquisition:
     def rests(self, target: Frame) -> bool:
         """Whether AprilTag skips ``target``, a frame without a track to follow (its pair is then not made either):
         most of its view is unlit (:data:`~ipt.receiver.core.reasons.SHADOWED_SHARE`: the drone's shadow on the
-        ground and early in the climb) and it is less than :data:`SEARCH_EVERY` frames after the last such frame
+        ground and early in the climb) and it is less than :data:`REST_EVERY` frames after the last such frame
         tried (whose every pair is tried); the scales' cycle moves on over it as over a frame tried, so the frames
         after meet the scales they would have. Of 2 106 AprilTag attempts on views lit below 40 % (takeoff-open-floor
         1 263, takeoff 835, the held-out low-fast-big-shadow 8; stop 43) none found a pose, at a pair's alignment and
         difference and two AprilTag runs each: a shadowed frame of takeoff-open-floor cost 15 ms, a posed one 7 ms."""
         if target.lit_share >= SHADOWED_SHARE:
             return False
-        if target.index != self.shadowed_at and target.index - self.shadowed_at < SEARCH_EVERY:
+        if target.index != self.shadowed_at and target.index - self.shadowed_at < REST_EVERY:
             self.stages.scales.to_try(target.index)  # its turn of the scales goes by, as if tried
             return True
         self.shadowed_at = target.index
