@@ -93,12 +93,6 @@ LOST_AFTER_US = 50_000
 MIN_COARSE_SCORE = 0.1
 #: ... and while the track fails from its guesses, once the newest pose is older than this.
 SEARCH_AFTER_US = 20_000
-#: AprilTag checks the first this many tracked frames after pairing starts afresh (a gap in capture), and every track
-#: started from the motion's prediction further than :data:`STALE_GUESS_US` past the newest pose: a guess a tag cell
-#: off fits the periodic map well, and the gates have no recent motion to hold it against (live, one core: after the
-#: camera's queue dropped frames, poses 53-134 mm off went out in 4 of 15 runs of shadow-vibration's start).
-CHECKED_AFTER_RESTART = 3
-STALE_GUESS_US = 25_000
 
 
 @dataclass(frozen=True)
@@ -153,8 +147,6 @@ class Pipeline:
         self.scales = ScaleChooser(tag_map, camera.fx_px, min(size), base)
         """Filter and decimation sizes for AprilTag, from the height the camera was last seen at."""
         self.lookahead = demod.lookahead_frames if self.ipt else 0
-        self._checks_left = CHECKED_AFTER_RESTART
-        """Tracked frames AprilTag still checks since pairing started afresh."""
         self._pending: deque[Frame] = deque()
         self._pairs: dict[tuple[int, int], Pair | None] = {}
         self.gates = PoseGates(cfg.pose)
@@ -311,7 +303,6 @@ class Pipeline:
         self.scales.forget()
         if self.sparse is not None:
             self.sparse.reset(True)
-        self._checks_left = CHECKED_AFTER_RESTART
 
     def _emit(self) -> list[FrameResult]:
         out = []
@@ -480,9 +471,7 @@ class Pipeline:
             t0 = self.lap("track", t0)
             if tracked is None:
                 reason = FrameReason.LOST
-            elif self._unsure(target, guess) or (
-                self.cfg.pose.track.verify_every and self.acquisition.since_verify >= self.cfg.pose.track.verify_every
-            ):
+            elif self.cfg.pose.track.verify_every and self.acquisition.since_verify >= self.cfg.pose.track.verify_every:
                 if not self.acquisition.verified(tracked, diff, t0):
                     tracked, reason = None, FrameReason.TRACK_DISAGREES
                 t0 = time.thread_time()
@@ -509,18 +498,6 @@ class Pipeline:
             return
         self.lap("pose", t0)
         self.add_candidate(target, candidate)
-
-    def _unsure(self, target: Frame, guess: Guess) -> bool:
-        """Whether AprilTag checks ``target``'s track now (:data:`CHECKED_AFTER_RESTART`, :data:`STALE_GUESS_US`)."""
-        if not self.cfg.pose.track.verify_every:
-            return False
-        if self._checks_left > 0:
-            self._checks_left -= 1
-            return True
-        if guess[1]:  # carried from the partner's pose
-            return False
-        newest = max((f.time_us for f in self.history if f.best is not None and f is not target), default=None)
-        return newest is None or target.time_us - newest > STALE_GUESS_US
 
     def _rests(self, target: Frame, other: Frame) -> bool:
         """Whether ``target``'s pair with ``other`` is left unmade: only AprilTag could use it (no partner's pose, no
