@@ -485,8 +485,13 @@ def test_a_fit_that_sees_fewer_tags_carries_a_larger_covariance(pinhole_pair: Pa
     known, _ = sparsechain.chain_settings(SIZE[0])
     nearest = np.argsort(np.linalg.norm(edges.tag_centres_m[:, :2] - POSITION_M[:2], axis=1))[:3]
     mask = np.isin(edges.tag, nearest)
-    few = replace(edges, points_m=edges.points_m[mask], normals_m=edges.normals_m[mask], step=edges.step[mask])
-    few = replace(few, tag=edges.tag[mask])
+    few = replace(
+        edges,
+        points_m=edges.points_m[mask],
+        normals_m=edges.normals_m[mask],
+        step=edges.step[mask],
+        tag=edges.tag[mask],
+    )
     stds = []
     for which in (edges, few):
         result, why = _fit(pinhole_pair, which, _guess_off_by(1.0), known)
