@@ -80,6 +80,12 @@ class Acquisition:
         self.shadowed_at = -REST_EVERY
         """The last frame AprilTag was tried on while most of its view was unlit (:meth:`rests`)."""
 
+    def prepare(self) -> MapSearch:
+        """The map search, its tables built now if not yet (44 ms here): a live daemon builds them before its first
+        frame (:func:`~ipt.receiver.daemon.warm_pipeline`), where the first search would otherwise wait for them."""
+        self.map_search = self.map_search or MapSearch.of(self.tag_map)
+        return self.map_search
+
     def acquire(self, target: Frame, other: Frame, diff: PairDifference) -> Candidate | None:
         """AprilTag on the pair's difference, then (tracking) the map's edges from its pose; None: no pose."""
         first = self.stages.history.predicted_phase(target) or 1
@@ -130,7 +136,7 @@ class Acquisition:
         if self.stages.history.phase_error(target.time_us - other.time_us) > FALLBACK_PHASE_ERROR:
             return None  # a fallback pair: the search waits for one a whole number of projector periods apart
         self.searched_at = target.index
-        map_search = self.map_search = self.map_search or MapSearch.of(self.tag_map)
+        map_search = self.prepare()
         lit = diff.valid if target.signal is None else np.minimum(diff.valid, target.signal)
         for h in map_search.search(diff.diff, lit, self.pinhole.camera_matrix):
             try:  # (a search around the start, not _coarse's: that one lays a level guess's view wrong by a tag)
