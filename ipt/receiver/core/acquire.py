@@ -33,10 +33,6 @@ SEARCH_EVERY = 3
 #: such a view has ever found a pose, and the frames between cost a third of a tried one; the take-offs' poses are
 #: the same to the digit with 3, 8, 12 or 16, held-out low-fast-big-shadow's too.)
 REST_EVERY = 8
-#: A pair further than this (projector periods) from an odd number of periods apart is a fallback (half a period: one
-#: camera frame at 120 FPS, of the same phase half of the time): AprilTag tries it, the map search does not (a live
-#: camera's first frames after a gap often have only that pair, and each search there cost 40 ms and found nothing).
-FALLBACK_PHASE_ERROR = 0.25
 
 
 class TrackStages(Protocol):
@@ -79,12 +75,6 @@ class Acquisition:
         self.searched_at = -SEARCH_EVERY
         self.shadowed_at = -REST_EVERY
         """The last frame AprilTag was tried on while most of its view was unlit (:meth:`rests`)."""
-
-    def prepare(self) -> MapSearch:
-        """The map search, its tables built now if not yet (44 ms here): a live daemon builds them before its first
-        frame (:func:`~ipt.receiver.daemon.warm_pipeline`), where the first search would otherwise wait for them."""
-        self.map_search = self.map_search or MapSearch.of(self.tag_map)
-        return self.map_search
 
     def acquire(self, target: Frame, other: Frame, diff: PairDifference) -> Candidate | None:
         """AprilTag on the pair's difference, then (tracking) the map's edges from its pose; None: no pose."""
@@ -130,15 +120,13 @@ class Acquisition:
         whose view is mostly unlit (:data:`~ipt.receiver.core.reasons.SHADOWED_SHARE`: the drone's shadow at
         take-off): the map cannot be laid on it, and a search costs 50-60 ms here (on the suite's take-offs
         109 of 126 and 63 of 82 searches were on views lit below 30 %, none found a pose; the four that did, on
-        any flight, had 37-49 % lit). Nor on a fallback pair (:data:`FALLBACK_PHASE_ERROR`)."""
+        any flight, had 37-49 % lit)."""
         if target.index - self.searched_at < SEARCH_EVERY or target.lit_share < SHADOWED_SHARE:
             return None
-        if self.stages.history.phase_error(target.time_us - other.time_us) > FALLBACK_PHASE_ERROR:
-            return None  # a fallback pair: the search waits for one a whole number of projector periods apart
         self.searched_at = target.index
-        map_search = self.prepare()
+        self.map_search = self.map_search or MapSearch.of(self.tag_map)
         lit = diff.valid if target.signal is None else np.minimum(diff.valid, target.signal)
-        for h in map_search.search(diff.diff, lit, self.pinhole.camera_matrix):
+        for h in self.map_search.search(diff.diff, lit, self.pinhole.camera_matrix):
             try:  # (a search around the start, not _coarse's: that one lays a level guess's view wrong by a tag)
                 tracked = self.stages.track_from(diff, (h.rvec, h.tvec), target.signal, h.search_px)
             except np.linalg.LinAlgError:  # a wrong placement's samples may all run one way
