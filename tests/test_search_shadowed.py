@@ -1,6 +1,7 @@
 """The search of the whole map (``Acquisition.search_map``) is not run on a view mostly in the drone's shadow (lit below
 ``SHADOWED_SHARE``): it cannot lay the map there, and it costs 50-60 ms a search. Such a frame does not use up the
-search's turn either: the next lit frame is searched at once."""
+search's turn either: the next lit frame is searched at once. A placement whose track fits little of the map is not
+taken."""
 
 from __future__ import annotations
 
@@ -12,10 +13,14 @@ import pytest
 from flightpipeline import flight_pipeline
 
 from ipt.config.models import PipelineConfig
+from ipt.receiver.core.acquire import MIN_SEARCH_FIT
 from ipt.receiver.core.demodulator import PairDifference
 from ipt.receiver.core.history import Frame
+from ipt.receiver.core.mapsearch import MapSearch
 from ipt.receiver.core.pipeline import Pipeline
 from ipt.receiver.core.reasons import SHADOWED_SHARE
+from ipt.receiver.core.track import TrackResult
+from ipt.videoio import open_frames
 
 
 @pytest.fixture(scope="module")
@@ -45,3 +50,49 @@ def test_a_shadowed_view_is_not_searched_and_keeps_the_turn(pipeline: Pipeline) 
     acq.search_map(_frame(pipeline, 11, 0.9), _frame(pipeline, 10, 1.0), diff)
     assert acq.searched_at == 11
     assert acq.map_search is not None
+
+
+def _placed(inliers: int, tried: int) -> TrackResult:
+    """The track from a placement of the search, fitting ``inliers`` of ``tried`` of the map's visible edges."""
+    rvec, tvec = np.array([np.pi, 0.0, 0.0]), np.array([-1.0, 1.0, 0.8])
+    return TrackResult(rvec, tvec, inliers, tried, 0.5, (1, 2, 3), np.eye(6) * 1e-8, sign=1)
+
+
+@pytest.mark.parametrize(("inliers", "taken"), [(300, False), (700, True)])
+def test_a_placement_whose_track_fits_little_of_the_map_is_not_taken(
+    short_flight: Path, monkeypatch: pytest.MonkeyPatch, inliers: int, taken: bool
+) -> None:
+    """A placement a tag or more off can fit part of the periodic map (the wrong ones seen fitted 0.34-0.49 of the
+    edges, every right one 0.66 or more): below ``MIN_SEARCH_FIT`` the search does not take it, and tries the next.
+    On a real pair of the short flight (frames 0 and 2, a projector period apart), the track from each placement
+    replaced by one that fits ``inliers`` of 1000 edge samples."""
+    p = flight_pipeline(short_flight, PipelineConfig())
+    try:
+        with open_frames(short_flight / "frames.mkv") as src:
+            for k, frame in zip(range(3), src, strict=False):
+                p.process(k, frame, round(k * 1e6 / 120))
+        first, _, third = list(p.history)[:3]
+        pair = p.pair(first, third)
+        assert pair is not None
+        diff = p.difference_in(pair, True)
+        placements = len(list(MapSearch.of(p.tag_map).search(diff.diff, diff.valid, p.pinhole.camera_matrix)))
+        assert placements > 0
+        tried: list[int] = []
+
+        def track_from(*args: object, **kwargs: object) -> TrackResult:
+            tried.append(1)
+            return _placed(inliers, 1000)
+
+        monkeypatch.setattr(p, "track_from", track_from)
+        assert (inliers / 1000 >= MIN_SEARCH_FIT) == taken
+        p.acquisition.searched_at = -100
+        got = p.acquisition.search_map(third, first, diff)
+    finally:
+        p.close()
+    if taken:
+        assert got is not None
+        assert got.quality == pytest.approx(inliers / 1000)
+        assert len(tried) == 1  # the first placement is taken
+    else:
+        assert got is None
+        assert len(tried) == placements  # every placement was tried, none taken
