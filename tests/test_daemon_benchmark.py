@@ -3,20 +3,13 @@ start-up's poses (acquisition, the chain's first restarts while a one-core pipel
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 from types import ModuleType
 
-DAEMON = Path(__file__).resolve().parent.parent / "benchmarks" / "daemon.py"
+from benchmodule import load_benchmark
 
 
 def _bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("daemon_bench", DAEMON)
-    assert spec is not None
-    assert spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("daemon")
 
 
 def test_the_latency_is_split_one_second_after_the_first_pose() -> None:

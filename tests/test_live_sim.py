@@ -4,7 +4,6 @@ poses come out late; the command refuses a folder that is not a rendered flight 
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 import sys
 from pathlib import Path
@@ -12,28 +11,22 @@ from types import ModuleType
 
 import numpy as np
 import pytest
-from flightpipeline import flight_pipeline
+from benchmodule import BENCHMARKS, load_benchmark
+from flightpipeline import flight_frames, flight_pipeline
 
 from ipt.config.models import PipelineConfig
-from ipt.videoio import open_frames
 
-LIVE_SIM = Path(__file__).resolve().parent.parent / "benchmarks" / "live_sim.py"
+LIVE_SIM = BENCHMARKS / "live_sim.py"
 FPS = 120.0
 
 
 def _bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("live_sim_bench", LIVE_SIM)
-    assert spec is not None
-    assert spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("live_sim")
 
 
 @pytest.fixture(scope="module")
 def frames(short_flight: Path) -> list[np.ndarray]:
-    with open_frames(short_flight / "frames.mkv") as src:
-        return list(src)
+    return flight_frames(short_flight)
 
 
 def test_an_instant_worker_takes_every_frame_and_poses_as_a_replay(
