@@ -18,7 +18,9 @@ What the pipeline does depends only on the frames it is given, so a slower compu
 the daemon's event loop and thread hand-offs and the UDP send (a few tenths of a millisecond a frame here), the
 capture thread, a busy machine's other work. ``--slow 1`` on an idle core gives figures close to
 ``benchmarks/daemon.py --modes camera``'s (which runs the real daemon, with its noise) and is deterministic in its
-policy, so two rounds differ only by the measured times.
+policy, so two rounds differ only by the measured times. ``benchmarks/slow_receiver.py`` replays the same rule with a
+fixed cost per frame (k camera frame times each, no clock: the same figures on any machine); here each frame costs
+what it cost, so an acquisition's or a restart's extra cost, the catching up after it, and the latency are in.
 """
 
 from __future__ import annotations
