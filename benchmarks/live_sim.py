@@ -99,15 +99,15 @@ def live_round(pipeline: Pipeline, frames: list[Any], fps: float, slow: float) -
 
 
 def _figures(out: dict[int, tuple[float, FrameResult]], n: int, fps: float, truth: Trajectory) -> dict[str, Any]:
-    latency_ms, error_mm = [], []
+    posed, latency_ms, error_mm = [], [], []
     for k in sorted(out):
         at_s, r = out[k]
         if r.pose is None:
             continue
+        posed.append(k)
         latency_ms.append(1e3 * (at_s - k / fps))
         i = int(np.argmin(np.abs(truth.times_s - r.capture_time_us * 1e-6)))
         error_mm.append(1e3 * float(np.linalg.norm(truth.positions_m[i] - r.pose.position_m)))
-    posed = [k for k in sorted(out) if out[k][1].pose is not None]
     fig: dict[str, Any] = {"frames": n, "frames_processed": len(out), "poses": len(posed)}
     fig["poses_per_s"] = round(len(posed) * fps / n, 1)
     fig["first_pose_frame"] = posed[0] if posed else None
