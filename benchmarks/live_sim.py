@@ -66,7 +66,9 @@ def _pipeline(folder: Path) -> Pipeline:
     )
     setup = load_setup(cfg)
     detector = pipeline_detector(cfg.pipeline.detector, setup.tag_map.by_id)
-    return Pipeline(setup.tag_map, setup.camera, cfg.pipeline, setup.arena.projector.rate_hz, detector)
+    pipeline = Pipeline(setup.tag_map, setup.camera, cfg.pipeline, setup.arena.projector.rate_hz, detector)
+    pipeline.acquisition.live = True  # as the daemon sets it for a live camera
+    return pipeline
 
 
 def live_round(pipeline: Pipeline, frames: list[Any], fps: float, slow: float) -> dict[int, tuple[float, FrameResult]]:

@@ -1,7 +1,7 @@
 """The search of the whole map (``Acquisition.search_map``) is not run on a view mostly in the drone's shadow (lit below
 ``SHADOWED_SHARE``): it cannot lay the map there, and it costs 50-60 ms a search. Such a frame does not use up the
 search's turn either: the next lit frame is searched at once. A placement whose track fits little of the map is not
-taken."""
+taken. From a live camera a fallback pair (half a projector period apart) is not searched; a replay searches it."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import pytest
 from flightpipeline import flight_pipeline
 
 from ipt.config.models import PipelineConfig
-from ipt.receiver.core.acquire import MIN_SEARCH_FIT
+from ipt.receiver.core.acquire import FALLBACK_PHASE_ERROR, MIN_SEARCH_FIT
 from ipt.receiver.core.demodulator import PairDifference
 from ipt.receiver.core.history import Frame
 from ipt.receiver.core.mapsearch import MapSearch
@@ -50,6 +50,28 @@ def test_a_shadowed_view_is_not_searched_and_keeps_the_turn(pipeline: Pipeline) 
     acq.search_map(_frame(pipeline, 11, 0.9), _frame(pipeline, 10, 1.0), diff)
     assert acq.searched_at == 11
     assert acq.map_search is not None
+
+
+def test_a_live_cameras_fallback_pair_is_not_searched_and_keeps_the_turn(pipeline: Pipeline) -> None:
+    acq = pipeline.acquisition
+    h, w = pipeline.camera.height_px, pipeline.camera.width_px
+    noise = np.random.default_rng(1).normal(0.0, 1.0, (h, w)).astype(np.float32)
+    diff = PairDifference(noise, np.full((h, w), 255, np.uint8), 1.0, 0.0)
+    # One camera frame apart at 120 FPS: half a period of the 60 Hz projector; two: a whole one.
+    assert pipeline.history.phase_error(8_333) > FALLBACK_PHASE_ERROR > pipeline.history.phase_error(2 * 8_333)
+    acq.live, acq.searched_at = True, -100
+    try:
+        assert acq.search_map(_frame(pipeline, 21, 1.0), _frame(pipeline, 20, 1.0), diff) is None
+        assert acq.searched_at == -100
+        # The same frame with its partner a whole period before is searched (on noise: whatever it finds).
+        acq.search_map(_frame(pipeline, 21, 1.0), _frame(pipeline, 19, 1.0), diff)
+        assert acq.searched_at == 21
+    finally:
+        acq.live = False
+    # A replay searches the fallback pair.
+    acq.searched_at = -100
+    acq.search_map(_frame(pipeline, 31, 1.0), _frame(pipeline, 30, 1.0), diff)
+    assert acq.searched_at == 31
 
 
 def _placed(inliers: int, tried: int) -> TrackResult:

@@ -257,6 +257,7 @@ class _DaemonRun:
         if source is None:
             source = make_source(cfg, setup.arena, setup.camera, capture_stop)
         self.source = source
+        self.pipeline.acquisition.live = source.live  # (a live camera's fallback pairs are not searched)
 
         self.frames: FrameQueue[CapturedFrame] = FrameQueue(LIVE_RUN_FRAMES if source.live else cfg.queue_size)
         max_frames = options.max_frames

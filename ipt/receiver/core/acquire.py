@@ -39,6 +39,10 @@ REST_EVERY = 8
 #: held-out flights' replays, and shadow-vibration and fast modelled live at 1.5x and 3.5x this machine's time, where
 #: such poses went out).
 MIN_SEARCH_FIT = 0.6
+#: A pair further than this (projector periods) from an odd number of periods apart is a fallback one (half a period:
+#: one camera frame at 120 FPS, of the same phase half of the time). From a live camera the whole-map search skips it
+#: (:attr:`Acquisition.live`).
+FALLBACK_PHASE_ERROR = 0.25
 
 
 class TrackStages(Protocol):
@@ -81,6 +85,12 @@ class Acquisition:
         self.searched_at = -SEARCH_EVERY
         self.shadowed_at = -REST_EVERY
         """The last frame AprilTag was tried on while most of its view was unlit (:meth:`rests`)."""
+        self.live = False
+        """The frames come from a live camera (the daemon sets it): the map search is not run on a fallback pair.
+        After frames were dropped the worker takes the newest few; the middle one's only partner is then its
+        neighbour, half a projector period away, where AprilTag and a 40 ms search found nothing (traced live), and
+        the next frame's pair, a whole period apart, comes 8 ms later. A replay keeps it (its first search is on
+        frames 0 and 1, and finds the pose there: moving-content, rolling, two-projectors lost frames without it)."""
 
     def acquire(self, target: Frame, other: Frame, diff: PairDifference) -> Candidate | None:
         """AprilTag on the pair's difference, then (tracking) the map's edges from its pose; None: no pose."""
@@ -127,9 +137,11 @@ class Acquisition:
         take-off): the map cannot be laid on it, and a search costs 50-60 ms here (on the suite's take-offs
         109 of 126 and 63 of 82 searches were on views lit below 30 %, none found a pose; the four that did, on
         any flight, had 37-49 % lit). A placement whose track fits less than :data:`MIN_SEARCH_FIT` of the map's
-        visible edges is not taken (the next is tried)."""
+        visible edges is not taken (the next is tried). From a live camera, not on a fallback pair (:attr:`live`)."""
         if target.index - self.searched_at < SEARCH_EVERY or target.lit_share < SHADOWED_SHARE:
             return None
+        if self.live and self.stages.history.phase_error(target.time_us - other.time_us) > FALLBACK_PHASE_ERROR:
+            return None  # the next pair, a whole number of periods apart, is searched instead
         self.searched_at = target.index
         self.map_search = self.map_search or MapSearch.of(self.tag_map)
         lit = diff.valid if target.signal is None else np.minimum(diff.valid, target.signal)
