@@ -88,3 +88,18 @@ def test_held_back_poses_that_agree_in_a_row_weigh_in_full() -> None:
     that disagree with each other (fits gone astray, 11 cm off and 6 cm off in turn) still weigh little."""
     assert _followed(12, [0.11] * 4) > 0.05
     assert abs(_followed(12, [0.11, 0.05, 0.11, 0.05])) < 0.02
+
+
+def test_before_the_motion_is_confirmed_a_jump_from_the_pose_just_out_is_held_back() -> None:
+    """After a gap of dropped frames (few poses out lately) a right pose goes out, and one camera frame later a fit
+    60 mm from it (a dense track locked off on the periodic map: 53-73 mm off behind live, stop 47) is held back by the
+    speed gate until another agrees; 15 mm from it (a hard flight's spread) goes out. Once the motion is confirmed
+    the gate allows its 5 cm again (the consistency gate, off here, judges such poses then)."""
+    gates = PoseGates(PoseConfig())
+    assert gates.judge(0, 0, _pose(0.0), 3, "track", 2).reason == FrameReason.POSE
+    assert gates.judge(1, PERIOD_US, _pose(0.06), 3, "track", 2).reason == FrameReason.MOTION_JUMP
+    assert gates.judge(2, 2 * PERIOD_US, _pose(0.015), 3, "track", 0).reason == FrameReason.POSE
+    confirmed = PoseGates(PoseConfig(max_prediction_error_m=None))
+    for k in range(12):
+        assert confirmed.judge(k, k * PERIOD_US, _pose(0.0), 3, "sparse", k - 1).reason == FrameReason.POSE
+    assert confirmed.judge(12, 12 * PERIOD_US, _pose(0.06), 3, "track", 11).reason == FrameReason.POSE

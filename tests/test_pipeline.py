@@ -193,7 +193,7 @@ def test_motion_gate_rejects_a_jump_then_reinitialises(short_flight: Path) -> No
 
 def test_consistency_gate_rejects_a_pose_off_the_recent_motion(short_flight: Path) -> None:
     # Moving at 0.6 m/s (5 mm per 8.3 ms frame); frame 8 is 25 mm off the line (within the speed gate's
-    # 5 cm + 3 m/s, so only the consistency gate can catch it).
+    # 5 cm + 3 m/s once the motion is confirmed, so only the consistency gate can catch it).
     xs = [0.005 * k for k in range(12)]
     xs[8] += 0.025
     reasons = [r.reason for r in _gate(flight_pipeline(short_flight, PipelineConfig()), xs)]

@@ -223,7 +223,8 @@ class PoseConfig(StrictModel):
         3.0,
         gt=0,
         description="Motion gate: a pose farther from the last accepted one (within the last 0.25 s) than "
-        "this speed allows, plus 5 cm, is rejected as doubtful. None turns the gate off.",
+        "this speed allows, plus 5 cm (2.5 cm until 8 poses went out in that time: the start, after a gap), is "
+        "rejected as doubtful. None turns the gate off.",
     )
     max_prediction_error_m: float | None = Field(
         0.015,
