@@ -88,7 +88,7 @@ class Acquisition:
         self.live = False
         """The frames come from a live camera (the daemon sets it): the map search is not run on a fallback pair.
         After frames were dropped the worker takes the newest few; the middle one's only partner is then its
-        neighbour, half a projector period away, where AprilTag and a 40 ms search found nothing (traced live), and
+        neighbour, half a projector period away, where AprilTag and a 31-48 ms search found nothing (traced live), and
         the next frame's pair, a whole period apart, comes 8 ms later. A replay keeps it (its first search is on
         frames 0 and 1, and finds the pose there: moving-content, rolling, two-projectors lost frames without it)."""
 

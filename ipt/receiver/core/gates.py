@@ -27,12 +27,14 @@ ROLLING_GATE_SIGMAS = 3.0
 #: A pose held back as inconsistent with a confirmed motion joins the gates' motion with a standard deviation of at
 #: least its distance from the prediction over this.
 HELD_SIGMAS = 3.0
+#: The speed gate allows this much (m) beyond ``max_speed_mps`` times the time since the nearest pose out ...
+JUMP_SLACK_M = 0.05
+#: ... but this much while fewer than :data:`CONFIRMED_POSES` went out within :data:`GATE_WINDOW_US` (the start, after a
+#: gap of dropped frames): a pose is held back until another agrees. Behind live a dense track after a gap went out
+#: 53-73 mm from a right pose one camera frame before it (stop 47).
+UNCONFIRMED_SLACK_M = 0.025
 #: The motion counts as confirmed once this many poses went out within :data:`GATE_WINDOW_US` before the pose judged.
 CONFIRMED_POSES = 8
-#: While fewer than :data:`CONFIRMED_POSES` went out within :data:`GATE_WINDOW_US` (the start, after a gap of dropped
-#: frames), the speed gate allows this much (m) beyond the speed, not 5 cm: a pose is held back until another agrees.
-#: Behind live a dense track after a gap went out 53-73 mm from a right pose one camera frame before it (stop 47).
-UNCONFIRMED_SLACK_M = 0.025
 #: ... but poses held back in a row that agree with each other (their offsets from the prediction within the
 #: consistency gate's bound, this close in time) weigh in full: a right track the motion lost.
 AGREE_US = 50_000
@@ -72,7 +74,7 @@ class PoseGates:
             dt_us = abs(t_us - last_us)
             if 0 < dt_us <= GATE_WINDOW_US:
                 recent = sum(1 for t, _ in self._accepted if 0 <= t_us - t <= GATE_WINDOW_US)
-                slack_m = 0.05 if recent >= CONFIRMED_POSES else UNCONFIRMED_SLACK_M
+                slack_m = JUMP_SLACK_M if recent >= CONFIRMED_POSES else UNCONFIRMED_SLACK_M
                 allowed_m = slack_m + cfg.max_speed_mps * dt_us * 1e-6
                 if float(np.linalg.norm(pose.position_m - last.position_m)) > allowed_m:
                     return FrameReason.MOTION_JUMP
