@@ -6,6 +6,7 @@ pipeline asks about each frame's pose, in frame order)."""
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -38,6 +39,8 @@ CONFIRMED_POSES = 8
 #: ... but poses held back in a row that agree with each other (their offsets from the prediction within the
 #: consistency gate's bound, this close in time) weigh in full: a right track the motion lost.
 AGREE_US = 50_000
+#: Before the motion is confirmed, a pose is weighed against those of the frames this close after it (two frames).
+OUTVOTE_US = 20_000
 
 
 class PoseGates:
@@ -80,10 +83,20 @@ class PoseGates:
                     return FrameReason.MOTION_JUMP
         return None
 
-    def judge(self, index: int, t_us: int, pose: PoseEstimate, tags: int, method: str, partner: int) -> FrameResult:
+    def judge(
+        self,
+        index: int,
+        t_us: int,
+        pose: PoseEstimate,
+        tags: int,
+        method: str,
+        partner: int,
+        later: Sequence[tuple[int, PoseEstimate]] = (),
+    ) -> FrameResult:
         """The result of frame ``index`` (captured at ``t_us``) whose pose is ``pose``: the pose, or why the gates
-        hold it back; the pose joins the motion either way."""
-        doubt = self.doubt(t_us, pose)
+        hold it back; the pose joins the motion either way. ``later``: the best poses so far of the frames after it
+        (capture time, pose), which :meth:`outvoted` weighs before the motion is confirmed."""
+        doubt = self.doubt(t_us, pose) or self.outvoted(t_us, pose, later)
         # Every solved pose goes into the track, gated or not: its fit is robust, and a gate that fed only
         # on what it let through could lock onto a wrong track and reject every good pose after it. But one held
         # back as inconsistent with a motion that poses going out confirm counts as uncertain as it is far from
@@ -105,6 +118,25 @@ class PoseGates:
         self._held = None
         self._accepted.append((t_us, pose))
         return FrameResult(index, t_us, pose, tags, FrameReason.POSE, reset, method, partner)
+
+    def outvoted(self, t_us: int, pose: PoseEstimate, later: Sequence[tuple[int, PoseEstimate]]) -> str | None:
+        """Before the motion is confirmed, :data:`FrameReason.MOTION_JUMP` if ``pose`` is further than the speed gate's
+        unconfirmed allowance from every pose of the frames within :data:`OUTVOTE_US` after it, at least two that
+        agree with each other: behind live the first frame of a run can be the one a track set a tag cell off, its
+        right neighbours judged only after it (stop 47: 79 mm)."""
+        recent = sum(1 for t, _ in self._accepted if 0 <= t_us - t <= GATE_WINDOW_US)
+        near = [(t, p) for t, p in later if 0 < t - t_us <= OUTVOTE_US]
+        if recent >= CONFIRMED_POSES or len(near) < 2 or self.cfg.max_speed_mps is None:
+            return None
+        speed = self.cfg.max_speed_mps * 1e-6
+
+        def apart(a: tuple[int, PoseEstimate], b: tuple[int, PoseEstimate]) -> bool:
+            allowed_m = UNCONFIRMED_SLACK_M + speed * abs(a[0] - b[0])
+            return float(np.linalg.norm(a[1].position_m - b[1].position_m)) > allowed_m
+
+        if all(apart((t_us, pose), n) for n in near) and not any(apart(a, b) for a in near for b in near):
+            return FrameReason.MOTION_JUMP
+        return None
 
     def _consistency_bound_m(self, pose: PoseEstimate) -> float | None:
         """The consistency gate's bound (m) at ``pose``'s height, before a rolling shutter's widening; None: off."""

@@ -384,7 +384,8 @@ class Pipeline:
             return
         ranked = sorted(f.candidates, key=lambda c: -c.quality)
         best = next((c for c in ranked if self.gates.doubt(f.time_us, c.pose) is None), ranked[0])
-        f.result = self.gates.judge(f.index, f.time_us, best.pose, best.tags, best.method, best.partner)
+        later = [(g.time_us, g.best.pose) for g in self.history if g.index > f.index and g.best is not None]
+        f.result = self.gates.judge(f.index, f.time_us, best.pose, best.tags, best.method, best.partner, later)
         f.rt = best.rt if f.result.pose is not None else None
 
     def pair(self, a: Frame, b: Frame) -> Pair | None:
@@ -412,8 +413,7 @@ class Pipeline:
         return pair
 
     def predicted_warp(self, a: Frame, b: Frame, poses: tuple[Pose, Pose] | None = None) -> F64 | None:
-        """The floor homography from ``a`` to ``b`` from their ``poses``, else the ones found or predicted, if
-        trusted."""
+        """The floor homography from ``a`` to ``b`` from their ``poses``, else those found or predicted, if trusted."""
         if not self.cfg.demodulation.predict_warp:
             return None
         k = self.pinhole.camera_matrix
