@@ -76,10 +76,8 @@ class PoseGates:
             last_us, last = min(self._accepted, key=lambda a: abs(a[0] - t_us))
             dt_us = abs(t_us - last_us)
             if 0 < dt_us <= GATE_WINDOW_US:
-                recent = sum(1 for t, _ in self._accepted if 0 <= t_us - t <= GATE_WINDOW_US)
-                slack_m = JUMP_SLACK_M if recent >= CONFIRMED_POSES else UNCONFIRMED_SLACK_M
-                allowed_m = slack_m + cfg.max_speed_mps * dt_us * 1e-6
-                if float(np.linalg.norm(pose.position_m - last.position_m)) > allowed_m:
+                slack_m = JUMP_SLACK_M if self._confirmed(t_us) else UNCONFIRMED_SLACK_M
+                if _jumped((t_us, pose), (last_us, last), slack_m, cfg.max_speed_mps):
                     return FrameReason.MOTION_JUMP
         return None
 
@@ -124,19 +122,18 @@ class PoseGates:
         unconfirmed allowance from every pose of the frames within :data:`OUTVOTE_US` after it, at least two that
         agree with each other: behind live the first frame of a run can be the one a track set a tag cell off, its
         right neighbours judged only after it (stop 47: 79 mm)."""
-        recent = sum(1 for t, _ in self._accepted if 0 <= t_us - t <= GATE_WINDOW_US)
+        speed_mps = self.cfg.max_speed_mps
         near = [(t, p) for t, p in later if 0 < t - t_us <= OUTVOTE_US]
-        if recent >= CONFIRMED_POSES or len(near) < 2 or self.cfg.max_speed_mps is None:
+        if speed_mps is None or len(near) < 2 or self._confirmed(t_us):
             return None
-        speed = self.cfg.max_speed_mps * 1e-6
-
-        def apart(a: tuple[int, PoseEstimate], b: tuple[int, PoseEstimate]) -> bool:
-            allowed_m = UNCONFIRMED_SLACK_M + speed * abs(a[0] - b[0])
-            return float(np.linalg.norm(a[1].position_m - b[1].position_m)) > allowed_m
-
-        if all(apart((t_us, pose), n) for n in near) and not any(apart(a, b) for a in near for b in near):
+        far = all(_jumped((t_us, pose), n, UNCONFIRMED_SLACK_M, speed_mps) for n in near)
+        if far and not any(_jumped(a, b, UNCONFIRMED_SLACK_M, speed_mps) for a in near for b in near):
             return FrameReason.MOTION_JUMP
         return None
+
+    def _confirmed(self, t_us: int) -> bool:
+        """Whether :data:`CONFIRMED_POSES` went out within :data:`GATE_WINDOW_US` before ``t_us``."""
+        return sum(1 for t, _ in self._accepted if 0 <= t_us - t <= GATE_WINDOW_US) >= CONFIRMED_POSES
 
     def _consistency_bound_m(self, pose: PoseEstimate) -> float | None:
         """The consistency gate's bound (m) at ``pose``'s height, before a rolling shutter's widening; None: off."""
@@ -150,9 +147,8 @@ class PoseGates:
         std_m = float(np.linalg.norm(pose.position_std_m))
         if doubt != FrameReason.INCONSISTENT:
             return std_m
-        recent = sum(1 for t, _ in self._accepted if 0 <= t_us - t <= GATE_WINDOW_US)
         predicted = self.motion.pose_at(t_us)
-        if recent < CONFIRMED_POSES or predicted is None:
+        if not self._confirmed(t_us) or predicted is None:
             return std_m
         offset = pose.position_m - predicted[0]
         held, self._held = self._held, (t_us, offset)
@@ -166,3 +162,10 @@ class PoseGates:
             return std_m  # it agrees with the pose held back just before it: a right track the motion lost
         far_m = float(np.linalg.norm(offset)) / HELD_SIGMAS
         return far_m if not np.isfinite(std_m) else max(std_m, far_m)
+
+
+def _jumped(a: tuple[int, PoseEstimate], b: tuple[int, PoseEstimate], slack_m: float, speed_mps: float) -> bool:
+    """Whether poses ``a`` and ``b`` (capture time in µs, pose) lie further apart than ``slack_m`` plus ``speed_mps``
+    over the time between them allows (the speed gate's test)."""
+    allowed_m = slack_m + speed_mps * abs(a[0] - b[0]) * 1e-6
+    return float(np.linalg.norm(a[1].position_m - b[1].position_m)) > allowed_m
