@@ -138,7 +138,7 @@ class _SparseKernel(_Kernel):
                     sparsekernels.edge_row = _jit(sparsekernels.edge_row_py, inline=True)
                     sparsekernels.detrend = _jit(sparsekernels.detrend_py, inline=True)
                     sparsekernels.centred_moments = _jit(sparsekernels.centred_moments_py, inline=True)
-                    sparsekernels.own_step = _jit(sparsekernels.own_step_py)
+                    sparsekernels.own_step = _jit(sparsekernels.own_step_py, inline=True)
                     sparsekernels.normal = _jit(sparsekernels.normal_py)
                     sparsekernels.residuals = _jit(sparsekernels.residuals_py)
                     sparsekernels.cholesky_solve = _jit(sparsekernels.cholesky_solve_py)
