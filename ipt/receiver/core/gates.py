@@ -64,13 +64,13 @@ class PoseGates:
         if bound_m is not None:
             if cfg.track.rolling_shutter:
                 bound_m = max(bound_m, ROLLING_GATE_SIGMAS * float(np.linalg.norm(pose.position_std_m)))
-            predicted = self.motion.pose_at(t_us)
+            predicted = self.motion.position_at(t_us)
             if predicted is None:
                 # Nothing to check it against yet (the start, or after a gap): only a pose whose own
                 # uncertainty is within the same bound goes out; the rest only feed the track.
                 if float(np.linalg.norm(pose.position_std_m)) > bound_m:
                     return FrameReason.UNCONFIRMED
-            elif float(np.linalg.norm(pose.position_m - predicted[0])) > bound_m:
+            elif float(np.linalg.norm(pose.position_m - predicted)) > bound_m:
                 return FrameReason.INCONSISTENT
         if cfg.max_speed_mps is not None and self._accepted:
             last_us, last = min(self._accepted, key=lambda a: abs(a[0] - t_us))
@@ -147,10 +147,10 @@ class PoseGates:
         std_m = float(np.linalg.norm(pose.position_std_m))
         if doubt != FrameReason.INCONSISTENT:
             return std_m
-        predicted = self.motion.pose_at(t_us)
+        predicted = self.motion.position_at(t_us)
         if not self._confirmed(t_us) or predicted is None:
             return std_m
-        offset = pose.position_m - predicted[0]
+        offset = pose.position_m - predicted
         held, self._held = self._held, (t_us, offset)
         bound_m = self._consistency_bound_m(pose)
         if (

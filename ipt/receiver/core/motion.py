@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import bisect
 from collections import deque
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -48,8 +49,9 @@ class MotionTrack:
 
     def __init__(self, maxlen: int = 32) -> None:
         self._poses: deque[tuple[int, F64, F64, float]] = deque(maxlen=maxlen)
-        self._fit: tuple[int, F64, F64, F64] | None = None  # (t_ref, position coef, rotation coef, r_ref)
+        self._fit: _PositionFit | None = None
         self._fitted = False
+        self._rotation: F64 | None = None  # the rotation's coefficients, fitted when first asked for
 
     def __len__(self) -> int:
         return len(self._poses)
@@ -88,24 +90,55 @@ class MotionTrack:
 
         The fit is robust: poses far from the line through the others (beyond three robust standard
         deviations, and at least :data:`MIN_OUTLIER_M`) are left out of it, so a doubtful pose that was
-        recorded cannot drag the prediction along. It is computed once per added pose.
+        recorded cannot drag the prediction along. It is computed once per added pose (the attitude's part
+        only when asked for: :meth:`position_at`).
         """
+        position = self.position_at(time_us)
+        if position is None:
+            return None
+        assert self._fit is not None
+        if self._rotation is None:
+            self._rotation = self._fit.rotation(self._poses)
+        dt = (time_us - self._fit.t_ref) * 1e-6
+        return position, _matrix(self._rotation[0] + self._rotation[1] * dt) @ self._fit.r_ref
+
+    def position_at(self, time_us: int) -> F64 | None:
+        """:meth:`pose_at`'s position alone (the same to the bit), without fitting the attitude's rate: the
+        gates ask only where the camera should be."""
         if not self._fitted:
-            self._fit = self._fit_recent()
+            self._fit = _PositionFit.of(self._poses)
+            self._rotation = None
             self._fitted = True
         if self._fit is None:
             return None
-        t_ref, coef_p, coef_r, r_ref = self._fit
-        if time_us - t_ref > MAX_HORIZON_US:
+        if time_us - self._fit.t_ref > MAX_HORIZON_US:
             return None
-        dt = (time_us - t_ref) * 1e-6
-        return coef_p[0] + coef_p[1] * dt, _matrix(coef_r[0] + coef_r[1] * dt) @ r_ref
+        dt = (time_us - self._fit.t_ref) * 1e-6
+        coef_p = self._fit.coef_p
+        return np.asarray(coef_p[0] + coef_p[1] * dt, np.float64)
 
-    def _fit_recent(self) -> tuple[int, F64, F64, F64] | None:
-        if not self._poses:
+
+@dataclass(frozen=True)
+class _PositionFit:
+    """The robust straight-line fit of the recent positions (:meth:`MotionTrack.pose_at`), and what the
+    attitude's fit over the same poses needs from it."""
+
+    t_ref: int
+    r_ref: F64
+    coef_p: F64
+    count: int
+    """How many of the newest poses the fit is over."""
+    dt_s: F64
+    root_w: F64
+    design: F64
+    inliers: npt.NDArray[np.bool_]
+
+    @staticmethod
+    def of(poses: deque[tuple[int, F64, F64, float]]) -> _PositionFit | None:
+        if not poses:
             return None
-        t_ref, _, r_ref, _ = self._poses[-1]
-        recent = [p for p in self._poses if t_ref - p[0] <= WINDOW_US]
+        t_ref, _, r_ref, _ = poses[-1]
+        recent = [p for p in poses if t_ref - p[0] <= WINDOW_US]
         if len(recent) < MIN_POSES or t_ref - recent[0][0] < MIN_SPAN_US:
             return None
         dt_s = np.array([(p[0] - t_ref) * 1e-6 for p in recent])
@@ -123,14 +156,23 @@ class MotionTrack:
             if keep.sum() < MIN_POSES or np.array_equal(keep, inliers):
                 break
             inliers = keep
-        rotvecs = np.stack([_rotvec(p[2] @ r_ref.T) for p in recent])  # small rotations about arena axes
+        return _PositionFit(t_ref, r_ref, np.asarray(coef_p, np.float64), len(recent), dt_s, root_w, design, inliers)
+
+    def rotation(self, poses: deque[tuple[int, F64, F64, float]]) -> F64:
+        """The attitude's constant-rate fit (rotation vectors about the arena's axes, relative to the newest
+        pose's) over the same recent poses, their inliers of the last :data:`ROTATION_WINDOW_US` where there
+        are enough of them."""
         # The attitude is fitted over a shorter span: a vibrating airframe turns back and forth at 5-7 Hz,
         # which a straight line through 150 ms misses by 1.6° (median) two frames ahead, and one through
         # the last 40 ms by 0.65° (on the simulated default flight).
+        dt_s, inliers = self.dt_s, self.inliers
         short = inliers & (dt_s >= -ROTATION_WINDOW_US * 1e-6)
         rot_rows = short if short.sum() >= 3 and np.ptp(dt_s[short]) >= MIN_SPAN_US * 1e-6 / 2 else inliers
-        coef_r, *_ = np.linalg.lstsq((design * root_w)[rot_rows], (rotvecs * root_w)[rot_rows], rcond=None)
-        return t_ref, np.asarray(coef_p, np.float64), np.asarray(coef_r, np.float64), r_ref
+        recent = list(poses)[len(poses) - self.count :]
+        # small rotations about arena axes, of the rows fitted only
+        rotvecs = np.stack([_rotvec(p[2] @ self.r_ref.T) for p, used in zip(recent, rot_rows, strict=True) if used])
+        coef_r, *_ = np.linalg.lstsq((self.design * self.root_w)[rot_rows], rotvecs * self.root_w[rot_rows], rcond=None)
+        return np.asarray(coef_r, np.float64)
 
 
 def floor_homography(camera_matrix: F64, position_m: F64, r_arena_cam: F64) -> F64:
