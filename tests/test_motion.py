@@ -146,3 +146,45 @@ def test_the_attitude_follows_a_vibration_better_than_a_long_line() -> None:
     assert predicted is not None
     error = np.rad2deg(rotation_angle_rad(predicted[1].T @ rot_x(amplitude * np.sin(w * ahead))))
     assert error < 0.7
+
+
+def _noisy_track(count: int, rng: np.random.Generator) -> tuple[MotionTrack, list[tuple[int, F64, F64]]]:
+    track, poses = MotionTrack(), []
+    for k in range(count):
+        t = round(k * 1e6 / 120)
+        position, rotation = _true_pose(t)
+        position = position + rng.normal(0.0, 0.002, 3)
+        rotation = rot_x(float(rng.normal(0.0, 0.01))) @ rotation
+        poses.append((t, position, rotation))
+        track.add(t, position, rotation)
+    return track, poses
+
+
+def test_the_position_alone_is_the_poses_and_the_attitude_follows_each_added_pose() -> None:
+    """The gates ask only for the position (``position_at``), the dense way for the whole pose (``pose_at``, whose
+    attitude is fitted when first asked for): the same position to the bit either way, in either order, and a pose
+    added after a prediction refits the attitude too (a stale attitude fit would survive in ``pose_at``)."""
+    rng = np.random.default_rng(5)
+    asked, poses = _noisy_track(20, rng)
+    at = poses[-1][0] + 16_667
+    position = asked.position_at(at)
+    first = asked.pose_at(at)
+    assert position is not None
+    assert first is not None
+    assert np.array_equal(position, first[0])
+    fresh, _ = _noisy_track(20, np.random.default_rng(5))
+    again = fresh.pose_at(at)
+    assert again is not None
+    assert np.array_equal(again[0], first[0])
+    assert np.array_equal(again[1], first[1])
+    t = at
+    turned = rot_z(0.2) @ poses[-1][2]  # a pose turned well away from the fitted attitude
+    asked.add(t, poses[-1][1], turned)
+    fresh = MotionTrack()
+    for p in [*poses, (t, poses[-1][1], turned)]:
+        fresh.add(*p)
+    later, expected = asked.pose_at(t + 8_333), fresh.pose_at(t + 8_333)
+    assert later is not None
+    assert expected is not None
+    assert np.array_equal(later[1], expected[1])
+    assert not np.array_equal(later[1], first[1])

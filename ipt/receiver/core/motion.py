@@ -90,8 +90,8 @@ class MotionTrack:
 
         The fit is robust: poses far from the line through the others (beyond three robust standard
         deviations, and at least :data:`MIN_OUTLIER_M`) are left out of it, so a doubtful pose that was
-        recorded cannot drag the prediction along. It is computed once per added pose (the attitude's part
-        only when asked for: :meth:`position_at`).
+        recorded cannot drag the prediction along. It is computed once per added pose, the attitude's part
+        only once a pose is asked for (:meth:`position_at` needs only the position's).
         """
         position = self.position_at(time_us)
         if position is None:
