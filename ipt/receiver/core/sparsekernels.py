@@ -422,9 +422,7 @@ def own_step_py(
     yy[i], uy[1], uy[col], gram[1, 1], gram[1, col], gram[col, col] = yy_i, uy_1, uy_c, g_11, g_1c, g_cc
 
 
-# compiled by :func:`ipt.receiver.core.kernels.ensure`, into :func:`moments` (inlined: called twice a profile,
-# a call that passes ten arrays cost a third of the kernel's time in their reference counts)
-own_step: Any = own_step_py
+own_step: Any = own_step_py  # compiled by kernels.ensure into :func:`moments` (as a call, a third of its time)
 
 
 def detrend_py(v: F64, line: F64) -> None:
