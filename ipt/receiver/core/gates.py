@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Sequence
+from itertools import combinations
 
 import numpy as np
 
@@ -127,7 +128,7 @@ class PoseGates:
         if speed_mps is None or len(near) < 2 or self._confirmed(t_us):
             return None
         far = all(_jumped((t_us, pose), n, UNCONFIRMED_SLACK_M, speed_mps) for n in near)
-        if far and not any(_jumped(a, b, UNCONFIRMED_SLACK_M, speed_mps) for a in near for b in near):
+        if far and not any(_jumped(a, b, UNCONFIRMED_SLACK_M, speed_mps) for a, b in combinations(near, 2)):
             return FrameReason.MOTION_JUMP
         return None
 

@@ -98,7 +98,7 @@ class MotionTrack:
             return None
         assert self._fit is not None
         if self._rotation is None:
-            self._rotation = self._fit.rotation(self._poses)
+            self._rotation = self._fit.rotation()
         dt = (time_us - self._fit.t_ref) * 1e-6
         return position, _matrix(self._rotation[0] + self._rotation[1] * dt) @ self._fit.r_ref
 
@@ -126,8 +126,8 @@ class _PositionFit:
     t_ref: int
     r_ref: F64
     coef_p: F64
-    count: int
-    """How many of the newest poses the fit is over."""
+    rotations: tuple[F64, ...]
+    """The attitudes (r_arena_cam) of the poses the fit is over, oldest first."""
     dt_s: F64
     root_w: F64
     design: F64
@@ -156,9 +156,10 @@ class _PositionFit:
             if keep.sum() < MIN_POSES or np.array_equal(keep, inliers):
                 break
             inliers = keep
-        return _PositionFit(t_ref, r_ref, np.asarray(coef_p, np.float64), len(recent), dt_s, root_w, design, inliers)
+        rotations = tuple(p[2] for p in recent)
+        return _PositionFit(t_ref, r_ref, np.asarray(coef_p, np.float64), rotations, dt_s, root_w, design, inliers)
 
-    def rotation(self, poses: deque[tuple[int, F64, F64, float]]) -> F64:
+    def rotation(self) -> F64:
         """The attitude's constant-rate fit (rotation vectors about the arena's axes, relative to the newest
         pose's) over the same recent poses, their inliers of the last :data:`ROTATION_WINDOW_US` where there
         are enough of them."""
@@ -168,9 +169,9 @@ class _PositionFit:
         dt_s, inliers = self.dt_s, self.inliers
         short = inliers & (dt_s >= -ROTATION_WINDOW_US * 1e-6)
         rot_rows = short if short.sum() >= 3 and np.ptp(dt_s[short]) >= MIN_SPAN_US * 1e-6 / 2 else inliers
-        recent = list(poses)[len(poses) - self.count :]
         # small rotations about arena axes, of the rows fitted only
-        rotvecs = np.stack([_rotvec(p[2] @ self.r_ref.T) for p, used in zip(recent, rot_rows, strict=True) if used])
+        fitted = [r for r, used in zip(self.rotations, rot_rows, strict=True) if used]
+        rotvecs = np.stack([_rotvec(r @ self.r_ref.T) for r in fitted])
         coef_r, *_ = np.linalg.lstsq((self.design * self.root_w)[rot_rows], rotvecs * self.root_w[rot_rows], rcond=None)
         return np.asarray(coef_r, np.float64)
 
