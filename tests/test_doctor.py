@@ -11,11 +11,14 @@ import subprocess
 import sys
 import threading
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
+from ipt.config.camera_info import load_camera_info
 from ipt.config.models import shipped_config_path
 from ipt.receiver.capture import CapturedFrame, CaptureError
 from ipt.receiver.doctor import FAIL, OK, SKIP, Check, Mode, Probes, _send_target, main_lines, run_checks
@@ -450,3 +453,17 @@ def test_v4l2_modes_reads_formats_sizes_and_the_best_rate(tmp_path: Path, monkey
     node.touch()
     monkeypatch.setattr("ipt.receiver.doctor.fcntl.ioctl", ioctl)
     assert doctor.v4l2_modes(node) == [Mode("MJPG", 640, 360, 120.0), Mode("MJPG", 1280, 720, 60.0)]
+
+
+def test_a_camera_much_wider_than_the_work_width_is_said_to_be_binned(tmp_path: Path) -> None:
+    wide = tmp_path / "camera-1280.yaml"
+    camera = load_camera_info(shipped_config_path("camera.yaml"))
+    assert camera.width_px == 640
+    doubled = replace(camera, width_px=1280, height_px=2 * camera.height_px, fx_px=2 * camera.fx_px)
+    wide.write_text(yaml.safe_dump(doubled.to_ros_dict()), encoding="utf-8")
+    checks = run_checks(_config(tmp_path, camera=str(wide)), _quiet_probes())
+    size = _by_name(checks, "camera.yaml")
+    assert size.status == OK, size.line()
+    assert f"1280x{2 * camera.height_px} (binned 2x2: posed at 640x{camera.height_px}" in size.detail
+    plain = _by_name(run_checks(_config(tmp_path), _quiet_probes()), "camera.yaml")
+    assert "binned" not in plain.detail

@@ -5,7 +5,7 @@ Pixel coordinates follow OpenCV: the centre of the top-left pixel is (0, 0).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +58,35 @@ class CameraInfo:
     def dist_coeffs(self) -> npt.NDArray[np.float64]:
         """Distortion coefficients as OpenCV expects them."""
         return np.asarray(self.distortion, dtype=np.float64)
+
+    def binning_for(self, work_width_px: int) -> int:
+        """The largest whole k that keeps this camera's frames at least ``work_width_px`` wide when each k × k
+        block of pixels is averaged into one, and divides both sides (1: no binning; also for 0)."""
+        if work_width_px <= 0:
+            return 1
+        for k in range(self.width_px // work_width_px, 1, -1):
+            if self.width_px % k == 0 and self.height_px % k == 0:
+                return k
+        return 1
+
+    def binned(self, k: int) -> CameraInfo:
+        """The camera whose pixel is a k × k block of this one's (what ``cv2.resize`` with ``INTER_AREA`` makes
+        of its frames, k dividing both sides): the same lens, a coarser grid. Pixel centres are at whole
+        coordinates, so a block's centre, ((k − 1) / 2, (k − 1) / 2) from its first pixel, is the new pixel."""
+        if k == 1:
+            return self
+        if k < 1 or self.width_px % k or self.height_px % k:
+            raise CameraInfoError(f"cannot bin a {self.width_px}x{self.height_px} camera by {k}")
+        half = (k - 1) / 2
+        return replace(
+            self,
+            width_px=self.width_px // k,
+            height_px=self.height_px // k,
+            fx_px=self.fx_px / k,
+            fy_px=self.fy_px / k,
+            cx_px=(self.cx_px - half) / k,
+            cy_px=(self.cy_px - half) / k,
+        )
 
     def to_ros_dict(self) -> dict[str, Any]:
         """The camera_info mapping, ready for ``yaml.safe_dump``."""

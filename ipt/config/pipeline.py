@@ -45,6 +45,17 @@ class DemodulationConfig(StrictModel):
         "frame no pair solved waits one frame more, for the bridge across a content change with the frame three "
         "on (ipt.receiver.core.bridge).",
     )
+    work_width_px: int = Field(
+        640,
+        ge=0,
+        le=100_000,
+        description="With 'gradient' alignment: a camera at least twice this wide has each frame's lightness "
+        "binned before anything else (each k x k block of pixels averaged, k the largest whole number that "
+        "keeps it at least this wide and divides both sides), and the receiver works with the coarser camera "
+        "that makes (its pixel sizes, e.g. max_reprojection_rms_px, are then that camera's). A 1280x720 "
+        "camera's frames cost a quarter as much work and are posed as precisely: the ipt profile's settings "
+        "are made for about 640 pixels across. 0: never bin.",
+    )
     undistort: bool = Field(
         True,
         description="Undistort each frame once (with 'gradient' alignment), so that the floor moves by an "

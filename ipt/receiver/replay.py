@@ -30,7 +30,8 @@ from ipt.errors import IptError
 from ipt.fileio import atomic_path
 from ipt.maphash import map_hash
 from ipt.ratelimit import LogThrottle
-from ipt.receiver.core.pipeline import FrameResult, Pipeline, Prepared
+from ipt.receiver.core.history import Prepared
+from ipt.receiver.core.pipeline import FrameResult, Pipeline
 from ipt.receiver.detect.detector import pipeline_detector
 from ipt.tagmap import TagMap, grid_tag_map
 from ipt.tum import TUM_HEADER, format_tum_line

@@ -201,6 +201,15 @@ class Undistorter:
         return out
 
 
+def binned(lum: U8, k: int) -> U8:
+    """``lum`` with each k × k block of pixels averaged into one (the frames of
+    :meth:`~ipt.config.camera_info.CameraInfo.binned`'s camera; k divides both sides)."""
+    if k == 1:
+        return lum
+    h, w = lum.shape
+    return np.asarray(cv2.resize(lum, (w // k, h // k), interpolation=cv2.INTER_AREA), np.uint8)
+
+
 def luminance(frame: U8, method: str = "luma") -> U8:
     """The frame's lightness: an RGB frame through :func:`lightness`; a grey one (a mono camera's, or the
     luma plane of a YUV or JPEG frame) through the table that ``"luma"`` maps an RGB frame's luma by, which

@@ -1,5 +1,6 @@
 """The frames the pipeline keeps for pairing, and the rules that pair them (:class:`FrameHistory`); the records
-it keeps of each frame (:class:`Frame`), each pair (:class:`Pair`) and each candidate pose (:class:`Candidate`).
+it keeps of each frame (:class:`Frame`; before its turn, :class:`Prepared`), each pair (:class:`Pair`) and each
+candidate pose (:class:`Candidate`).
 
 A *pair* is two frames of opposite projector phase: a time step close to an odd number of projector periods
 (:meth:`FrameHistory.phase_error`). A frame's partners are the kept frames on one side of it within
@@ -39,6 +40,21 @@ MAX_PAIR_PERIODS = 2.6
 #: partners, and sends it out without waiting for later ones (sparse tracker); below it, a frame that took the sparse
 #: tracker's dense way is paired with its untried partners on both sides.
 GOOD_QUALITY = 0.3
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """A camera frame's own work, done before its turn (:meth:`~ipt.receiver.core.pipeline.Pipeline.prepare`)."""
+
+    problem: str | None
+    """Why it is not a frame to work on (:func:`~ipt.receiver.core.framecheck.frame_problem`), or None."""
+    lum: U8 | None
+    """Its lightness (binned if the pipeline bins its camera's frames, undistorted where the dense way needs it);
+    None with a problem."""
+    signal: U8 | None
+    """Its signal mask (ipt profile)."""
+    features: F32 | None
+    """Its alignment features (ipt profile)."""
 
 
 @dataclass

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter, defaultdict, deque
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -43,6 +43,7 @@ from ipt.receiver.core.bridge import ContentBridge
 from ipt.receiver.core.demodulator import (
     PairDifference,
     Undistorter,
+    binned,
     ksize_for,
     luminance,
     pair_difference,
@@ -52,7 +53,7 @@ from ipt.receiver.core.detection import Detector, DetectorError
 from ipt.receiver.core.framecheck import RESTARTS, frame_problem
 from ipt.receiver.core.frameresult import FrameResult
 from ipt.receiver.core.gates import PoseGates
-from ipt.receiver.core.history import GOOD_QUALITY, Candidate, Frame, FrameHistory, Pair
+from ipt.receiver.core.history import GOOD_QUALITY, Candidate, Frame, FrameHistory, Pair, Prepared
 from ipt.receiver.core.imagealign import AlignTarget, alignment_features, floor_warp_between, warp_image
 from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.motion import MotionTrack, floor_warp
@@ -95,20 +96,6 @@ MIN_COARSE_SCORE = 0.1
 SEARCH_AFTER_US = 20_000
 
 
-@dataclass(frozen=True)
-class Prepared:
-    """A camera frame's own work, done before its turn (:meth:`Pipeline.prepare`)."""
-
-    problem: str | None
-    """Why it is not a frame to work on (:func:`~ipt.receiver.core.framecheck.frame_problem`), or None."""
-    lum: U8 | None
-    """Its lightness (undistorted in the ipt profile); None with a problem."""
-    signal: U8 | None
-    """Its signal mask (ipt profile)."""
-    features: F32 | None
-    """Its alignment features (ipt profile)."""
-
-
 class Pipeline:
     """The receiver's per-frame processing, for either profile (see :meth:`PipelineConfig.profile`)."""
 
@@ -119,6 +106,13 @@ class Pipeline:
         (:func:`ipt.receiver.detect.detector.pipeline_detector`); it may still be starting (its helper process
         imports while this sets up: a restarted daemon poses sooner), this waits for it last. The pipeline
         owns it from here: :meth:`close` closes it."""
+        demod = cfg.demodulation
+        self.sensor = camera
+        """The camera as it delivers frames; :attr:`camera` is the one the pipeline works with."""
+        self.binning = camera.binning_for(demod.work_width_px) if demod.alignment == "gradient" else 1
+        """The side of the square of the sensor's pixels that :attr:`camera`'s pixel averages: 1, or more for a
+        camera much wider than the ipt profile's settings are made for (``demodulation.work_width_px``)."""
+        camera = camera.binned(self.binning)
         self.tag_map, self.camera, self.cfg = tag_map, camera, cfg
         self.projector_hz = projector_hz
         self.history = FrameHistory(projector_hz, cfg.demodulation.pairing)
@@ -126,7 +120,6 @@ class Pipeline:
         self.pair_span_us = self.history.pair_span_us
         """Frames further apart than this are never paired (:data:`~ipt.receiver.core.history.MAX_PAIR_PERIODS`)."""
         self.detector = detector
-        demod = cfg.demodulation
         self.ipt = demod.alignment == "gradient"
         self.tracking = self.ipt and cfg.pose.method == "track"
         size = (camera.width_px, camera.height_px)
@@ -199,13 +192,13 @@ class Pipeline:
     # -- the interface -------------------------------------------------------------------------------
 
     def prepare(self, frame: U8) -> Prepared:
-        """The work on ``frame`` that needs no other frame (its check, lightness, undistortion, signal mask and
+        """The work on ``frame`` that needs no other frame (its check, lightness, binning, undistortion, signal mask and
         alignment features), for :meth:`process`. It reads no state that processing changes, so it may run
         on another thread, one frame ahead of the pairing (a second core's share of the work)."""
-        problem = frame_problem(frame, self.camera.height_px, self.camera.width_px)
+        problem = frame_problem(frame, self.sensor.height_px, self.sensor.width_px)
         if problem is not None:
             return Prepared(problem, None, None, None)
-        lum = luminance(frame, self.cfg.demodulation.lightness)
+        lum = binned(luminance(frame, self.cfg.demodulation.lightness), self.binning)
         if not self.ipt or self.sparse is not None:  # (the sparse tracker prepares the rest when it is needed)
             return Prepared(None, lum, None, None)
         return Prepared(None, *self._dense_parts(lum))
