@@ -52,9 +52,9 @@ class DemodulationConfig(StrictModel):
         description="With 'gradient' alignment: a camera at least twice this wide has each frame's lightness "
         "binned before anything else (each k x k block of pixels averaged, k the largest whole number that "
         "keeps it at least this wide and divides both sides), and the receiver works with the coarser camera "
-        "that makes (its pixel sizes, e.g. max_reprojection_rms_px, are then that camera's). A 1280x720 "
-        "camera's frames cost a quarter as much work and are posed as precisely: the ipt profile's settings "
-        "are made for about 640 pixels across. 0: never bin.",
+        "that makes (its pixel sizes, e.g. max_reprojection_rms_px, are then that camera's). The ipt profile's "
+        "settings are made for about 640 pixels across: a 1280x720 camera's frames then cost less than half as "
+        "much and are posed at least as precisely. 0: never bin.",
     )
     undistort: bool = Field(
         True,
