@@ -5,11 +5,14 @@ Units are in the field names; :meth:`PipelineConfig.profile` gives the named pro
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 from pydantic import Field
 
 from ipt.config.base import ConfigError, StrictModel
+
+if TYPE_CHECKING:
+    from ipt.config.camera_info import CameraInfo
 
 #: Image width the receiver's pixel-sized defaults are stated for (the paper's 640x360 camera); they
 #: scale with the actual width, since blur, motion and corner noise in pixels grow with resolution.
@@ -108,6 +111,10 @@ class DemodulationConfig(StrictModel):
         le=31,
         description="Side of the square opening/closing element. Default: as for blur_ksize.",
     )
+
+    def binning(self, camera: CameraInfo) -> int:
+        """The side of the pixel blocks ``camera``'s frames are averaged over (:attr:`work_width_px`; 1: none)."""
+        return camera.binning_for(self.work_width_px) if self.alignment == "gradient" else 1
 
 
 class DetectorConfig(StrictModel):

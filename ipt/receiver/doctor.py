@@ -396,8 +396,7 @@ def _camera_size(cfg: ReceiverConfig, camera: CameraInfo, found: _Found) -> list
             found.frame_size, found.frame_size_from = (src.width, src.height), str(spec.path)
     want = (camera.width_px, camera.height_px)
     shown = f"{cfg.camera}: {want[0]}x{want[1]}"
-    demod = cfg.pipeline.demodulation
-    k = camera.binning_for(demod.work_width_px) if demod.alignment == "gradient" else 1
+    k = cfg.pipeline.demodulation.binning(camera)
     if k > 1:  # (what the pipeline does with such a camera: said where its size is checked)
         size = f"{camera.width_px // k}x{camera.height_px // k}"
         shown += f" (binned {k}x{k}: posed at {size}, pipeline.demodulation.work_width_px)"

@@ -109,7 +109,7 @@ class Pipeline:
         demod = cfg.demodulation
         self.sensor = camera
         """The camera as it delivers frames; :attr:`camera` is the one the pipeline works with."""
-        self.binning = camera.binning_for(demod.work_width_px) if demod.alignment == "gradient" else 1
+        self.binning = demod.binning(camera)
         """The side of the square of the sensor's pixels that :attr:`camera`'s pixel averages: 1, or more for a
         camera much wider than the ipt profile's settings are made for (``demodulation.work_width_px``)."""
         camera = camera.binned(self.binning)
