@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from ipt.config.camera_info import load_camera_info
+from ipt.config.camera_info import CameraInfo, load_camera_info
 from ipt.config.models import PipelineConfig, load_arena_config
 from ipt.receiver.core.pipeline import Pipeline
 from ipt.receiver.detect.detector import pipeline_detector
@@ -20,10 +20,10 @@ def flight_frames(folder: Path) -> list[Any]:
         return list(src)
 
 
-def flight_pipeline(folder: Path, cfg: PipelineConfig) -> Pipeline:
-    """A pipeline with ``cfg`` for ``folder``'s arena (its tag map and projector rate) and camera; the caller
-    closes it (its AprilTag helper process)."""
+def flight_pipeline(folder: Path, cfg: PipelineConfig, camera: CameraInfo | None = None) -> Pipeline:
+    """A pipeline with ``cfg`` for ``folder``'s arena (its tag map and projector rate) and camera (or ``camera``);
+    the caller closes it (its AprilTag helper process)."""
     arena = load_arena_config(folder / "arena.yaml")
     tag_map = grid_tag_map(arena)
-    camera = load_camera_info(folder / "camera.yaml")
+    camera = camera if camera is not None else load_camera_info(folder / "camera.yaml")
     return Pipeline(tag_map, camera, cfg, arena.projector.rate_hz, pipeline_detector(cfg.detector, tag_map.by_id))

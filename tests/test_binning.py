@@ -12,14 +12,12 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
-from flightpipeline import flight_frames
+from flightpipeline import flight_frames, flight_pipeline
 
 from ipt.config.camera_info import CameraInfo, CameraInfoError, load_camera_info
-from ipt.config.models import PipelineConfig, load_arena_config
+from ipt.config.models import PipelineConfig
 from ipt.receiver.core.demodulator import binned
 from ipt.receiver.core.pipeline import FrameResult, Pipeline
-from ipt.receiver.detect.detector import pipeline_detector
-from ipt.tagmap import grid_tag_map
 
 FPS = 120.0
 
@@ -92,9 +90,7 @@ def _doubled(camera: CameraInfo) -> CameraInfo:
 
 
 def _poses(folder: Path, camera: CameraInfo, frames: list[Any], cfg: PipelineConfig) -> tuple[Pipeline, list[Any]]:
-    arena = load_arena_config(folder / "arena.yaml")
-    tag_map = grid_tag_map(arena)
-    p = Pipeline(tag_map, camera, cfg, arena.projector.rate_hz, pipeline_detector(cfg.detector, tag_map.by_id))
+    p = flight_pipeline(folder, cfg, camera)
     try:
         out: list[FrameResult] = []
         for k, f in enumerate(frames):
@@ -121,10 +117,7 @@ def test_a_camera_twice_as_fine_is_binned_back_and_posed_exactly_alike(short_fli
     assert sum(r[3] is not None for r in rows) >= 30
     assert fine_rows == rows  # every result, every pose to the bit
     # A frame of the coarse size is not one of this camera's.
-    arena = load_arena_config(short_flight / "arena.yaml")
-    tag_map = grid_tag_map(arena)
-    detector = pipeline_detector(cfg.detector, tag_map.by_id)
-    p = Pipeline(tag_map, _doubled(camera), cfg, arena.projector.rate_hz, detector)
+    p = flight_pipeline(short_flight, cfg, _doubled(camera))
     try:
         assert [r.reason for r in p.process(0, frames[0], 0)] == ["wrong_size"]
     finally:
@@ -133,12 +126,10 @@ def test_a_camera_twice_as_fine_is_binned_back_and_posed_exactly_alike(short_fli
 
 def test_work_width_0_and_the_paper_profile_never_bin(short_flight: Path) -> None:
     fine = _doubled(load_camera_info(short_flight / "camera.yaml"))
-    arena = load_arena_config(short_flight / "arena.yaml")
-    tag_map = grid_tag_map(arena)
     ipt = PipelineConfig()
     off = ipt.model_copy(update={"demodulation": ipt.demodulation.model_copy(update={"work_width_px": 0})})
     for cfg in (off, PipelineConfig.profile("paper")):
-        p = Pipeline(tag_map, fine, cfg, arena.projector.rate_hz, pipeline_detector(cfg.detector, tag_map.by_id))
+        p = flight_pipeline(short_flight, cfg, fine)
         try:
             assert p.binning == 1
             assert p.camera == fine

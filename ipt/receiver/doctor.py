@@ -398,8 +398,8 @@ def _camera_size(cfg: ReceiverConfig, camera: CameraInfo, found: _Found) -> list
     shown = f"{cfg.camera}: {want[0]}x{want[1]}"
     k = cfg.pipeline.demodulation.binning(camera)
     if k > 1:  # (what the pipeline does with such a camera: said where its size is checked)
-        size = f"{camera.width_px // k}x{camera.height_px // k}"
-        shown += f" (binned {k}x{k}: posed at {size}, pipeline.demodulation.work_width_px)"
+        work = camera.binned(k)
+        shown += f" (binned {k}x{k}: posed at {work.width_px}x{work.height_px}, pipeline.demodulation.work_width_px)"
     if spec.kind == "sim":
         return [Check(OK, "camera.yaml", f"{shown} (the simulator renders at the camera file's size)")]
     if found.frame_size is None:
