@@ -484,6 +484,10 @@ def _kernels(p: Probes) -> Check:
     if not compiled:
         fix = "numba cannot compile here (no executable memory?): see docs/raspberry-pi.md (MemoryDenyWriteExecute)"
         return Check(FAIL, "kernels", f"not compiled: they run as Python/numpy, several times slower ({took})", fix)
+    from ipt.receiver.core import kernels
+
+    if kernels.AHEAD is not None:
+        return Check(OK, "kernels", f"built ahead of time, loaded without numba ({took}; {kernels.AHEAD})")
     cache = os.environ.get("NUMBA_CACHE_DIR") or "numba's default, __pycache__ beside the sources"
     return Check(OK, "kernels", f"compiled kernels load in this process ({took}; cache: {cache})")
 

@@ -17,6 +17,10 @@ The loops themselves, as plain Python, live with what they are for (:mod:`~ipt.r
 :mod:`~ipt.receiver.core.alignkernels`, :mod:`~ipt.receiver.core.diffkernels`); this module compiles them
 (:func:`ensure`, :func:`warm`) and is how the stages call them.
 
+Where ``ipt-receiver warm`` has built them ahead of time (:mod:`~ipt.receiver.core.kernelbuild`: a plain extension
+module in ``$NUMBA_CACHE_DIR``), they are loaded from there without importing numba, and a call whose arguments
+are not what they were built for goes to numba instead.
+
 Pure: arrays in, arrays out. Where numba cannot compile (no executable memory), the tracker's kernels run as
 plain Python (correct, only slower) and the others as the numpy operations they replace (a pass over every
 pixel in plain Python would take seconds).
@@ -24,13 +28,16 @@ pixel in plain Python would take seconds).
 
 from __future__ import annotations
 
+import os
 import threading
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ipt.receiver.core import alignkernels, diffkernels, sparsekernels, trackkernels
+from ipt.receiver.core.kernelbuild import Signature, fits
 
 COMPILED = True
 """Whether the kernels below are compiled (False: numba is unavailable and they run as Python, or as numpy
@@ -40,6 +47,8 @@ NOT_COMPILED_BECAUSE: str | None = None
 """Why the kernels are not compiled (numba's import error), or None."""
 NOT_CACHED_BECAUSE: str | None = None
 """Why numba keeps no disk cache of the kernels (no writable cache folder: set ``NUMBA_CACHE_DIR``), or None."""
+AHEAD: str | None = None
+"""The module the kernels were loaded from, built ahead of time by ``ipt-receiver warm``, or None (numba's)."""
 
 _lock = threading.Lock()
 _ready = threading.Event()
@@ -56,11 +65,27 @@ class _Kernel:
         self.fallback = fallback
         """What runs where numba cannot compile, if not ``fn`` itself: the same result with numpy."""
         self.compiled: Any = None
+        self.ahead: Any = None
+        """The kernel built ahead of time (:func:`ensure`), for arguments that fit ``signature`` only."""
+        self.signature: Signature | None = None
+        self.not_fitting = 0
+        """Calls whose arguments were not what the ahead-of-time build is for (they went to numba)."""
 
     def __call__(self, *args: Any) -> Any:
+        if self.ahead is not None and fits(args, self.signature):  # type: ignore[arg-type]
+            return self.ahead(*args)
         if self.compiled is None:
             ensure()
+            if self.ahead is not None and fits(args, self.signature):  # type: ignore[arg-type]
+                return self.ahead(*args)
+            self._compile()
+        if self.ahead is not None:
+            self.not_fitting += 1
         return self.compiled(*args)
+
+    def _compile(self) -> None:
+        with _lock:
+            _compile_dense()
 
 
 def _jit(fn: Callable[..., Any], inline: bool = False) -> Any:
@@ -84,29 +109,73 @@ def _jit(fn: Callable[..., Any], inline: bool = False) -> Any:
 
 
 def ensure() -> None:
-    """Compile the kernels (or load them from numba's disk cache), once per process."""
+    """Load the kernels, once per process: built ahead of time where ``ipt-receiver warm`` built them for this
+    installation (``$NUMBA_CACHE_DIR``), else compiled by numba (or loaded from its disk cache)."""
     with _lock:
         if _ready.is_set():
             return
-        # The kernels call bilinear, slopes (which calls bilinear) and system_row: each must be compiled
-        # before its callers, and be trackkernels' global when they are.
-        trackkernels.bilinear = _jit(trackkernels.bilinear_py)
-        trackkernels.slopes = _jit(trackkernels.slopes_py)
-        trackkernels.system_row = _jit(trackkernels.system_row_py)
-        for kernel in (
-            measure,
-            peaks,
-            band_signs,
-            cell_agreement,
-            slopes_sampled,
-            align_system,
-            sample_pair,
-            difference_pass,
-        ):
-            kernel.compiled = _jit(kernel.py_func)
-            if not COMPILED and kernel.fallback is not None:
-                kernel.compiled = kernel.fallback
+        if not _load_ahead():
+            _compile_dense()
         _ready.set()
+
+
+def compile_with_numba() -> None:
+    """Every kernel compiled by numba (or loaded from its disk cache), whatever was built ahead of time: what
+    ``ipt-receiver warm`` fills numba's cache with and then builds ahead from."""
+    with _lock:
+        _compile_dense()
+        _compile_sparse()
+        _ready.set()
+
+
+def _load_ahead() -> bool:
+    """The kernels built ahead for this key in ``$NUMBA_CACHE_DIR``, if there: whether they were loaded."""
+    global AHEAD
+    folder = os.environ.get("NUMBA_CACHE_DIR")
+    if not folder:
+        return False
+    from ipt.receiver.core import kernelbuild
+
+    found = kernelbuild.load(Path(folder))
+    if found is None:
+        return False
+    module, signatures = found
+    if set(signatures) != set(BY_NAME):
+        return False
+    for name, kernel in BY_NAME.items():
+        kernel.ahead = getattr(module, name)
+        kernel.signature = signatures[name]
+    AHEAD = str(module.__file__)
+    return True
+
+
+_dense_compiled = False
+
+
+def _compile_dense() -> None:
+    """The dense way's kernels compiled by numba (the caller holds ``_lock``)."""
+    global _dense_compiled
+    if _dense_compiled:
+        return
+    # The kernels call bilinear, slopes (which calls bilinear) and system_row: each must be compiled
+    # before its callers, and be trackkernels' global when they are.
+    trackkernels.bilinear = _jit(trackkernels.bilinear_py)
+    trackkernels.slopes = _jit(trackkernels.slopes_py)
+    trackkernels.system_row = _jit(trackkernels.system_row_py)
+    for kernel in (
+        measure,
+        peaks,
+        band_signs,
+        cell_agreement,
+        slopes_sampled,
+        align_system,
+        sample_pair,
+        difference_pass,
+    ):
+        kernel.compiled = _jit(kernel.py_func)
+        if not COMPILED and kernel.fallback is not None:
+            kernel.compiled = kernel.fallback
+    _dense_compiled = True
 
 
 measure = _Kernel(trackkernels.measure)
@@ -124,32 +193,51 @@ class _SparseKernel(_Kernel):
     from the others on its first use, after the first pose (which the dense way finds), so that it adds nothing
     to a daemon's start-up; ``ipt-receiver warm`` compiles it ahead (:func:`warm_sparse`)."""
 
-    def __call__(self, *args: Any) -> Any:
-        if self.compiled is None:
-            ensure()  # (numba's availability is known from here on)
-            with _lock:
-                if self.compiled is None:
-                    # Each helper before its callers, as sparsekernels' global when they compile.
-                    sparsekernels.distort = _jit(sparsekernels.distort_py, inline=True)
-                    sparsekernels.distort_point = _jit(sparsekernels.distort_point_py, inline=True)
-                    sparsekernels.bilinear_u8 = _jit(sparsekernels.bilinear_u8_py, inline=True)
-                    sparsekernels.project_floor = _jit(sparsekernels.project_floor_py, inline=True)
-                    sparsekernels.read_profile = _jit(sparsekernels.read_profile_py, inline=True)
-                    sparsekernels.edge_row = _jit(sparsekernels.edge_row_py, inline=True)
-                    sparsekernels.detrend = _jit(sparsekernels.detrend_py, inline=True)
-                    sparsekernels.centred_moments = _jit(sparsekernels.centred_moments_py, inline=True)
-                    sparsekernels.own_step = _jit(sparsekernels.own_step_py, inline=True)
-                    sparsekernels.normal = _jit(sparsekernels.normal_py)
-                    sparsekernels.residuals = _jit(sparsekernels.residuals_py)
-                    sparsekernels.cholesky_solve = _jit(sparsekernels.cholesky_solve_py)
-                    for kernel in (sparse_profiles, sparse_moments, sparse_solve_step):
-                        kernel.compiled = _jit(kernel.py_func)
-        return self.compiled(*args)
+    def _compile(self) -> None:
+        with _lock:
+            _compile_dense()  # (numba's availability is known from here on)
+            _compile_sparse()
+
+
+def _compile_sparse() -> None:
+    """The sparse tracker's kernels compiled by numba (the caller holds ``_lock``)."""
+    if sparse_profiles.compiled is not None:
+        return
+    # Each helper before its callers, as sparsekernels' global when they compile.
+    sparsekernels.distort = _jit(sparsekernels.distort_py, inline=True)
+    sparsekernels.distort_point = _jit(sparsekernels.distort_point_py, inline=True)
+    sparsekernels.bilinear_u8 = _jit(sparsekernels.bilinear_u8_py, inline=True)
+    sparsekernels.project_floor = _jit(sparsekernels.project_floor_py, inline=True)
+    sparsekernels.read_profile = _jit(sparsekernels.read_profile_py, inline=True)
+    sparsekernels.edge_row = _jit(sparsekernels.edge_row_py, inline=True)
+    sparsekernels.detrend = _jit(sparsekernels.detrend_py, inline=True)
+    sparsekernels.centred_moments = _jit(sparsekernels.centred_moments_py, inline=True)
+    sparsekernels.own_step = _jit(sparsekernels.own_step_py, inline=True)
+    sparsekernels.normal = _jit(sparsekernels.normal_py)
+    sparsekernels.residuals = _jit(sparsekernels.residuals_py)
+    sparsekernels.cholesky_solve = _jit(sparsekernels.cholesky_solve_py)
+    for kernel in (sparse_solve_step, sparse_moments, sparse_profiles):  # sparse_profiles last: the flag
+        kernel.compiled = _jit(kernel.py_func)
 
 
 sparse_profiles = _SparseKernel(sparsekernels.profiles)
 sparse_moments = _SparseKernel(sparsekernels.moments)
 sparse_solve_step = _SparseKernel(sparsekernels.solve_step)
+
+BY_NAME: dict[str, _Kernel] = {
+    "measure": measure,
+    "peaks": peaks,
+    "band_signs": band_signs,
+    "cell_agreement": cell_agreement,
+    "slopes_sampled": slopes_sampled,
+    "align_system": align_system,
+    "sample_pair": sample_pair,
+    "difference_pass": difference_pass,
+    "sparse_profiles": sparse_profiles,
+    "sparse_moments": sparse_moments,
+    "sparse_solve_step": sparse_solve_step,
+}
+"""Every kernel by the name its ahead-of-time build exports it under."""
 
 
 def warm() -> None:
