@@ -14,7 +14,9 @@ gives ``first_pose_cpu_s``: the processor time (user + sys) the new daemon and i
 when its first pose arrived, which a busy machine changes far less than the wall-clock time (Linux: from
 /proc).
 
-Before the rounds it runs ``ipt-receiver warm`` once, as the unit's ExecStartPre does: numba's cache of the
+Before the rounds it runs ``ipt-receiver warm`` once, as the unit's ExecStartPre does, into a cache folder of
+each receiver's own (``NUMBA_CACHE_DIR`` in the temporary folder, as the unit's ``CacheDirectory=``; a minute
+the first time: numba compiles every kernel, then they are built ahead of time where a C compiler is): the
 kernels and ipt's own bytecode are then in place, as on an installed drone (``pip install`` compiles the
 bytecode; an editable checkout under ``PYTHONDONTWRITEBYTECODE`` would otherwise compile every module of
 ipt at every start, so the warm runs without that variable).
@@ -87,14 +89,17 @@ class _Build:
 
 
 def _builds(baseline: Path | None, tmp: Path) -> list[_Build]:
-    here = _Build("this", None, None)
+    """Each receiver with a kernel cache folder of its own (``NUMBA_CACHE_DIR``, as the unit's
+    ``CacheDirectory=``), which :func:`_warm` fills."""
+    here = _Build("this", dict(os.environ, NUMBA_CACHE_DIR=str(tmp / "cache-this")), None)
     if baseline is None:
         return [here]
     if not (baseline / "ipt" / "receiver" / "cli.py").is_file():
         raise SystemExit(f"restart: --baseline {baseline}: not a checkout of ipt (no ipt/receiver/cli.py)")
     cwd = tmp / "baseline-cwd"
     cwd.mkdir()
-    return [_Build("baseline", dict(os.environ, PYTHONPATH=str(baseline.resolve())), str(cwd)), here]
+    env = dict(os.environ, PYTHONPATH=str(baseline.resolve()), NUMBA_CACHE_DIR=str(tmp / "cache-baseline"))
+    return [_Build("baseline", env, str(cwd)), here]
 
 
 def _warm(build: _Build) -> None:
@@ -214,6 +219,7 @@ def main() -> int:
         _render(folder)
         source = _source(folder, args.source)
         for build in builds:
+            print(f"restart: ipt-receiver warm ({build.name}: up to a minute the first time)", file=sys.stderr)
             _warm(build)
         load_before = os.getloadavg()
         listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)

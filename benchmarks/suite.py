@@ -22,7 +22,9 @@ helper process too) with OpenCV on one thread, and scored against its ground tru
 - ``whole_process`` (unless ``--no-whole-process``): ``ipt-receiver replay`` of the rendering's frames as BMP
   images (written once into ``bmp/`` beside the rendering), a process pinned to core 0, its user + sys time by
   ``/usr/bin/time`` (the AprilTag helper process included) as ``frames_per_cpu_s``, the load average when it
-  started, and the yield and errors of that run's own poses (issue 29's target 1).
+  started, and the yield and errors of that run's own poses (issue 29's target 1). It runs as the systemd unit
+  runs the receiver: ``NUMBA_CACHE_DIR`` a folder of ``--cache`` filled by ``ipt-receiver warm`` first, so
+  with the kernels built ahead of time where a C compiler is (``kernels`` says how they were loaded).
 
 A flight with a keystoned projector (``keystone:``) is scored three ways: ``NAME (uncalibrated)`` with the
 arena file's uniform layout, ``NAME (calibrated)`` with the arena ``ipt calibrate arena --points`` makes
@@ -342,8 +344,29 @@ def frames_folder(folder: Path) -> Path:
     return out
 
 
+_WARMED: set[Path] = set()
+
+
+def kernel_env(cache: Path, receiver: Path | None, command: list[str]) -> dict[str, str]:
+    """The environment of a whole-process replay: as the systemd unit runs the receiver, ``NUMBA_CACHE_DIR``
+    (a folder of ``cache`` per receiver checkout) filled by ``ipt-receiver warm`` first (numba's cache, and the
+    kernels built ahead of time where a C compiler is), once per run of the suite."""
+    tag = hashlib.sha256(str(receiver.resolve()).encode()).hexdigest()[:12] if receiver is not None else "this"
+    kernels = (cache / "kernels" / tag).resolve()
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(kernels))
+    if receiver is not None:
+        env["PYTHONPATH"] = str(receiver)
+    if kernels not in _WARMED:
+        kernels.mkdir(parents=True, exist_ok=True)
+        done = subprocess.run([*command, "warm"], capture_output=True, text=True, timeout=1800, check=False, env=env,
+                              cwd=kernels)  # fmt: skip
+        print(f"suite: {done.stdout.strip() or done.stderr.strip()[-500:]}", file=sys.stderr, flush=True)
+        _WARMED.add(kernels)
+    return env
+
+
 def whole_process(
-    folder: Path, arena_path: Path, profile: str, receiver: Path | None, tracker: str | None = None
+    folder: Path, arena_path: Path, profile: str, receiver: Path | None, cache: Path, tracker: str | None = None
 ) -> dict[str, Any]:
     """``ipt-receiver replay`` of the rendering's BMP frames as a process of its own pinned to core 0, its
     processor time (user + sys, the AprilTag helper process included) by ``/usr/bin/time``, and the yield and
@@ -356,7 +379,7 @@ def whole_process(
     frames_dir = frames_folder(folder)
     entry = Path(sys.executable).with_name("ipt-receiver")
     command = [str(entry)] if receiver is None and entry.is_file() else [sys.executable, "-m", "ipt.receiver.cli"]
-    env = dict(os.environ, PYTHONPATH=str(receiver)) if receiver is not None else None
+    env = kernel_env(cache, receiver, command)
     with tempfile.TemporaryDirectory(prefix="ipt-suite-") as tmp:
         poses, timing = Path(tmp) / "poses.tum", Path(tmp) / "time.txt"
         cmd = ["taskset", "-c", "0", "/usr/bin/time", "-f", "%U %S", "-o", str(timing), *command, "replay",
@@ -371,6 +394,7 @@ def whole_process(
             raise SystemExit(f"suite: {' '.join(cmd)} failed: {done.stderr.strip()[-2000:]}")
         user_s, sys_s = (float(v) for v in timing.read_text(encoding="utf-8").split()[-2:])
         got = read_tum(poses)
+    kernels_line = next((line for line in done.stdout.splitlines() if "kernels:" in line), "")
     frames = len(list(frames_dir.glob("*.bmp")))
     out: dict[str, Any] = {
         "frames_per_cpu_s": round(frames / (user_s + sys_s), 1),
@@ -378,6 +402,7 @@ def whole_process(
         "sys_s": sys_s,
         "load_average": round(load, 2),
         "yield_pct": round(100.0 * len(got) / frames, 2),
+        "kernels": kernels_line.split("kernels: ", 1)[-1],
     }
     if len(got):
         r = evaluate(truth, got)
@@ -502,7 +527,9 @@ def main() -> int:
             flight["profiles"][profile] = score(folder, arena, profile, seam, sim.camera.readout_ms > 0, args.tracker)
             r = flight["profiles"][profile]
             if not args.no_whole_process:
-                r["whole_process"] = whole_process(folder, folder / "arena.yaml", profile, args.receiver, args.tracker)
+                r["whole_process"] = whole_process(
+                    folder, folder / "arena.yaml", profile, args.receiver, args.cache, args.tracker
+                )
             print(
                 f"suite: {path.stem} / {profile}: yield {r['yield_pct']:.1f} %, MAE {_cell_mm(r['mae_mm'])} mm, "
                 f"{r['frames_per_s']} frames/s{_whole(r)} ({time.monotonic() - start:.0f} s){_seam(r)}",
@@ -538,7 +565,9 @@ def main() -> int:
                     )
                     if not args.no_whole_process:
                         arena_yaml = folder / "calibrated.yaml" if where is folder else where / "arena.yaml"
-                        r["whole_process"] = whole_process(where, arena_yaml, profile, args.receiver, args.tracker)
+                        r["whole_process"] = whole_process(
+                            where, arena_yaml, profile, args.receiver, args.cache, args.tracker
+                        )
                     print(
                         f"suite: {name} / {profile}: yield {r['yield_pct']:.1f} %, MAE {_cell_mm(r['mae_mm'])} mm"
                         f"{_seam(r)}",
