@@ -183,8 +183,11 @@ def build(folder: Path, dispatchers: Mapping[str, Any]) -> Path:
         work = Path(tempfile.mkdtemp(prefix=".build-", dir=folder))
     except OSError as exc:
         raise KernelBuildError(f"not built ahead of time: cannot write in {folder} ({exc.strerror})") from exc
-    flags = pycc_compiler.Flags
+    flags, temporary, tmpdir = pycc_compiler.Flags, tempfile.tempdir, os.environ.get("TMPDIR")
     try:
+        # numba.pycc's scratch folders (the compiler check's, the build's) and the C compiler's own files in the
+        # folder this can write, as under the unit (ProtectSystem=strict) only the cache folder may be
+        tempfile.tempdir = os.environ["TMPDIR"] = str(work)
         cc = pycc.CC(PREFIX + built_key, source_module=__name__)
         cc.output_dir = str(work)
         cc.verbose = False
@@ -221,7 +224,11 @@ def build(folder: Path, dispatchers: Mapping[str, Any]) -> Path:
             why = f"{type(exc).__name__}: {text.splitlines()[0] if text else ''}"
         raise KernelBuildError(f"not built ahead of time ({why}); numba's cache serves") from exc
     finally:
-        pycc_compiler.Flags = flags
+        pycc_compiler.Flags, tempfile.tempdir = flags, temporary
+        if tmpdir is None:
+            os.environ.pop("TMPDIR", None)
+        else:
+            os.environ["TMPDIR"] = tmpdir
         shutil.rmtree(work, ignore_errors=True)
     for old in folder.glob(PREFIX + "*"):
         if not old.name.startswith(PREFIX + built_key):
