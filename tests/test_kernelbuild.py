@@ -73,6 +73,33 @@ def test_a_replay_loads_the_built_kernels_without_numba_and_poses_to_the_bit(
     assert poses == (tmp_path / "jit.tum").read_bytes()
 
 
+_UNDER_WX = """
+import ctypes, os, sys
+if ctypes.CDLL(None, use_errno=True).prctl(65, 1, 0, 0, 0) != 0:  # PR_SET_MDWE, PR_MDWE_REFUSE_EXEC_GAIN
+    sys.exit(77)
+os.execv(sys.argv[1], sys.argv[1:])
+"""
+
+
+def test_the_built_kernels_run_under_wx(built: Path, short_flight: Path, tmp_path: Path) -> None:
+    """Under W^X (the kernel's PR_SET_MDWE, as ``MemoryDenyWriteExecute=yes``) numba's kernels cannot load and fall
+    back to numpy; the module built ahead is a file mapped as it is, and runs: the same poses as without W^X."""
+    command = [sys.executable, "-c", _UNDER_WX, sys.executable, "-m", "ipt.receiver.cli", "replay",
+               "--camera", str(short_flight / "camera.yaml"), "--video", str(short_flight / "frames.mkv"),
+               "--fps", "120"]  # fmt: skip
+    under = subprocess.run(
+        [*command, "--output", str(tmp_path / "wx.tum")],
+        capture_output=True, text=True, env=_env(built), timeout=600, check=False,
+    )  # fmt: skip
+    if under.returncode == 77:
+        pytest.skip(f"this kernel ({os.uname().release}) has no PR_SET_MDWE")
+    assert under.returncode == 0, under.stderr[-3000:]
+    assert "kernels: built ahead of time, loaded from " + str(built) in under.stdout, under.stdout
+    free = _replay(_env(built), short_flight, tmp_path / "free.tum")
+    assert free.returncode == 0, free.stderr[-3000:]
+    assert (tmp_path / "wx.tum").read_bytes() == (tmp_path / "free.tum").read_bytes()
+
+
 def test_doctor_says_the_kernels_are_built_ahead(built: Path, tmp_path: Path) -> None:
     result = subprocess.run(
         [sys.executable, "-m", "ipt.receiver.cli", "doctor"],
