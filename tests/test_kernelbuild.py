@@ -222,3 +222,16 @@ def test_a_broken_or_foreign_build_is_not_loaded(tmp_path: Path) -> None:
     assert kernelbuild.load(tmp_path) is None  # not loadable
     module.with_name(kernelbuild.PREFIX + key + ".json").write_text("{", encoding="utf-8")
     assert kernelbuild.load(tmp_path) is None  # its signatures unreadable
+
+
+def test_the_key_names_what_the_module_is_compiled_against() -> None:
+    """numpy's version is in the stamp (and so the key): the module is compiled against numpy's C interface, and
+    an upgraded numpy must not load a module built for another."""
+    import importlib.metadata
+
+    from ipt.receiver.core.kernelstamp import stamp_text
+
+    lines = stamp_text().splitlines()
+    for name in ("numba", "llvmlite", "numpy"):
+        assert f"{name} {importlib.metadata.version(name)}" in lines
+    assert len(kernelbuild.key()) == 16

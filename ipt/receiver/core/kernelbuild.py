@@ -9,8 +9,8 @@ function per kernel for the argument types the pipeline passes (those numba's di
 calls). A process that finds the module of its key loads it in a few milliseconds, without importing numba;
 the results are the same to the bit (the same LLVM, the same code; the poses of whole replays compared).
 
-The key (:func:`key`) covers what the module depends on: the receiver core's sources, numba's, llvmlite's and
-Python's versions (``kernelstamp.stamp_text``) and the processor (the module is built for the machine's own
+The key (:func:`key`) covers what the module depends on: the receiver core's sources, numba's, llvmlite's,
+numpy's and Python's versions (``kernelstamp.stamp_text``) and the processor (the module is built for the machine's own
 CPU, as numba's JIT compiles for it: a module built on a Pi 5 is not loaded on a Pi 4).
 
 An exported function converts its arguments without checking them (a float32 array where it was built for an
