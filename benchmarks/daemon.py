@@ -21,7 +21,10 @@ listens on:
 
 Every packet is decoded with :func:`ipt.protocol.decode_pose` and its position compared with the truth at
 its capture time. ``--compare-replay`` also runs ``ipt-receiver replay`` on the same recording and
-compares the number of poses. Pin to one core for the Pi-like figure: ``taskset -c 0 python ...``.
+compares the number of poses. Pin to one core for the Pi-like figure: ``taskset -c 0 python ...``. As the unit
+runs the receiver, its kernels come from a cache folder ``ipt-receiver warm`` filled (and built ahead of time in,
+where a C compiler is): ``NUMBA_CACHE_DIR=DIR ipt-receiver warm`` once, then ``NUMBA_CACHE_DIR=DIR taskset -c 0
+python benchmarks/daemon.py ...``; without it numba's default cache serves.
 """
 
 from __future__ import annotations
