@@ -169,7 +169,7 @@ def build(folder: Path, dispatchers: Mapping[str, Any]) -> Path:
             pycc: Any = importlib.import_module("numba.pycc")  # (typed loosely: numba's own hints are partial)
             pycc_compiler: Any = importlib.import_module("numba.pycc.compiler")
     except ImportError as exc:
-        raise KernelBuildError(f"numba's ahead-of-time compiler is unavailable ({exc})") from exc
+        raise KernelBuildError(f"not built ahead of time: no numba.pycc here ({exc})") from exc
     described: dict[str, list[list[Any]]] = {}
     exports: list[tuple[str, Any, Any]] = []
     for name, dispatcher in dispatchers.items():
@@ -211,8 +211,6 @@ def build(folder: Path, dispatchers: Mapping[str, Any]) -> Path:
         (work / "signatures.json").write_text(json.dumps({"kernels": described}), encoding="utf-8")
         os.replace(work / "signatures.json", target.with_name(PREFIX + built_key + ".json"))
         os.replace(built, target)
-    except KernelBuildError:
-        raise
     except Exception as exc:  # the C compiler's or LLVM's failure: one line, numba's cache still serves
         text = str(exc).strip()
         install = "install gcc and Python's headers (apt install gcc python3-dev), then ipt-receiver warm --force"

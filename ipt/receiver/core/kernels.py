@@ -143,8 +143,8 @@ def _load_ahead() -> bool:
     if set(signatures) != set(BY_NAME):
         return False
     for name, kernel in BY_NAME.items():
+        kernel.signature = signatures[name]  # before ``ahead``: a call on another thread reads them unlocked
         kernel.ahead = getattr(module, name)
-        kernel.signature = signatures[name]
     AHEAD = str(module.__file__)
     return True
 
