@@ -13,7 +13,7 @@ these place each frame's step apart; over busy content they weigh nothing.
 
 :func:`profiles` calls :data:`edge_row` and :data:`read_profile` (which call :data:`project_floor`,
 :data:`distort` and :data:`bilinear_u8`): the module's globals, which
-:func:`ipt.receiver.core.kernels.ensure` replaces by their compiled versions before it compiles their caller.
+``ipt.receiver.core.kernels._compile_sparse`` replaces by their compiled versions before it compiles their caller.
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ def distort_py(x: float, y: float, dist: F64, jac: F64) -> tuple[float, float]:
     return xd, yd
 
 
-distort: Any = distort_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+distort: Any = distort_py  # compiled by ``ipt.receiver.core.kernels._compile_sparse``
 
 
 def bilinear_u8_py(image: U8, x: float, y: float) -> float:
@@ -63,7 +63,7 @@ def bilinear_u8_py(image: U8, x: float, y: float) -> float:
     return float(top * (1.0 - fy) + bottom * fy)
 
 
-bilinear_u8: Any = bilinear_u8_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+bilinear_u8: Any = bilinear_u8_py  # compiled by ``ipt.receiver.core.kernels._compile_sparse``
 
 
 def distort_point_py(x: float, y: float, dist: F64) -> tuple[float, float]:
@@ -76,7 +76,7 @@ def distort_point_py(x: float, y: float, dist: F64) -> tuple[float, float]:
     return xd, yd
 
 
-distort_point: Any = distort_point_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+distort_point: Any = distort_point_py  # compiled by ``ipt.receiver.core.kernels._compile_sparse``
 
 
 def project_floor_py(r: F64, t: F64, k: F64, dist: F64, px: float, py: float) -> tuple[bool, float, float]:
@@ -89,7 +89,7 @@ def project_floor_py(r: F64, t: F64, k: F64, dist: F64, px: float, py: float) ->
     return True, k[0, 0] * xd + k[0, 1] * yd + k[0, 2], k[1, 1] * yd + k[1, 2]
 
 
-project_floor: Any = project_floor_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+project_floor: Any = project_floor_py  # compiled by ``ipt.receiver.core.kernels._compile_sparse``
 
 
 def read_profile_py(
@@ -147,7 +147,7 @@ def read_profile_py(
     return True
 
 
-read_profile: Any = read_profile_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+read_profile: Any = read_profile_py  # compiled by ``ipt.receiver.core.kernels._compile_sparse``
 
 
 def edge_row_py(
@@ -195,7 +195,7 @@ def edge_row_py(
     res[2] = length
 
 
-edge_row: Any = edge_row_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+edge_row: Any = edge_row_py  # compiled by ``ipt.receiver.core.kernels._compile_sparse``
 
 
 def profiles(
@@ -295,7 +295,7 @@ def centred_moments_py(u: F64, y: F64, mean_u: F64, gram: F64, uy: F64, yy: F64,
             gram[a, b] = total
 
 
-centred_moments: Any = centred_moments_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+centred_moments: Any = centred_moments_py  # compiled by ``ipt.receiver.core.kernels._compile_sparse``
 
 
 def moments(
@@ -422,7 +422,7 @@ def own_step_py(
     yy[i], uy[1], uy[col], gram[1, 1], gram[1, col], gram[col, col] = yy_i, uy_1, uy_c, g_11, g_1c, g_cc
 
 
-own_step: Any = own_step_py  # compiled by kernels.ensure into :func:`moments` (as a call, a third of its time)
+own_step: Any = own_step_py  # compiled by kernels._compile_sparse into :func:`moments` (as a call, a third of its time)
 
 
 def detrend_py(v: F64, line: F64) -> None:
@@ -438,7 +438,7 @@ def detrend_py(v: F64, line: F64) -> None:
         v[o] -= mean + along * line[o]
 
 
-detrend: Any = detrend_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+detrend: Any = detrend_py  # compiled by ``ipt.receiver.core.kernels._compile_sparse``
 
 
 def normal_py(
@@ -486,7 +486,7 @@ def normal_py(
     return big, rhs, held, flow
 
 
-normal: Any = normal_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+normal: Any = normal_py  # compiled by ``ipt.receiver.core.kernels._compile_sparse``
 
 
 def residuals_py(gram: F64, uy: F64, yy: F64, a_rows: F64, sol: F64) -> F64:
@@ -513,7 +513,7 @@ def residuals_py(gram: F64, uy: F64, yy: F64, a_rows: F64, sol: F64) -> F64:
     return out
 
 
-residuals: Any = residuals_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+residuals: Any = residuals_py  # compiled by ``ipt.receiver.core.kernels._compile_sparse``
 
 
 def cholesky_solve_py(a: F64, b: F64) -> tuple[F64, bool]:
@@ -546,7 +546,7 @@ def cholesky_solve_py(a: F64, b: F64) -> tuple[F64, bool]:
     return x, True
 
 
-cholesky_solve: Any = cholesky_solve_py  # compiled by :func:`ipt.receiver.core.kernels.ensure`
+cholesky_solve: Any = cholesky_solve_py  # compiled by ``ipt.receiver.core.kernels._compile_sparse``
 
 
 def solve_step(
