@@ -489,7 +489,7 @@ def _kernels(p: Probes) -> Check:
     if kernels.AHEAD is not None:
         return Check(OK, "kernels", f"built ahead of time, loaded without numba ({took}; {kernels.AHEAD})")
     cache = os.environ.get("NUMBA_CACHE_DIR") or "numba's default, __pycache__ beside the sources"
-    ahead = "; not built ahead of time: `ipt-receiver warm` builds them where gcc and python3-dev are installed"
+    ahead = "; not built ahead: `ipt-receiver warm` builds them into $NUMBA_CACHE_DIR where gcc and python3-dev are"
     return Check(OK, "kernels", f"compiled kernels load in this process ({took}; cache: {cache}{ahead})")
 
 
