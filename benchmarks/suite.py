@@ -360,8 +360,10 @@ def kernel_env(cache: Path, receiver: Path | None, command: list[str]) -> dict[s
         env["PYTHONPATH"] = str(receiver)
     if kernels not in _WARMED:
         kernels.mkdir(parents=True, exist_ok=True)
-        done = subprocess.run([*command, "warm"], capture_output=True, text=True, timeout=1800, check=False, env=env,
-                              cwd=kernels)  # fmt: skip
+        # (without PYTHONDONTWRITEBYTECODE: warm also compiles ipt's bytecode, as pip install does on a drone)
+        warm_env = {k: v for k, v in env.items() if k != "PYTHONDONTWRITEBYTECODE"}
+        done = subprocess.run([*command, "warm"], capture_output=True, text=True, timeout=1800, check=False,
+                              env=warm_env, cwd=kernels)  # fmt: skip
         print(f"suite: {done.stdout.strip() or done.stderr.strip()[-500:]}", file=sys.stderr, flush=True)
         _WARMED.add(kernels)
     return env
