@@ -14,38 +14,24 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from kernelenv import kernel_env, numba_imported, receiver_cli
 
 from ipt.receiver.core import kernelbuild, kernels
 from ipt.receiver.core.kernelbuild import Signature, fits
-
-
-def _env(cache: Path, **extra: str) -> dict[str, str]:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
-    env.update(NUMBA_CACHE_DIR=str(cache), **extra)
-    return env
-
-
-def _cli(env: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
-    command = [sys.executable, "-X", "importtime", "-m", "ipt.receiver.cli", *args]
-    return subprocess.run(command, capture_output=True, text=True, env=env, timeout=900, check=False)
-
-
-def _numba_imported(result: subprocess.CompletedProcess[str]) -> bool:
-    return any(line.rstrip().endswith(("| numba", "| llvmlite")) for line in result.stderr.splitlines())
 
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A cache folder after ``ipt-receiver warm``: numba's cache and the module built ahead of time."""
     cache = tmp_path_factory.mktemp("kernels") / "cache"
-    warm = _cli(_env(cache), "warm")
+    warm = receiver_cli(kernel_env(cache), "warm")
     assert warm.returncode == 0, warm.stdout + warm.stderr[-3000:]
     assert "built ahead of time into " + str(cache) in warm.stdout, warm.stdout
     return cache
 
 
 def _replay(env: dict[str, str], flight: Path, out: Path) -> subprocess.CompletedProcess[str]:
-    return _cli(
+    return receiver_cli(
         env, "replay", "--camera", str(flight / "camera.yaml"), "--video", str(flight / "frames.mkv"),
         "--fps", "120", "--output", str(out),
     )  # fmt: skip
@@ -54,19 +40,19 @@ def _replay(env: dict[str, str], flight: Path, out: Path) -> subprocess.Complete
 def test_a_replay_loads_the_built_kernels_without_numba_and_poses_to_the_bit(
     built: Path, short_flight: Path, tmp_path: Path
 ) -> None:
-    ahead = _replay(_env(built), short_flight, tmp_path / "ahead.tum")
+    ahead = _replay(kernel_env(built), short_flight, tmp_path / "ahead.tum")
     assert ahead.returncode == 0, ahead.stderr[-3000:]
     assert "kernels: built ahead of time, loaded from " + str(built) in ahead.stdout, ahead.stdout
     assert "not as built" not in ahead.stdout
-    assert not _numba_imported(ahead), "numba was imported although the kernels were built ahead"
+    assert not numba_imported(ahead), "numba was imported although the kernels were built ahead"
 
     # The same cache without the built module: numba's kernels, loaded from its cache.
     jit_cache = tmp_path / "jit"
     shutil.copytree(built, jit_cache, ignore=shutil.ignore_patterns(kernelbuild.PREFIX + "*"))
-    jit = _replay(_env(jit_cache), short_flight, tmp_path / "jit.tum")
+    jit = _replay(kernel_env(jit_cache), short_flight, tmp_path / "jit.tum")
     assert jit.returncode == 0, jit.stderr[-3000:]
     assert "kernels: compiled, cache " + str(jit_cache) in jit.stdout, jit.stdout
-    assert _numba_imported(jit)
+    assert numba_imported(jit)
 
     poses = (tmp_path / "ahead.tum").read_bytes()
     assert poses.count(b"\n") > 40, "too few poses to compare"
@@ -89,13 +75,13 @@ def test_the_built_kernels_run_under_wx(built: Path, short_flight: Path, tmp_pat
                "--fps", "120"]  # fmt: skip
     under = subprocess.run(
         [*command, "--output", str(tmp_path / "wx.tum")],
-        capture_output=True, text=True, env=_env(built), timeout=600, check=False,
+        capture_output=True, text=True, env=kernel_env(built), timeout=600, check=False,
     )  # fmt: skip
     if under.returncode == 77:
         pytest.skip(f"this kernel ({os.uname().release}) has no PR_SET_MDWE")
     assert under.returncode == 0, under.stderr[-3000:]
     assert "kernels: built ahead of time, loaded from " + str(built) in under.stdout, under.stdout
-    free = _replay(_env(built), short_flight, tmp_path / "free.tum")
+    free = _replay(kernel_env(built), short_flight, tmp_path / "free.tum")
     assert free.returncode == 0, free.stderr[-3000:]
     assert (tmp_path / "wx.tum").read_bytes() == (tmp_path / "free.tum").read_bytes()
 
@@ -103,7 +89,7 @@ def test_the_built_kernels_run_under_wx(built: Path, short_flight: Path, tmp_pat
 def test_doctor_says_the_kernels_are_built_ahead(built: Path, tmp_path: Path) -> None:
     result = subprocess.run(
         [sys.executable, "-m", "ipt.receiver.cli", "doctor"],
-        capture_output=True, text=True, env=_env(built), timeout=300, check=False, cwd=tmp_path,
+        capture_output=True, text=True, env=kernel_env(built), timeout=300, check=False, cwd=tmp_path,
     )  # fmt: skip
     lines = [line for line in result.stdout.splitlines() if "] kernels:" in line]
     assert len(lines) == 1, result.stdout + result.stderr[-2000:]
@@ -168,7 +154,7 @@ assert len(a) > 100 and np.array_equal(a, b)
 print(kernelcache.status().line())
 """
     result = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, env=_env(built), timeout=600, check=False
+        [sys.executable, "-c", script], capture_output=True, text=True, env=kernel_env(built), timeout=600, check=False
     )
     assert result.returncode == 0, result.stderr[-3000:]
     assert "built ahead of time" in result.stdout
@@ -206,7 +192,7 @@ def test_a_built_kernel_lets_other_threads_run(built: Path) -> None:
 def test_warm_without_a_c_compiler_says_so_and_numbas_cache_serves(built: Path, tmp_path: Path) -> None:
     cache = tmp_path / "cache"
     shutil.copytree(built, cache, ignore=shutil.ignore_patterns(kernelbuild.PREFIX + "*", "*.stamp"))
-    warm = _cli(_env(cache, CC="/bin/false"), "warm")
+    warm = receiver_cli(kernel_env(cache, CC="/bin/false"), "warm")
     assert warm.returncode == 0, warm.stdout + warm.stderr[-2000:]
     assert "not built ahead of time (no working C compiler" in warm.stdout, warm.stdout
     assert "Traceback" not in warm.stderr

@@ -3,23 +3,16 @@ its stamp lets a later warm (the unit's ExecStartPre at every restart) return wi
 
 from __future__ import annotations
 
-import os
 import subprocess
-import sys
 from pathlib import Path
+
+from kernelenv import kernel_env, numba_imported, receiver_cli
 
 from ipt.receiver.core.kernelcache import STAMP_NAME, stamp_text
 
 
 def _warm(cache: Path, *flags: str) -> subprocess.CompletedProcess[str]:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_")}
-    env["NUMBA_CACHE_DIR"] = str(cache)
-    command = [sys.executable, "-X", "importtime", "-m", "ipt.receiver.cli", "warm", *flags]
-    return subprocess.run(command, capture_output=True, text=True, env=env, timeout=600, check=False)
-
-
-def _numba_imported(result: subprocess.CompletedProcess[str]) -> bool:
-    return any(line.rstrip().endswith("| numba") for line in result.stderr.splitlines())
+    return receiver_cli(kernel_env(cache), "warm", *flags, timeout_s=600)
 
 
 def test_warm_caches_every_kernel_then_returns_at_once(tmp_path: Path) -> None:
@@ -32,14 +25,14 @@ def test_warm_caches_every_kernel_then_returns_at_once(tmp_path: Path) -> None:
     again = _warm(cache)
     assert again.returncode == 0
     assert "already cached" in again.stdout, again.stdout
-    assert not _numba_imported(again), "a warm with a matching stamp imported numba"
+    assert not numba_imported(again), "a warm with a matching stamp imported numba"
 
     # A stamp for something else (another ipt, numba or Python): everything is loaded again, from the
     # cache, and nothing compiles.
     (cache / STAMP_NAME).write_text("sources 0\n", encoding="utf-8")
     checked = _warm(cache)
     assert checked.returncode == 0, checked.stdout
-    assert _numba_imported(checked)
+    assert numba_imported(checked)
     assert " 0 compiled" in checked.stdout, checked.stdout
     assert " 0 loaded" not in checked.stdout, checked.stdout
     assert (cache / STAMP_NAME).read_text(encoding="utf-8") == stamp_text()
