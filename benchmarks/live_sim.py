@@ -7,8 +7,12 @@ DIR holds camera.yaml, groundtruth.tum, the frames (``bmp/`` as ``ipt sim --fram
 frames.mkv) and arena.yaml (else the shipped arena), as ``ipt sim`` writes them. The model, round by round:
 
 - the camera delivers frame k at k / fps; the worker, when free, takes the newest frames it has not taken, at most
-  :data:`ipt.receiver.daemon.LIVE_RUN_FRAMES` (the daemon's live queue keeps that many and drops the older ones);
-  after frames were dropped it first calls :meth:`Pipeline.finish_before`, as the daemon does;
+  :data:`ipt.receiver.liverun.LIVE_RUN_FRAMES` (the daemon's live queue keeps that many and drops the older ones),
+  and of those, when frames were dropped and pairs pay (:func:`ipt.receiver.liverun.pairs_pay`: the content
+  moves, or the stretched processing times are slower than the camera), the ones
+  :func:`ipt.receiver.liverun.pick_run` picks with the pipeline's phase clock (a + and − frame of one video
+  frame), waiting for them as the daemon does; after frames were dropped it first calls
+  :meth:`Pipeline.finish_before`, as the daemon does;
 - each frame of the run is processed in order and takes the wall-clock time it took here (the AprilTag helper
   process's time included when pinned to one core: ``taskset -c 0``) times ``--slow``;
 - a result's latency is the (virtual) time it came out minus its frame's capture time.
@@ -41,8 +45,8 @@ from ipt.config.models import shipped_config_path
 from ipt.config.receiver import ReceiverConfig
 from ipt.receiver.core.frameresult import FrameResult
 from ipt.receiver.core.pipeline import Pipeline
-from ipt.receiver.daemon import LIVE_RUN_FRAMES
 from ipt.receiver.detect.detector import pipeline_detector
+from ipt.receiver.liverun import LIVE_RUN_FRAMES, PAIR_WAIT_FRAMES, pairs_pay, pick_run
 from ipt.receiver.options import load_setup
 from ipt.tum import Trajectory, read_tum
 from ipt.videoio import open_frames
@@ -75,6 +79,7 @@ def live_round(pipeline: Pipeline, frames: list[Any], fps: float, slow: float) -
     """Each frame's result with the virtual time it came out (s), under the daemon's live rule."""
     out: dict[int, tuple[float, FrameResult]] = {}
     now_s, last, n = 0.0, -1, len(frames)
+    frame_seconds: list[float] = []  # each frame's (stretched) processing time, for pairs_pay
 
     def took(t0: float, results: list[FrameResult]) -> None:
         nonlocal now_s
@@ -87,13 +92,27 @@ def live_round(pipeline: Pipeline, frames: list[Any], fps: float, slow: float) -
         if newest <= last:  # the worker waits for the next frame
             now_s = (last + 1) / fps
             continue
-        run = range(max(last + 1, newest - LIVE_RUN_FRAMES + 1), newest + 1)
+        run = list(range(max(last + 1, newest - LIVE_RUN_FRAMES + 1), newest + 1))
+        behind = last >= 0 and run[0] > last + 1
+        clock, moves = pipeline.live_hints()
+        if behind and pairs_pay(moves, frame_seconds, 1.0 / fps):
+            # the daemon's pick among the frames held, waiting as it does
+            phase_at = clock.at if clock is not None else None
+            picked, waits = pick_run(run, [round(k * 1e6 / fps) for k in run], True, phase_at), 0
+            while picked is None and waits < PAIR_WAIT_FRAMES and run[-1] + 1 < n:
+                newest = run[-1] + 1  # the next frame comes
+                now_s = max(now_s, newest / fps)
+                run = list(range(max(last + 1, newest - LIVE_RUN_FRAMES + 1), newest + 1))
+                picked, waits = pick_run(run, [round(k * 1e6 / fps) for k in run], True, phase_at), waits + 1
+            start, stop = picked if picked is not None else (0, len(run))
+            run = run[start:stop]
         if run[0] > last + 1 and last >= 0:  # frames were dropped: what waited for them comes out first
             t0 = time.perf_counter()
             took(t0, pipeline.finish_before(round(run[0] * 1e6 / fps)))
         for k in run:
             t0 = time.perf_counter()
             took(t0, pipeline.process(k, frames[k], round(k * 1e6 / fps)))
+            frame_seconds.append((time.perf_counter() - t0) * slow)
         last = run[-1]
     t0 = time.perf_counter()
     took(t0, pipeline.flush())

@@ -8,8 +8,11 @@ frame (``--slowdown``) sees only some of the camera's frames. This replays which
 after each run the pipeline is free ``k`` frame times per frame later, and takes
 
 - ``newest``: the newest frame alone (the daemon before runs; a partner is then ``k`` frames away), or
-- ``runs``: what the live queue holds, up to :data:`ipt.receiver.daemon.LIVE_RUN_FRAMES` consecutive frames
-  ending with the newest (the daemon now),
+- ``runs``: what the live queue holds, up to :data:`ipt.receiver.liverun.LIVE_RUN_FRAMES` consecutive frames
+  ending with the newest (the daemon until stop 51, and still until the projector's phase is known; once it
+  is, the daemon takes a + and − frame of one video frame when it fell behind by more than that,
+  :func:`ipt.receiver.liverun.pick_run`, which needs the pipeline's phase as it runs: ``benchmarks/live_sim.py``
+  models it),
 
 and feeds exactly those frames, with their capture times, to a real pipeline (profile ``ipt``). Printed per
 policy and slowdown: frames fed, poses, yield of the frames fed, poses per second of flight, and the poses'
@@ -32,8 +35,8 @@ import numpy as np
 from ipt.config.camera_info import load_camera_info
 from ipt.config.models import PipelineConfig, load_arena_config
 from ipt.receiver.core.pipeline import Pipeline
-from ipt.receiver.daemon import LIVE_RUN_FRAMES
 from ipt.receiver.detect.detector import pipeline_detector
+from ipt.receiver.liverun import LIVE_RUN_FRAMES
 from ipt.tagmap import grid_tag_map
 from ipt.tum import read_tum
 from ipt.videoio import open_frames

@@ -205,7 +205,7 @@ def run_sparse(
             take(chain, j, result, k)
         if pairing.auto and k in out and not pairing.waits(k):
             t0 = time.thread_time()
-            chain.still = content_still(chain, k, frames, phase, camera, edges, STILL_SPREAD)
+            chain.still = bool(content_still(chain, k, frames, phase, camera, edges, STILL_SPREAD))
             spent += time.thread_time() - t0
         if k not in out and started and pairing.waits(k):
             pending.append(k)

@@ -19,7 +19,11 @@ Three stages, each on its own thread, joined by bounded queues::
   slower than the camera saw every k-th frame: beyond about 5 (a Pi 4, by the estimate in
   ``docs/receiver-cores.md``) no frame had a partner near enough, and not one pose came out; at 3-4 the
   partners 3-4 frames apart failed on a vibrating camera. When the worker keeps up, a run is one frame,
-  the newest. Figures: ``docs/receiver-cores.md``.
+  the newest. When it fell behind by more than the queue holds, the projector's phase is known, and the
+  floor's content moves or the worker is slower than the camera (:func:`~ipt.receiver.liverun.pairs_pay`),
+  the run is the newest + and − frames of one video frame (:func:`~ipt.receiver.liverun.pick_run`; the
+  daemon waits up to three frames for them), the other frames held are dropped. Figures:
+  ``docs/receiver-cores.md``.
 - **In order**: the pipeline is stateful (each frame is demodulated against the one before), so it
   must see frames in capture order. It does: one coroutine submits them in the order the FIFO queue
   yields them, and one worker thread takes them from the executor's FIFO queue one after the other.
@@ -53,6 +57,7 @@ import asyncio
 import dataclasses
 import sys
 import threading
+import time
 from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -76,6 +81,7 @@ from ipt.receiver.capture import (
 from ipt.receiver.core.pipeline import FrameResult, Pipeline
 from ipt.receiver.core.reasons import FrameReason
 from ipt.receiver.detect.detector import pipeline_detector
+from ipt.receiver.liverun import LIVE_RUN_FRAMES, LivePicker
 from ipt.receiver.options import ProcessedHook, ReceiverOptions, ReceiverSetup, ResultHook, load_setup
 from ipt.receiver.outputs.udp import PacketMaker, UdpPoseSender, new_stream_id
 from ipt.runtime import Clock, Histogram, Interval, ShutdownBudget, TaskSet, run_loop, write_line
@@ -88,11 +94,6 @@ if TYPE_CHECKING:
 MAX_IN_FLIGHT = 2
 """Frames submitted to the pipeline worker at once from a recording (one processing, one waiting); a live
 source submits one run at a time (:data:`LIVE_RUN_FRAMES`)."""
-LIVE_RUN_FRAMES = 3
-"""The longest run of consecutive frames a live source hands the pipeline at once (the queue keeps that many
-newest frames): the frame with its partners one and two frames before it, the best ones (one projector
-period apart, and half of one). Pairs alone did worse on the fast and vibrating flights whenever the
-worker is more than about three times slower than the camera (``docs/receiver-cores.md``)."""
 SHUTDOWN_BUDGET_S = 0.5
 """How long shutdown may take in all, from the stop to the return (the process must be gone within 1 s)."""
 DRAIN_TIMEOUT_S = 0.4
@@ -279,6 +280,8 @@ class _DaemonRun:
         self.stage_totals: dict[str, float] | None = getattr(self.pipeline, "stage_seconds", None)
         self.last_taken = -1
         """Index of the last frame taken from a live source (a jump after it: frames were dropped)."""
+        self.live = LivePicker()
+        """Which frames of a live source's queue to process after falling behind (:mod:`ipt.receiver.liverun`)."""
         self.waiting: dict[int, CapturedFrame] = {}
         """Frames processed whose result has not come out yet (the pipeline's look-ahead), by index."""
         self.tasks = TaskSet()
@@ -349,7 +352,9 @@ class _DaemonRun:
         if frame is None:
             batch = self.pipeline.flush()
         else:
+            t0 = time.perf_counter()
             batch = self.pipeline.process(frame.index, frame.image, frame.capture_time_us)
+            self.live.note(self.pipeline.live_hints(), time.perf_counter() - t0)
         if before is None or stage_totals is None:
             return batch, {}
         stages = {k: v - before.get(k, 0.0) for k, v in stage_totals.items() if v != before.get(k, 0.0)}
@@ -366,6 +371,9 @@ class _DaemonRun:
                     results.put_nowait((None, loop.run_in_executor(worker, self.process, None), True))
                     return
                 run = [frame, *self.frames.take_all()] if self.source.live else [frame]
+                if self.source.live and frame.index > self.last_taken + 1 and self.last_taken >= 0:
+                    run = await self.live.pick(run, self.more_frames)
+                    frame = run[0]
                 if self.source.live and frame.index > self.last_taken + 1:
                     # Frames were dropped: the results that waited for them come out now, not after this run.
                     t_us = frame.capture_time_us
@@ -379,6 +387,15 @@ class _DaemonRun:
                     results.put_nowait((item, loop.run_in_executor(worker, self.process, item), k == len(run) - 1))
         finally:
             results.put_nowait(None)
+
+    async def more_frames(self, timeout_s: float) -> list[CapturedFrame]:
+        """The next frame of a live source and those queued after it, or [] if none came within ``timeout_s`` or
+        the source ended (the next get says so again)."""
+        try:
+            frame = await asyncio.wait_for(self.frames.get(), timeout_s)
+        except TimeoutError:
+            return []
+        return [] if frame is None else [frame, *self.frames.take_all()]
 
     async def deliver(self) -> None:
         """Results in frame order to the UDP targets."""
@@ -459,7 +476,7 @@ class _DaemonRun:
         """The interval statistics line, every ``stats_interval_s``."""
         while True:
             await self.clock.sleep(self.cfg.stats_interval_s)
-            write_line(self.out, self.meter.interval_line(self.clock.now(), self.frames.dropped, self.sender.errors))
+            write_line(self.out, self.meter.interval_line(self.clock.now(), self.drops, self.sender.errors))
 
     async def shutdown(self) -> None:
         """Stop everything in order within :data:`SHUTDOWN_BUDGET_S` (see the module's doc)."""
@@ -485,6 +502,11 @@ class _DaemonRun:
         # budget. If it does not end, the thread is a daemon thread and `capture_running` tells the caller.
         self.capture.join(budget.left())
 
+    @property
+    def drops(self) -> int:
+        """Frames not processed because processing was behind a live source: dropped by the queue, or passed over."""
+        return self.frames.dropped + self.live.passed_over
+
     def _close_pipeline(self) -> None:
         self.worker.shutdown(wait=True)
         self.pipeline.close()
@@ -498,7 +520,7 @@ class _DaemonRun:
             poses=meter.poses,
             packets_sent=sender.sent,
             send_errors=sender.errors,
-            drops=self.frames.dropped,
+            drops=self.drops,
             capture_failures=capture.failures,
             seconds=self.clock.now() - self.start_s,
             latency_p50_ms=meter.latency.quantile_ms(0.5),

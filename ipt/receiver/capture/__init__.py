@@ -12,7 +12,8 @@ Two queue policies:
 - **live** sources (a camera, or a recording or the simulator paced to real time): the newest frames
   win. When the queue is full the *oldest* frame is dropped and counted; the camera never waits. The
   daemon takes what the queue holds (its newest three at most, consecutive) as one run
-  (:data:`ipt.receiver.daemon.LIVE_RUN_FRAMES`).
+  (:data:`ipt.receiver.liverun.LIVE_RUN_FRAMES`), or, behind, a + and − frame of it
+  (:func:`ipt.receiver.liverun.pick_run`).
 - a recording read **as fast as possible** (no pacing): the reader waits for room, nothing is dropped.
 
 A source made with ``grey`` hands over H×W luma frames instead of RGB ones (the daemon asks for them

@@ -63,7 +63,7 @@ from ipt.receiver.core.reasons import PAIR_FAILURES, SHADOWED_SHARE, FrameReason
 from ipt.receiver.core.scales import DetectScale, ScaleChooser
 from ipt.receiver.core.secondlook import SecondLook
 from ipt.receiver.core.sparse import SparseCamera
-from ipt.receiver.core.sparsechain import LiveChain, chain_settings, fitter
+from ipt.receiver.core.sparsechain import LiveChain, PhaseClock, chain_settings, fitter
 from ipt.receiver.core.sparsestage import SparseStage
 from ipt.receiver.core.sparsestage import posed as sparse_posed
 from ipt.receiver.core.track import (
@@ -267,6 +267,11 @@ class Pipeline:
         """The results still waiting for later frames (at the end of a recording)."""
         self._finish_pending()
         return self._emit()
+
+    def live_hints(self) -> tuple[PhaseClock | None, bool]:
+        """For a live daemon's choice of frames (:mod:`ipt.receiver.liverun`): the sparse chain's projector phase
+        clock (a snapshot another thread may keep; None: none yet) and whether it judged the content to move."""
+        return (self.sparse.chain.clock(), self.sparse.chain.chain.moved) if self.sparse is not None else (None, False)
 
     def finish_before(self, time_us: int) -> list[FrameResult]:
         """The results, in frame order, of the frames waiting for later partners that no frame captured at

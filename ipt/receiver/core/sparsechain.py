@@ -63,6 +63,9 @@ class Chain:
     """The residuals of the fits with a same-content partner, in order."""
     still: bool = False
     """The floor's content held still over the last video frame (``auto``)."""
+    moved: bool = False
+    """The floor's content was judged to have moved over the last video frame (``still`` is False also when
+    :func:`content_still` could not judge)."""
     reseeds: int = 0
     refused: Counter[str] = field(default_factory=Counter)
     guesses: dict[int, RT] = field(default_factory=dict)
@@ -231,14 +234,14 @@ def content_still(
     camera: SparseCamera,
     edges: MapEdges,
     spread_ratio: float = STILL_SPREAD,
-) -> bool:
+) -> bool | None:
     """Whether the floor's content held still from the video frame before to ``k``'s: ``k`` and a frame of the
     same phase of the video frame before (k−4, k−3, k−5), both read at their poses along the map's edges (the
     map cancels between frames of one phase): the spread of their difference (robust) against ``k``'s pair fit's
-    residual, at most ``spread_ratio`` times it."""
+    residual, at most ``spread_ratio`` times it. None: no such frame, or too few of the map's edges in view."""
     m = next((m for m in (k - 4, k - 3, k - 5) if phase.get(m) == phase.get(k) and m in chain.rt and m in lum), None)
     if m is None:
-        return False
+        return None
     r_k, _ = cv2.Rodrigues(np.asarray(chain.rt[k][0], np.float64).reshape(3, 1))
     r_m, _ = cv2.Rodrigues(np.asarray(chain.rt[m][0], np.float64).reshape(3, 1))
     t_k, t_m = np.asarray(chain.rt[k][1], np.float64).reshape(3), np.asarray(chain.rt[m][1], np.float64).reshape(3)
@@ -259,7 +262,7 @@ def content_still(
         3,
     )
     if len(pk) < 30:
-        return False
+        return None
     gain = float(np.median(pk.mean(axis=1) / np.maximum(pm.mean(axis=1), 1.0)))
     d = (pk - gain * pm).ravel()
     spread = 1.4826 * float(np.median(np.abs(d - np.median(d))))
@@ -381,6 +384,20 @@ def clock_phase(times_us: list[int], signs: list[int], at_us: int, projector_hz:
 
 
 @dataclass(frozen=True)
+class PhaseClock:
+    """The projector's phase at any capture time (:func:`clock_phase`) from the phases found for some recent
+    frames: a snapshot, which another thread may keep and ask (the live daemon choosing its next frames)."""
+
+    times_us: tuple[int, ...]
+    signs: tuple[int, ...]
+    projector_hz: float
+
+    def at(self, time_us: int) -> int | None:
+        """+1 or −1: the phase at ``time_us``; None when the phases found do not tell."""
+        return clock_phase(list(self.times_us), list(self.signs), time_us, self.projector_hz)
+
+
+@dataclass(frozen=True)
 class ChainStep:
     """What the chain made of a frame: the sparse poses it found (this frame's and waiting earlier frames'), by
     frame; the earlier frames it gave up on (the caller poses them otherwise); whether this frame waits for a
@@ -461,7 +478,8 @@ class LiveChain:
             if j in self._pending:
                 self._pending.remove(j)
         if k in out and not waits:
-            chain.still = content_still(chain, k, self._lum, self._phase, self.camera, self.edges)
+            verdict = content_still(chain, k, self._lum, self._phase, self.camera, self.edges)
+            chain.still, chain.moved = bool(verdict), verdict is False
         waiting = started and waits and k not in out
         if waiting:
             self._pending.append(k)
@@ -470,6 +488,15 @@ class LiveChain:
             self._pending.remove(j)
         self.posed += len(out)
         return ChainStep(out, {j: chain.partner.get(j, -1) for j in out}, given_up, waiting)
+
+    def clock(self) -> PhaseClock | None:
+        """The projector's phase clock from the phases of the (at most eight) newest frames the chain has posed,
+        if it has posed two."""
+        known = sorted(self.chain.sign)[-8:]
+        if len(known) < 2:
+            return None
+        signs = tuple(self.chain.sign[j] for j in known)
+        return PhaseClock(tuple(self._times_us[j] for j in known), signs, self.projector_hz)
 
     def _forget(self, before: int) -> None:
         for kept in (self._lum, self._times_us, self._phase):
@@ -481,4 +508,4 @@ class LiveChain:
                 del kept_rt[j]
 
 
-__all__ = ["Chain", "ChainStep", "LiveChain", "Pairing", "chain_settings", "fitter"]
+__all__ = ["Chain", "ChainStep", "LiveChain", "Pairing", "PhaseClock", "chain_settings", "fitter"]
