@@ -32,8 +32,9 @@ if TYPE_CHECKING:
 LIVE_RUN_FRAMES = 3
 """The longest run of consecutive frames a live source hands the pipeline at once (the queue keeps that many
 newest frames): the frame with its partners one and two frames before it, the best ones (one projector
-period apart, and half of one). Pairs alone did worse on the fast and vibrating flights whenever the
-worker is more than about three times slower than the camera (``docs/receiver-cores.md``)."""
+period apart, and half of one). The newest two alone, whatever their phases, did worse on the fast and
+vibrating flights whenever the worker is more than about three times slower than the camera
+(``docs/receiver-cores.md``); one video frame's + and − frames are another matter (:func:`pick_run`)."""
 
 
 def pick_run(
