@@ -94,7 +94,7 @@ def live_round(pipeline: Pipeline, frames: list[Any], fps: float, slow: float) -
             continue
         run = list(range(max(last + 1, newest - LIVE_RUN_FRAMES + 1), newest + 1))
         behind = last >= 0 and run[0] > last + 1
-        clock, moves = pipeline.live_hints()
+        clock, moves = pipeline.live_hints() if behind else (None, False)
         if behind and pairs_pay(moves, frame_seconds, 1.0 / fps):
             # the daemon's pick among the frames held, waiting as it does
             phase_at = clock.at if clock is not None else None

@@ -354,7 +354,8 @@ class _DaemonRun:
         else:
             t0 = time.perf_counter()
             batch = self.pipeline.process(frame.index, frame.image, frame.capture_time_us)
-            self.live.note(self.pipeline.live_hints(), time.perf_counter() - t0)
+            if self.source.live:  # (only a live source's runs are picked)
+                self.live.note(self.pipeline.live_hints(), time.perf_counter() - t0)
         if before is None or stage_totals is None:
             return batch, {}
         stages = {k: v - before.get(k, 0.0) for k, v in stage_totals.items() if v != before.get(k, 0.0)}

@@ -453,10 +453,8 @@ class LiveChain:
     def feed(self, k: int, time_us: int, lum: U8, phase: int | None) -> ChainStep:
         """Take frame ``k``; what the chain made of it (:class:`ChainStep`). Its phase is predicted from the phases
         the chain found for the frames before (:func:`clock_phase`), else ``phase`` is taken."""
-        known = sorted(self.chain.sign)[-8:]
-        by_clock = clock_phase(
-            [self._times_us[j] for j in known], [self.chain.sign[j] for j in known], time_us, self.projector_hz
-        )
+        clock = self.clock()
+        by_clock = clock.at(time_us) if clock is not None else None
         phase = by_clock if by_clock is not None else phase
         self._lum[k], self._times_us[k] = lum, time_us
         if phase is not None:
