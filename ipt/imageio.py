@@ -16,6 +16,7 @@ frames: the camera's size); a file over it is refused with one line, undecoded.
 from __future__ import annotations
 
 import io
+import struct
 from pathlib import Path
 from typing import Any, Literal
 
@@ -51,9 +52,18 @@ class ImageError(IptError):
 
 
 def decode_image(data: bytes | memoryview, mode: ImageMode = "rgb") -> npt.NDArray[np.generic] | None:
-    """``data`` (the bytes of an image file) decoded as ``mode`` asks, or ``None`` if OpenCV cannot decode it."""
+    """``data`` (the bytes of an image file) decoded as ``mode`` asks, or ``None`` if OpenCV cannot decode it.
+
+    An uncompressed 24-bit BMP (what ``ipt sim --frames-dir`` and the benchmarks write) is read here, as a
+    view of its rows converted by ``cv2.cvtColor``: the same RGB as OpenCV's decoder gives, and as grey the
+    BT.601 luma that ``cvtColor`` gives an RGB frame and a video's frames (OpenCV's BMP decoder converts
+    to grey by its own rounding, up to one level apart, and at 1280×720 took 1.2 ms a frame against 0.2).
+    """
     if not data:
         return None
+    bmp = _plain_bmp(data)
+    if bmp is not None:
+        return _from_bgr(*bmp, mode)
     try:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), _FLAGS[mode])
     except cv2.error:
@@ -63,6 +73,35 @@ def decode_image(data: bytes | memoryview, mode: ImageMode = "rgb") -> npt.NDArr
     if mode == "rgb":
         return np.ascontiguousarray(cv2.cvtColor(img, cv2.COLOR_BGR2RGB), dtype=np.uint8)
     return np.asarray(img)
+
+
+_BMP_INFO_HEADERS = frozenset({40, 108, 124})
+"""The sizes of the BMP info headers (BITMAPINFOHEADER, V4, V5) that :func:`_plain_bmp` reads."""
+
+
+def _plain_bmp(data: bytes | memoryview) -> tuple[U8, bool] | None:
+    """The pixels of an uncompressed 24-bit BMP as a view of ``data`` (BGR, rows as stored) and whether the
+    bottom row comes first (a positive height), or None for any other file, or one too short for its pixels:
+    OpenCV's decoder then has it."""
+    if len(data) < 54 or bytes(data[:2]) != b"BM":
+        return None
+    offset, info, width, height, planes, bits, compression = struct.unpack_from("<IIiiHHI", data, 10)
+    if info not in _BMP_INFO_HEADERS or planes != 1 or bits != 24 or compression != 0:
+        return None
+    rows, stride = abs(height), (3 * width + 3) & ~3
+    if width <= 0 or rows == 0 or offset < 14 + info or len(data) < offset + stride * rows:
+        return None
+    stored = np.frombuffer(data, np.uint8, count=stride * rows, offset=offset).reshape(rows, stride)
+    return stored[:, : 3 * width].reshape(rows, width, 3), height > 0
+
+
+def _from_bgr(rows: U8, bottom_up: bool, mode: ImageMode) -> U8:
+    """A BMP's stored BGR rows as the image ``mode`` asks, top row first, in memory of its own (``rows`` is a
+    view of a buffer that the next read overwrites)."""
+    if mode == "unchanged":
+        return np.ascontiguousarray(rows[::-1] if bottom_up else rows)
+    converted = cv2.cvtColor(rows, cv2.COLOR_BGR2RGB if mode == "rgb" else cv2.COLOR_BGR2GRAY)
+    return np.asarray(cv2.flip(converted, 0) if bottom_up else converted, np.uint8)
 
 
 #: :func:`header_size` first parses this many leading bytes: a header is there unless a JPEG's metadata (a

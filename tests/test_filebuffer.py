@@ -55,9 +55,8 @@ def test_an_image_folder_gives_the_frames_a_whole_read_decodes(tmp_path: Path) -
     with open_frames(tmp_path, grey=True) as source:
         frames = list(source)
     assert len(frames) == 4
-    for i, frame in enumerate(frames):  # each frame its own array: the next read does not overwrite it
-        expected = cv2.imdecode(np.fromfile(tmp_path / f"{i:03d}.bmp", np.uint8), cv2.IMREAD_GRAYSCALE)
-        assert np.array_equal(frame, expected)
+    for frame, image in zip(frames, images, strict=True):  # each its own array: the next read does not overwrite it
+        assert np.array_equal(frame, cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))  # a 24-bit BMP's grey: the luma
 
 
 def _jpeg_with_metadata_first(metadata_bytes: int) -> bytes:
