@@ -91,7 +91,7 @@ def test_a_missing_frame_breaks_a_pair(clock: PhaseClock) -> None:
 
 @pytest.mark.parametrize("told", [None, 0])
 def test_a_phase_the_clock_cannot_tell_takes_everything(told: int | None) -> None:
-    # (clock_phase gives 0 when its only two known phases contradict each other evenly.)
+    # (a caller's own prediction may be 0: unknown, as None is)
     assert pick_run([42, 43], [_time_us(42), _time_us(43)], True, lambda t: told) == (0, 2)
 
 

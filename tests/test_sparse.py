@@ -298,6 +298,16 @@ def test_the_phase_by_the_clock_at_twice_the_projectors_rate() -> None:
     assert undecided == []
 
 
+def test_two_phases_that_contradict_each_other_tell_no_phase() -> None:
+    """Two known phases that every clock offset finds one right and one wrong (here: the same phase a whole
+    projector period apart, where the projector has flipped) give no phase, not 0 (the chain stored 0 as a
+    frame's phase: dark-scene once, rolling twice, low-fast-big-shadow once in a replay)."""
+    times = [0, 16_667]
+    assert sparsechain.clock_phase(times, [1, 1], 33_333, 60.0) is None
+    assert sparsechain.clock_phase(times, [1, -1], 33_333, 60.0) == 1  # agreeing ones still tell
+    assert sparsechain.clock_phase(times, [-1, 1], 33_333, 60.0) == -1
+
+
 def test_both_frames_moved_together_see_the_maps_step_alone() -> None:
     """With ``esm_partner`` the model's columns for this frame's displacement and the partner's add up to the
     map's step's slope, whatever the two profiles' content slopes: where the pair sits on the map is then

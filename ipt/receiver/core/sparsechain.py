@@ -364,7 +364,7 @@ def clock_phase(times_us: list[int], signs: list[int], at_us: int, projector_hz:
     offsets (twentieths of a period, each in the middle of its twentieth) and signs that agree with the most of
     the given phases (all but at most one) must all predict the same phase, else None. (At 120 FPS against
     60 Hz a frame is half a period from its neighbours, so a single known phase does not tell whether its
-    neighbour flipped.)"""
+    neighbour flipped; two known phases that every offset finds one right and one wrong tell nothing either.)"""
     if len(signs) < 2:
         return None
     ref = times_us[-1]
@@ -375,7 +375,7 @@ def clock_phase(times_us: list[int], signs: list[int], at_us: int, projector_hz:
     pattern = 1.0 - 2.0 * (np.floor(t[None, :] + offsets[:, None]) % 2)
     agree = pattern @ np.asarray(signs, np.float64)
     best = float(np.abs(agree).max())
-    if best < len(signs) - 2:
+    if best < len(signs) - 2 or best == 0.0:  # (0: agreement's sign, the phase predicted, would be 0)
         return None
     ok = np.abs(agree) == best
     at = (at_us - ref) * 1e-6 * projector_hz
