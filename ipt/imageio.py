@@ -99,7 +99,7 @@ def _from_bgr(rows: U8, bottom_up: bool, mode: ImageMode) -> U8:
     """A BMP's stored BGR rows as the image ``mode`` asks, top row first, in memory of its own (``rows`` is a
     view of a buffer that the next read overwrites)."""
     if mode == "unchanged":
-        return np.ascontiguousarray(rows[::-1] if bottom_up else rows)
+        return np.array(rows[::-1] if bottom_up else rows, np.uint8, order="C")  # a copy: never the buffer
     converted = cv2.cvtColor(rows, cv2.COLOR_BGR2RGB if mode == "rgb" else cv2.COLOR_BGR2GRAY)
     return np.asarray(cv2.flip(converted, 0) if bottom_up else converted, np.uint8)
 

@@ -64,10 +64,14 @@ def test_a_top_down_bmp_is_read_top_row_first() -> None:
     np.testing.assert_array_equal(_opencv(bytes(top_down), cv2.IMREAD_UNCHANGED), bgr)  # as OpenCV reads it
 
 
-def test_the_image_is_its_own_memory_not_a_view_of_the_file_bytes() -> None:
-    bgr = np.random.default_rng(3).integers(0, 256, (4, 4, 3), dtype=np.uint8)
-    data = bytearray(_bmp(bgr))
+@pytest.mark.parametrize("top_down", [False, True])
+def test_the_image_is_its_own_memory_not_a_view_of_the_file_bytes(top_down: bool) -> None:
+    bgr = np.random.default_rng(3).integers(0, 256, (4, 4, 3), dtype=np.uint8)  # 12-byte rows: no padding
+    data = bytearray(_bmp(bgr[::-1] if top_down else bgr))
+    if top_down:  # the same rows, said to be stored top row first
+        struct.pack_into("<i", data, 22, -4)
     images = {mode: decode_image(memoryview(data), mode) for mode in ("rgb", "grey", "unchanged")}
+    np.testing.assert_array_equal(images["unchanged"], bgr)
     kept = {mode: np.array(img) for mode, img in images.items()}
     data[54:] = bytes(len(data) - 54)  # the reader's buffer overwritten by the next file
     for mode, img in images.items():
