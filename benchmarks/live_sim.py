@@ -11,8 +11,9 @@ frames.mkv) and arena.yaml (else the shipped arena), as ``ipt sim`` writes them.
   and of those, when frames were dropped and pairs pay (:func:`ipt.receiver.liverun.pairs_pay`: the content
   moves, or the stretched processing times are slower than the camera), the ones
   :func:`ipt.receiver.liverun.pick_run` picks with the pipeline's phase clock (a + and − frame of one video
-  frame), waiting for them as the daemon does; after frames were dropped it first calls
-  :meth:`Pipeline.finish_before`, as the daemon does;
+  frame), waiting for them: the daemon's own :class:`ipt.receiver.liverun.LivePicker`, told after each frame
+  and asked after a stall; after frames were dropped it first calls :meth:`Pipeline.finish_before`, as the
+  daemon does;
 - each frame of the run is processed in order and takes the wall-clock time it took here (the AprilTag helper
   process's time included when pinned to one core: ``taskset -c 0``) times ``--slow``;
 - a result's latency is the (virtual) time it came out minus its frame's capture time.
@@ -30,6 +31,7 @@ what it cost, so an acquisition's or a restart's extra cost, the catching up aft
 from __future__ import annotations
 
 import argparse
+import asyncio
 import json
 import os
 import statistics
@@ -37,7 +39,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -46,7 +48,7 @@ from ipt.config.receiver import ReceiverConfig
 from ipt.receiver.core.frameresult import FrameResult
 from ipt.receiver.core.pipeline import Pipeline
 from ipt.receiver.detect.detector import pipeline_detector
-from ipt.receiver.liverun import LIVE_RUN_FRAMES, PAIR_WAIT_FRAMES, pairs_pay, pick_run
+from ipt.receiver.liverun import LIVE_RUN_FRAMES, LivePicker
 from ipt.receiver.options import load_setup
 from ipt.tum import Trajectory, read_tum
 from ipt.videoio import open_frames
@@ -75,11 +77,21 @@ def _pipeline(folder: Path) -> Pipeline:
     return pipeline
 
 
+class _Held(NamedTuple):
+    """A frame in the modelled live queue (what :class:`~ipt.receiver.liverun.LivePicker` reads of one)."""
+
+    index: int
+    capture_time_us: int
+
+
 def live_round(pipeline: Pipeline, frames: list[Any], fps: float, slow: float) -> dict[int, tuple[float, FrameResult]]:
     """Each frame's result with the virtual time it came out (s), under the daemon's live rule."""
     out: dict[int, tuple[float, FrameResult]] = {}
     now_s, last, n = 0.0, -1, len(frames)
-    frame_seconds: list[float] = []  # each frame's (stretched) processing time, for pairs_pay
+    picker = LivePicker()  # the daemon's own: told after each frame, asked after a stall
+
+    def held(k: int) -> _Held:
+        return _Held(k, round(k * 1e6 / fps))
 
     def took(t0: float, results: list[FrameResult]) -> None:
         nonlocal now_s
@@ -87,32 +99,30 @@ def live_round(pipeline: Pipeline, frames: list[Any], fps: float, slow: float) -
         for r in results:
             out[r.index] = (now_s, r)
 
+    async def more(_timeout_s: float) -> list[_Held]:
+        """The next frame, when the camera delivers it (the model's camera never stalls), or [] at the end."""
+        nonlocal now_s, newest
+        if newest + 1 >= n:
+            return []
+        newest += 1
+        now_s = max(now_s, newest / fps)
+        return [held(newest)]
+
     while last < n - 1:
         newest = min(int(np.floor(now_s * fps + 1e-9)), n - 1)
         if newest <= last:  # the worker waits for the next frame
             now_s = (last + 1) / fps
             continue
         run = list(range(max(last + 1, newest - LIVE_RUN_FRAMES + 1), newest + 1))
-        behind = last >= 0 and run[0] > last + 1
-        clock, moves = pipeline.live_hints() if behind else (None, False)
-        if behind and pairs_pay(moves, frame_seconds, 1.0 / fps):
-            # the daemon's pick among the frames held, waiting as it does
-            phase_at = clock.at if clock is not None else None
-            picked, waits = pick_run(run, [round(k * 1e6 / fps) for k in run], True, phase_at), 0
-            while picked is None and waits < PAIR_WAIT_FRAMES and run[-1] + 1 < n:
-                newest = run[-1] + 1  # the next frame comes
-                now_s = max(now_s, newest / fps)
-                run = list(range(max(last + 1, newest - LIVE_RUN_FRAMES + 1), newest + 1))
-                picked, waits = pick_run(run, [round(k * 1e6 / fps) for k in run], True, phase_at), waits + 1
-            start, stop = picked if picked is not None else (0, len(run))
-            run = run[start:stop]
+        if last >= 0 and run[0] > last + 1:  # behind: the daemon's pick among the frames held, waiting as it does
+            run = [f.index for f in asyncio.run(picker.pick([held(k) for k in run], more))]
         if run[0] > last + 1 and last >= 0:  # frames were dropped: what waited for them comes out first
             t0 = time.perf_counter()
             took(t0, pipeline.finish_before(round(run[0] * 1e6 / fps)))
         for k in run:
             t0 = time.perf_counter()
             took(t0, pipeline.process(k, frames[k], round(k * 1e6 / fps)))
-            frame_seconds.append((time.perf_counter() - t0) * slow)
+            picker.note(pipeline.live_hints(), (time.perf_counter() - t0) * slow)
         last = run[-1]
     t0 = time.perf_counter()
     took(t0, pipeline.flush())
