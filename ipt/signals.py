@@ -17,7 +17,9 @@ the handler is in place, so one that came meanwhile acts then. From then on:
   that arrives before (while the daemon reads its configuration) raises :class:`Interrupted`, which the
   daemon's ``main`` turns into the same final line and status.
 - A signal that lands inside an import is delivered again once the import is over: raised there, it
-  could come out as an ImportError or be lost.
+  could come out as an ImportError or be lost. So is one whose :class:`Interrupted` Python could only
+  print and drop ("Exception ignored in ..."): raised in a function that C code calls back (a ctypes
+  callback, such as llvmlite's object cache while numba compiles), a weakref callback or a ``__del__``.
 - Only the first signal acts. Later ones, while the program is already stopping, are noted and
   otherwise ignored, so that a cleanup is never cut short half way.
 
@@ -89,7 +91,8 @@ class _State:
 _state = _State()
 
 
-#: While an import runs, a stop signal is delivered again this much later (seconds), until the import is over.
+#: A stop signal that landed in an import or a callback is delivered again this much later (seconds), until it
+#: lands where it can act.
 IMPORT_RETRY_S = 0.005
 
 
@@ -110,9 +113,7 @@ def _handle(signum: int, frame: FrameType | None) -> None:
         # Raising inside an import can come out as an ImportError (a C extension's initialisation turns
         # any exception into one) or vanish (in the import locks' weakref callbacks): a traceback or a
         # signal lost. The signal comes again once the import is over.
-        retry = threading.Timer(IMPORT_RETRY_S, _deliver_again, (signum,))
-        retry.daemon = True
-        retry.start()
+        _retry(signum)
         return
     _state.received = signum
     if _state.quiet or _state.keep:
@@ -130,9 +131,33 @@ def _handle(signum: int, frame: FrameType | None) -> None:
     # The loop's owner picks the signal up when it routes the signals (route_to_loop).
 
 
+def _retry(signum: int) -> None:
+    """Send ``signum`` to this process again in :data:`IMPORT_RETRY_S` (from a timer thread)."""
+    retry = threading.Timer(IMPORT_RETRY_S, _deliver_again, (signum,))
+    retry.daemon = True
+    retry.start()
+
+
+def _unraisable(info: sys.UnraisableHookArgs) -> None:
+    """``sys.unraisablehook`` while the handler is installed: an :class:`Interrupted` that Python could not
+    raise on (it was raised in a callback from C, a weakref callback, a ``__del__``) is not printed and
+    dropped but delivered again, so that it interrupts the program's own code. Anything else goes to the
+    hook that was there before."""
+    exc = info.exc_value
+    if isinstance(exc, Interrupted) and _state.received == exc.signum:
+        _state.received = None  # not acted on: the signal comes again
+        _retry(exc.signum)
+        return
+    _previous_unraisable(info)
+
+
+_previous_unraisable: Callable[[sys.UnraisableHookArgs], object] = sys.unraisablehook
+
+
 def _deliver_again(signum: int) -> None:
-    """A signal that landed in an import, sent again, unless the program has reached its end meanwhile."""
-    if not _state.quiet:
+    """A signal that landed in an import or a callback, sent again, unless the program has reached its end or
+    another signal has acted meanwhile."""
+    if not _state.quiet and _state.received is None:
         os.kill(os.getpid(), signum)
 
 
@@ -151,8 +176,13 @@ def install() -> Callable[[], None]:
     """
     if threading.current_thread() is not threading.main_thread():
         raise SignalsError("the stop signals can only be set up in the main thread")
+    global _previous_unraisable
     previous = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
+    previous_hook = sys.unraisablehook
     _state.received, _state.quiet = None, False
+    if previous_hook is not _unraisable:
+        _previous_unraisable = previous_hook
+    sys.unraisablehook = _unraisable
     for sig in STOP_SIGNALS:
         signal.signal(sig, _handle)
 
@@ -160,6 +190,7 @@ def install() -> Callable[[], None]:
         with blocked():
             for sig, handler in previous.items():
                 signal.signal(sig, handler if handler is not None else signal.SIG_DFL)
+            sys.unraisablehook = previous_hook
 
     return restore
 

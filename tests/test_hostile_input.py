@@ -866,6 +866,44 @@ def test_a_signal_during_an_import_interrupts_once_the_import_is_over(
         sys.modules.pop(name, None)
 
 
+def test_a_signal_landing_in_a_callback_from_c_interrupts_after_it(capfd: pytest.CaptureFixture[str]) -> None:
+    # A SIGHUP that landed while numba compiled, inside llvmlite's object-cache callback (C calling Python
+    # through ctypes), raised Interrupted there: ctypes printed "Exception ignored in ..." with a traceback
+    # and dropped it, so the program went on as if no signal had come. Here C's qsort calls back instead.
+    import ctypes
+    import ctypes.util
+
+    libc = ctypes.CDLL(ctypes.util.find_library("c"))
+    compare_t = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.POINTER(ctypes.c_int), ctypes.POINTER(ctypes.c_int))
+    calls = []
+
+    def compare(a: ctypes._Pointer[ctypes.c_int], b: ctypes._Pointer[ctypes.c_int]) -> int:
+        calls.append(1)
+        if len(calls) == 1:
+            signal.raise_signal(signal.SIGHUP)  # Python handlers run before raise_signal returns: here
+        return a[0] - b[0]
+
+    values = (ctypes.c_int * 8)(3, 1, 4, 2, 8, 6, 7, 5)
+    returned = []
+    restore = signals.install()
+    try:
+
+        def sort_then_work() -> None:
+            libc.qsort(values, len(values), ctypes.sizeof(ctypes.c_int), compare_t(compare))
+            returned.append(True)
+            _work(2.0)  # the signal comes again within milliseconds, at the next bytecode
+
+        with pytest.raises(signals.Interrupted) as caught:
+            sort_then_work()
+        assert caught.value.exit_status == 129
+        assert returned  # C went on (the signalled call's result is lost) and returned
+        assert len(calls) > 1
+    finally:
+        restore()
+    assert "Exception ignored" not in capfd.readouterr().err
+    assert sys.unraisablehook is not signals._unraisable  # put back by restore
+
+
 def test_a_signal_while_a_loop_starts_is_kept_for_its_route() -> None:
     restore = signals.install()
     try:
