@@ -100,6 +100,22 @@ def test_the_daemon_starts_one_interpreter_its_apriltag_helper_is_forked(tmp_pat
     assert any(line.rsplit("|", 1)[1].strip() == "dt_apriltags" for line in lines), "the C detector was loaded"
 
 
+def test_a_replay_forks_its_apriltag_helper_too(tmp_path: Path) -> None:
+    # A replay is timed as a whole process (issue 29, target 1): a new interpreter for its helper cost 0.15 s of
+    # processor time of a two-frame replay's 0.6 s.
+    camera, frames = _frames(tmp_path, 3)
+    command = [sys.executable, "-m", "ipt.receiver.cli", "replay", "--camera", str(camera), "--video", str(frames)]
+    command += ["--fps", "120", "--output", str(tmp_path / "poses.tum")]
+    env = dict(os.environ, PYTHONPROFILEIMPORTTIME="1")
+    env.pop("OPENBLAS_NUM_THREADS", None)  # the receiver sets it itself (a BLAS thread would forbid the fork)
+    proc = subprocess.run(command, capture_output=True, text=True, timeout=120, check=False, cwd=tmp_path, env=env)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "0 poses from 3 frames" in proc.stdout, proc.stdout
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("import time:")]
+    numpy_imports = [line for line in lines if line.rsplit("|", 1)[1].strip() == "numpy"]
+    assert len(numpy_imports) == 1, "numpy imported by more than one interpreter: the helper was not forked"
+
+
 FORKED_HELPER = """
 import json, os, sys
 from ipt.receiver.detect import tagworker

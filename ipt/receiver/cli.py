@@ -45,31 +45,39 @@ def _camera_rate(text: str) -> float:
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
+    # As the daemon does: AprilTag's helper forked first, while this process is lean and runs one thread (a
+    # fork costs a few hundredths of a second of processor time where a new interpreter costs a tenth or more).
+    from ipt.receiver.detect import tagworker
+
+    tagworker.prestart()
+    try:
+        return _replay(args)
+    finally:
+        tagworker.drop_prestarted()  # not adopted: AprilTag ran inline, or the replay failed before it began
+
+
+def _replay(args: argparse.Namespace) -> int:
     from ipt.config.models import PipelineConfig, load_arena_config, shipped_config_path
+    from ipt.receiver.detect.tagworker import drop_prestarted
     from ipt.receiver.replay import ReplayError, replay, replay_frame_log
     from ipt.tagmap import grid_tag_map
 
     if (args.video is None) == (args.frames is None):
         raise ReplayError("replay: give either --video (with --camera) or --frames")
+    if args.frames is not None and (args.camera or args.config or args.fps):
+        raise ReplayError("replay --frames: the recording holds its arena, camera and rate; drop the other flags")
+    if args.frames is None and args.camera is None:
+        raise ReplayError("replay --video: --camera CAMERA.yaml is needed")
     if args.frames is not None:
-        if args.camera or args.config or args.fps:
-            raise ReplayError("replay --frames: the recording holds its arena, camera and rate; drop the other flags")
         summary = replay_frame_log(Path(args.frames), Path(args.output))
         print(f"ipt-receiver replay: {summary.poses} poses from {summary.frames} frames -> {args.output}")
         _say_kernels()
         return 0
-    if args.camera is None:
-        raise ReplayError("replay --video: --camera CAMERA.yaml is needed")
     arena = load_arena_config(args.config or shipped_config_path("arena.yaml"))
-    summary = replay(
-        arena,
-        grid_tag_map(arena),
-        Path(args.camera),
-        Path(args.video),
-        Path(args.output),
-        args.fps,
-        _with_tracker(PipelineConfig.profile(args.profile), args.tracker),
-    )
+    cfg = _with_tracker(PipelineConfig.profile(args.profile), args.tracker)
+    if cfg.detector.isolation != "process":
+        drop_prestarted()  # AprilTag runs in this process: the forked helper has nothing to do
+    summary = replay(arena, grid_tag_map(arena), Path(args.camera), Path(args.video), Path(args.output), args.fps, cfg)
     print(f"ipt-receiver replay: {summary.poses} poses from {summary.frames} frames -> {args.output}")
     _say_kernels()
     return 0
