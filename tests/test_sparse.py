@@ -511,3 +511,57 @@ def test_a_fit_that_sees_fewer_tags_carries_a_larger_covariance(pinhole_pair: Pa
         tags = len(result.tags)
     assert tags == 3
     assert stds[1] > 1.5 * stds[0]
+
+
+def _pair_at(height_m: float) -> tuple[Pair, tuple[F64, F64], tuple[F64, F64]]:
+    """The pinhole pair seen from ``height_m``, with the two frames' true poses."""
+    position = np.array([0.07, -0.12, height_m])
+    other_position = position + (OTHER_POSITION_M - POSITION_M)
+    rng = np.random.default_rng(3)
+    coarse = rng.integers(40, 216, (ARENA.projector.height_px // 8, ARENA.projector.width_px // 8, 3), np.uint8)
+    size = (ARENA.projector.width_px, ARENA.projector.height_px)
+    content = np.asarray(cv2.resize(coarse, size, interpolation=cv2.INTER_CUBIC), np.uint8)
+    plus, minus = PaperModulator(TAG_MAP.render_mask(), ARENA.modulation.delta_l).modulate(content, 0, 2)
+    image = lightness(_distorted_view(plus, position, R_ARENA_CAM, np.zeros(5)))
+    other = lightness(_distorted_view(minus, other_position, R_OTHER, np.zeros(5)))
+    pair = Pair(image, other, SparseCamera.of(K, np.zeros(5), SIZE))
+    return pair, rt_of(position, R_ARENA_CAM), rt_of(other_position, R_OTHER)
+
+
+def test_a_joint_fit_over_cells_a_few_pixels_wide_fails_even_from_the_truth(edges: MapEdges) -> None:
+    # The chain's joint fits reach ±6 px (at 640 across) and smooth their first iteration: over the map's 23 mm
+    # cells seen from 2.5 m (4.1 px) a profile crosses three edges where the fit models one. From 2.0 m (5.2 px)
+    # the same fit finds the pose. This is what the chain's rule (sparsechain.JOINT_MIN_CELL_RADII) skips.
+    _known, joint = sparsechain.chain_settings(SIZE[0])
+    for height_m, fits in ((2.5, False), (2.0, True)):
+        pair, truth, other_truth = _pair_at(height_m)
+        result, why = fit_sparse(pair.image, pair.other, pair.camera, edges, other_truth, truth, joint, 0.0)
+        assert (result is not None) == fits, (height_m, why)
+        cells = sparsechain.cell_px(
+            pair.camera, edges.cell_m if edges.tag_cell_m is None else float(max(edges.tag_cell_m)), truth
+        )
+        assert (cells >= sparsechain.JOINT_MIN_CELL_RADII * joint.radius_px) == fits, cells
+
+
+def test_the_chain_tries_no_joint_fit_where_the_maps_cells_are_too_small(
+    edges: MapEdges, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    calls: list[bool] = []
+    real = sparsechain.fit_sparse
+
+    def counted(*args: object) -> tuple[SparseResult | None, str]:
+        calls.append(True)
+        return real(*args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(sparsechain, "fit_sparse", counted)
+    fit = sparsechain.fitter(SparseCamera.of(K, np.zeros(5), SIZE), edges, *sparsechain.chain_settings(SIZE[0]))
+    high, high_other = rt_of(np.array([0.07, -0.12, 2.5]), R_ARENA_CAM), rt_of(np.array([0.07, -0.12, 2.5]), R_OTHER)
+    blank = np.full((SIZE[1], SIZE[0]), 128, np.uint8)
+    assert fit(blank, blank, high_other, high, 0.0, True) == (None, "small_cells")
+    assert calls == []  # refused before any profile was read
+    fit(blank, blank, high_other, high, 0.0, False)  # a known partner's fit reaches ±4 px: it is tried
+    assert calls == [True]
+    low, low_other = rt_of(POSITION_M, R_ARENA_CAM), rt_of(OTHER_POSITION_M, R_OTHER)
+    _result, why = fit(blank, blank, low_other, low, 0.0, True)
+    assert calls == [True, True]
+    assert why != "small_cells"

@@ -17,6 +17,7 @@ poses out.
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
@@ -46,6 +47,14 @@ STILL_SPREAD = 1.0
 WAIT_FRAMES = 3
 #: Frames of chain state kept behind the newest.
 KEEP_FRAMES = 16
+#: No joint fit where the map's largest code cell, seen straight down from the predicted height, spans fewer pixels
+#: than this share of the joint fit's profile half-length (:attr:`~ipt.receiver.core.sparse.SparseSettings.radius_px`:
+#: 4.5 px at 640 across). A profile of ±6 px over 4 px cells crosses three of the map's edges where the fit models
+#: one, and its coarse smoothing blurs neighbouring cells together: on the suite's and held-out flights (stop 53,
+#: `/work/tools/jointt.py`) all 350 joint fits at 4.1-4.35 px (hover-2.5m) were refused, 26 % of that flight's
+#: processor time, and the smallest cells a joint fit was taken at were 4.79 px (takeoff). A rendered pair started
+#: from its true poses: refused from 2.3 and 2.5 m (4.5 and 4.1 px), found from 2.0 m (5.2 px; tests/test_sparse.py).
+JOINT_MIN_CELL_RADII = 0.75
 
 
 @dataclass
@@ -348,14 +357,27 @@ def chain_settings(
 
 
 def fitter(camera: SparseCamera, edges: MapEdges, known: SparseSettings, joint: SparseSettings) -> Fit:
-    """The pair fit with these settings (``joint`` when the partner's pose is only predicted)."""
+    """The pair fit with these settings (``joint`` when the partner's pose is only predicted; none where the map's
+    cells are too small in the image for it, :data:`JOINT_MIN_CELL_RADII`: refused as "small_cells")."""
+    largest_cell_m = float(np.max(edges.tag_cell_m)) if edges.tag_cell_m is not None else edges.cell_m
+    min_cell_px = JOINT_MIN_CELL_RADII * joint.radius_px
 
     def fit(
         image: U8, other: U8, other_rt: RT, guess: RT, hint: float, predicted: bool
     ) -> tuple[SparseResult | None, str]:
+        if predicted and cell_px(camera, largest_cell_m, guess) < min_cell_px:
+            return None, "small_cells"
         return fit_sparse(image, other, camera, edges, other_rt, guess, joint if predicted else known, hint)
 
     return fit
+
+
+def cell_px(camera: SparseCamera, cell_m: float, rt: RT) -> float:
+    """How many pixels a floor square of side ``cell_m`` spans, seen straight down from the camera's height at the
+    pose ``rt`` (rvec, tvec: arena → camera); infinite at or below the floor."""
+    position, _ = pose_of(*rt)
+    height = float(position[2])
+    return cell_m * float(camera.camera_matrix[0, 0]) / height if height > 0 else math.inf
 
 
 def clock_phase(times_us: list[int], signs: list[int], at_us: int, projector_hz: float) -> int | None:
