@@ -386,7 +386,8 @@ def whole_process(
     entry = Path(sys.executable).with_name("ipt-receiver")
     command = [str(entry)] if receiver is None and entry.is_file() else [sys.executable, "-m", "ipt.receiver.cli"]
     env = kernel_env(cache, receiver, command)
-    for image in frames_dir.glob("*.bmp"):  # into the page cache first: a camera's frames come from no disk
+    images = sorted(frames_dir.glob("*.bmp"))
+    for image in images:  # into the page cache first: a camera's frames come from no disk
         image.read_bytes()
     with tempfile.TemporaryDirectory(prefix="ipt-suite-") as tmp:
         poses, timing = Path(tmp) / "poses.tum", Path(tmp) / "time.txt"
@@ -403,7 +404,7 @@ def whole_process(
         user_s, sys_s = (float(v) for v in timing.read_text(encoding="utf-8").split()[-2:])
         got = read_tum(poses)
     kernels_line = next((line for line in done.stdout.splitlines() if "kernels:" in line), "")
-    frames = len(list(frames_dir.glob("*.bmp")))
+    frames = len(images)
     out: dict[str, Any] = {
         "frames_per_cpu_s": round(frames / (user_s + sys_s), 1),
         "user_s": user_s,
