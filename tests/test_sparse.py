@@ -71,7 +71,8 @@ def _distorted_view(img: U8, position_m: F64, r_arena_cam: F64, lens: F64) -> U8
     return np.asarray(cv2.remap(big, ideal[..., 0], ideal[..., 1], cv2.INTER_LINEAR), np.uint8)
 
 
-def _pair(lens: F64) -> Pair:
+def _pair(lens: F64, position_m: F64 = POSITION_M) -> Pair:
+    """The pair seen through ``lens`` from ``position_m`` (the partner from it moved as OTHER_POSITION_M is)."""
     rng = np.random.default_rng(3)
     coarse = rng.integers(40, 216, (ARENA.projector.height_px // 8, ARENA.projector.width_px // 8, 3), np.uint8)
     content = np.asarray(
@@ -79,8 +80,8 @@ def _pair(lens: F64) -> Pair:
         np.uint8,
     )
     plus, minus = PaperModulator(TAG_MAP.render_mask(), ARENA.modulation.delta_l).modulate(content, 0, 2)
-    image = lightness(_distorted_view(plus, POSITION_M, R_ARENA_CAM, lens))
-    other = lightness(_distorted_view(minus, OTHER_POSITION_M, R_OTHER, lens))
+    image = lightness(_distorted_view(plus, position_m, R_ARENA_CAM, lens))
+    other = lightness(_distorted_view(minus, position_m + (OTHER_POSITION_M - POSITION_M), R_OTHER, lens))
     return Pair(image, other, SparseCamera.of(K, lens, SIZE))
 
 
@@ -515,17 +516,9 @@ def test_a_fit_that_sees_fewer_tags_carries_a_larger_covariance(pinhole_pair: Pa
 
 def _pair_at(height_m: float) -> tuple[Pair, tuple[F64, F64], tuple[F64, F64]]:
     """The pinhole pair seen from ``height_m``, with the two frames' true poses."""
-    position = np.array([0.07, -0.12, height_m])
+    position = np.array([POSITION_M[0], POSITION_M[1], height_m])
     other_position = position + (OTHER_POSITION_M - POSITION_M)
-    rng = np.random.default_rng(3)
-    coarse = rng.integers(40, 216, (ARENA.projector.height_px // 8, ARENA.projector.width_px // 8, 3), np.uint8)
-    size = (ARENA.projector.width_px, ARENA.projector.height_px)
-    content = np.asarray(cv2.resize(coarse, size, interpolation=cv2.INTER_CUBIC), np.uint8)
-    plus, minus = PaperModulator(TAG_MAP.render_mask(), ARENA.modulation.delta_l).modulate(content, 0, 2)
-    image = lightness(_distorted_view(plus, position, R_ARENA_CAM, np.zeros(5)))
-    other = lightness(_distorted_view(minus, other_position, R_OTHER, np.zeros(5)))
-    pair = Pair(image, other, SparseCamera.of(K, np.zeros(5), SIZE))
-    return pair, rt_of(position, R_ARENA_CAM), rt_of(other_position, R_OTHER)
+    return _pair(np.zeros(5), position), rt_of(position, R_ARENA_CAM), rt_of(other_position, R_OTHER)
 
 
 def test_a_joint_fit_over_cells_a_few_pixels_wide_fails_even_from_the_truth(edges: MapEdges) -> None:
