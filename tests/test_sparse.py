@@ -530,9 +530,7 @@ def test_a_joint_fit_over_cells_a_few_pixels_wide_fails_even_from_the_truth(edge
         pair, truth, other_truth = _pair_at(height_m)
         result, why = fit_sparse(pair.image, pair.other, pair.camera, edges, other_truth, truth, joint, 0.0)
         assert (result is not None) == fits, (height_m, why)
-        cells = sparsechain.cell_px(
-            pair.camera, edges.cell_m if edges.tag_cell_m is None else float(max(edges.tag_cell_m)), truth
-        )
+        cells = sparsechain.cell_px(pair.camera, edges.largest_cell_m, truth)
         assert (cells >= sparsechain.JOINT_MIN_CELL_RADII * joint.radius_px) == fits, cells
 
 

@@ -98,6 +98,11 @@ class MapEdges:
     tag_cell_m: F64 | None = None
     """(T,) the cell side of each tag (a map of several tag sizes), metres; None: all :attr:`cell_m`."""
 
+    @property
+    def largest_cell_m(self) -> float:
+        """The largest cell side in the map, metres (:attr:`cell_m` where all tags share one size)."""
+        return float(np.max(self.tag_cell_m)) if self.tag_cell_m is not None else self.cell_m
+
     @classmethod
     def from_tag_map(cls, tag_map: TagMap, fractions: tuple[float, ...] = SAMPLE_FRACTIONS) -> MapEdges:
         """The edges of every tag of ``tag_map``, sampled at ``fractions`` along each, and the tags' centres,

@@ -359,8 +359,7 @@ def chain_settings(
 def fitter(camera: SparseCamera, edges: MapEdges, known: SparseSettings, joint: SparseSettings) -> Fit:
     """The pair fit with these settings (``joint`` when the partner's pose is only predicted; none where the map's
     cells are too small in the image for it, :data:`JOINT_MIN_CELL_RADII`: refused as "small_cells")."""
-    largest_cell_m = float(np.max(edges.tag_cell_m)) if edges.tag_cell_m is not None else edges.cell_m
-    min_cell_px = JOINT_MIN_CELL_RADII * joint.radius_px
+    largest_cell_m, min_cell_px = edges.largest_cell_m, JOINT_MIN_CELL_RADII * joint.radius_px
 
     def fit(
         image: U8, other: U8, other_rt: RT, guess: RT, hint: float, predicted: bool
