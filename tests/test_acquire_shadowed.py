@@ -1,6 +1,7 @@
-"""Without a track, AprilTag rests on views mostly in the drone's shadow (lit below ``SHADOWED_SHARE``): it is tried on
-one such frame in ``REST_EVERY`` (with each of that frame's partners), and the pairs of the frames between are not
-made. Once the view is lit again, AprilTag is tried on every frame and the pose is found at once."""
+"""Without a track, AprilTag rests on views mostly in the drone's shadow (lit below ``ACQUIRE_LIT_SHARE``, which is
+above ``SHADOWED_SHARE``): it is tried on one such frame in ``REST_EVERY`` (with each of that frame's partners), and the
+pairs of the frames between are not made. Once the view is lit again, AprilTag is tried on every frame and the pose is
+found at once."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import numpy as np
 from flightpipeline import flight_frames, flight_pipeline
 
 from ipt.config.models import PipelineConfig
-from ipt.receiver.core.acquire import REST_EVERY
+from ipt.receiver.core.acquire import ACQUIRE_LIT_SHARE, REST_EVERY, SEARCH_EVERY
 from ipt.receiver.core.history import Frame
 from ipt.receiver.core.reasons import SHADOWED_SHARE
 
@@ -63,7 +64,7 @@ def test_a_lit_view_never_rests_and_a_shadowed_one_every_eighth(short_flight: Pa
     p.close()
     acq = p.acquisition
     lit = Frame(5, 5 * 8_333, np.zeros((2, 2), np.uint8))
-    lit.lit_share = SHADOWED_SHARE
+    lit.lit_share = ACQUIRE_LIT_SHARE
     assert not acq.rests(lit)
     dark = [Frame(i, i * 8_333, np.zeros((2, 2), np.uint8)) for i in range(18)]
     for f in dark:
@@ -72,3 +73,25 @@ def test_a_lit_view_never_rests_and_a_shadowed_one_every_eighth(short_flight: Pa
     assert REST_EVERY == 8
     assert [i for i, r in enumerate(rested) if not r] == [0, 8, 16]
     assert not acq.rests(dark[16])  # the frame tried is tried with each of its partners
+
+
+def test_a_dim_view_rests_too_and_its_turns_of_the_search_go_by(short_flight: Path) -> None:
+    """A view lit between ``SHADOWED_SHARE`` and ``ACQUIRE_LIT_SHARE`` (no acquisition on the suite's and held-out
+    flights ever found a pose there) rests as a shadowed one does; each rested frame on whose turn the whole-map search
+    would have run takes that turn as if searched, so the lit frames after are searched when they would have been."""
+    p = flight_pipeline(short_flight, PipelineConfig())
+    p.close()
+    acq = p.acquisition
+    assert SHADOWED_SHARE < ACQUIRE_LIT_SHARE
+    dim = [Frame(i, i * 8_333, np.zeros((2, 2), np.uint8)) for i in range(18)]
+    for f in dim:
+        f.lit_share = (SHADOWED_SHARE + ACQUIRE_LIT_SHARE) / 2
+    acq.searched_at = -100
+    turns = []
+    rested = []
+    for f in dim:
+        rested.append(acq.rests(f))
+        turns.append(acq.searched_at)
+    assert [i for i, r in enumerate(rested) if not r] == [0, 8, 16]
+    assert turns == [i - i % SEARCH_EVERY for i in range(18)]  # (each frame a search's turn falls on took it)
+    assert acq.map_search is None

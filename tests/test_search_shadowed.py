@@ -13,7 +13,7 @@ import pytest
 from flightpipeline import flight_pipeline
 
 from ipt.config.models import PipelineConfig
-from ipt.receiver.core.acquire import FALLBACK_PHASE_ERROR, MIN_SEARCH_FIT
+from ipt.receiver.core.acquire import ACQUIRE_LIT_SHARE, FALLBACK_PHASE_ERROR, MIN_SEARCH_FIT
 from ipt.receiver.core.demodulator import PairDifference
 from ipt.receiver.core.history import Frame
 from ipt.receiver.core.mapsearch import MapSearch
@@ -49,6 +49,26 @@ def test_a_shadowed_view_is_not_searched_and_keeps_the_turn(pipeline: Pipeline) 
     # The next frame, lit, is searched at once (on noise: whatever it finds, it searched).
     acq.search_map(_frame(pipeline, 11, 0.9), _frame(pipeline, 10, 1.0), diff)
     assert acq.searched_at == 11
+    assert acq.map_search is not None
+
+
+def test_a_dim_view_is_not_searched_but_takes_its_turn(pipeline: Pipeline) -> None:
+    """Lit between ``SHADOWED_SHARE`` and ``ACQUIRE_LIT_SHARE``: no search either (none found a pose there on the
+    suite's and held-out flights), but the turn goes by as if searched, so the searches after fall on the frames they
+    would have."""
+    acq = pipeline.acquisition
+    h, w = pipeline.camera.height_px, pipeline.camera.width_px
+    noise = np.random.default_rng(2).normal(0.0, 1.0, (h, w)).astype(np.float32)
+    diff = PairDifference(noise, np.full((h, w), 255, np.uint8), 1.0, 0.0)
+    acq.searched_at, acq.map_search = -100, None
+    dim = (SHADOWED_SHARE + ACQUIRE_LIT_SHARE) / 2
+    assert acq.search_map(_frame(pipeline, 40, dim), _frame(pipeline, 38, 1.0), diff) is None
+    assert acq.searched_at == 40
+    assert acq.map_search is None
+    assert acq.search_map(_frame(pipeline, 41, 0.9), _frame(pipeline, 39, 1.0), diff) is None  # not its turn yet
+    assert acq.map_search is None
+    acq.search_map(_frame(pipeline, 43, 0.9), _frame(pipeline, 41, 1.0), diff)
+    assert acq.searched_at == 43
     assert acq.map_search is not None
 
 

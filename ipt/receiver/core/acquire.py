@@ -33,6 +33,12 @@ SEARCH_EVERY = 3
 #: such a view has ever found a pose, and the frames between cost a third of a tried one; the take-offs' poses are
 #: the same to the digit with 3, 8, 12 or 16, held-out low-fast-big-shadow's too.)
 REST_EVERY = 8
+#: Without a track, a frame whose signal mask lights less than this share of its view rests (:meth:`Acquisition.rests`)
+#: and its map is not searched. Of the 1 212 acquisitions (AprilTag, then the map search) on the suite's and the
+#: held-out flights (stop 54, `/work/tools/searchstat.py`), the 37 that found a pose had 40-78 % of their view lit;
+#: none of the 574 below 35 % did (takeoff's climb through 0.27-0.33 m lit 26-35 %: 19 searches of 30 ms, and AprilTag
+#: on every frame). A track goes on down to :data:`~ipt.receiver.core.reasons.SHADOWED_SHARE`.
+ACQUIRE_LIT_SHARE = 0.35
 #: A placement of the whole-map search is taken only if the track from it fits at least this share of the visible map's
 #: edges. The map repeats tag after tag, and a placement a tag or more off can still fit part of it: the searches that
 #: gave a pose 32-109 mm off fitted 0.34-0.49 of the edges, every right one 0.66-0.97 (stop 46: the suite's and the
@@ -116,14 +122,16 @@ class Acquisition:
 
     def rests(self, target: Frame) -> bool:
         """Whether AprilTag skips ``target``, a frame without a track to follow (its pair is then not made either):
-        most of its view is unlit (:data:`~ipt.receiver.core.reasons.SHADOWED_SHARE`: the drone's shadow on the
-        ground and early in the climb) and it is less than :data:`REST_EVERY` frames after the last such frame
+        most of its view is unlit (below :data:`ACQUIRE_LIT_SHARE`: the drone's shadow on the ground and early in
+        the climb) and it is less than :data:`REST_EVERY` frames after the last such frame
         tried (whose every pair is tried); the scales' cycle moves on over it as over a frame tried, so the frames
         after meet the scales they would have. Of 2 106 AprilTag attempts on views lit below 40 % (takeoff-open-floor
         1 263, takeoff 835, the held-out low-fast-big-shadow 8; stop 43) none found a pose, at a pair's alignment and
         difference and two AprilTag runs each: a shadowed frame of takeoff-open-floor cost 15 ms, a posed one 7 ms."""
-        if target.lit_share >= SHADOWED_SHARE:
+        if target.lit_share >= ACQUIRE_LIT_SHARE:
             return False
+        if target.lit_share >= SHADOWED_SHARE and target.index - self.searched_at >= SEARCH_EVERY:
+            self.searched_at = target.index  # the map search's turn goes by too (:meth:`search_map`)
         if target.index != self.shadowed_at and target.index - self.shadowed_at < REST_EVERY:
             self.stages.scales.to_try(target.index)  # its turn of the scales goes by, as if tried
             return True
@@ -133,16 +141,18 @@ class Acquisition:
     def search_map(self, target: Frame, other: Frame, diff: PairDifference) -> Candidate | None:
         """No whole tag: the level poses that lay the whole map on the difference (:mod:`~ipt.receiver.core.
         mapsearch`; one pair every :data:`SEARCH_EVERY` frames), the first the track confirms. Not on a frame
-        whose view is mostly unlit (:data:`~ipt.receiver.core.reasons.SHADOWED_SHARE`: the drone's shadow at
-        take-off): the map cannot be laid on it, and a search costs 50-60 ms here (on the suite's take-offs
-        109 of 126 and 63 of 82 searches were on views lit below 30 %, none found a pose; the four that did, on
-        any flight, had 37-49 % lit). A placement whose track fits less than :data:`MIN_SEARCH_FIT` of the map's
+        whose view is mostly unlit (below :data:`ACQUIRE_LIT_SHARE`: the drone's shadow at take-off): the map cannot
+        be laid on it, and a search costs 25-60 ms here (on the suite's take-offs 109 of 126 and 63 of 82 searches
+        were on views lit below 30 %, none found a pose; the four that did, on any flight, had 37-49 % lit; stop 54:
+        the seven that did, 40-78 %). A placement whose track fits less than :data:`MIN_SEARCH_FIT` of the map's
         visible edges is not taken (the next is tried). From a live camera, not on a fallback pair (:attr:`live`)."""
         if target.index - self.searched_at < SEARCH_EVERY or target.lit_share < SHADOWED_SHARE:
             return None
         if self.live and self.stages.history.phase_error(target.time_us - other.time_us) > FALLBACK_PHASE_ERROR:
             return None  # the next pair, a whole number of periods apart, is searched instead
         self.searched_at = target.index
+        if target.lit_share < ACQUIRE_LIT_SHARE:
+            return None  # (its turn goes by, as if searched: the frames after meet the turns they would have)
         self.map_search = self.map_search or MapSearch.of(self.tag_map)
         lit = diff.valid if target.signal is None else np.minimum(diff.valid, target.signal)
         for h in self.map_search.search(diff.diff, lit, self.pinhole.camera_matrix):

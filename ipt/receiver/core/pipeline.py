@@ -38,7 +38,7 @@ import numpy.typing as npt
 from ipt.config.camera_info import CameraInfo
 from ipt.config.models import PipelineConfig
 from ipt.receiver.core import kernels
-from ipt.receiver.core.acquire import Acquisition
+from ipt.receiver.core.acquire import ACQUIRE_LIT_SHARE, Acquisition
 from ipt.receiver.core.bridge import ContentBridge
 from ipt.receiver.core.demodulator import (
     PairDifference,
@@ -501,7 +501,7 @@ class Pipeline:
         """Whether ``target``'s pair with ``other`` is left unmade: only AprilTag could use it (no partner's pose, no
         recent motion) and it rests on this mostly unlit view (:meth:`~ipt.receiver.core.acquire.Acquisition.rests`)."""
         self._dense(target)  # (its lit share)
-        if target.lit_share >= SHADOWED_SHARE or other.rt is not None:
+        if target.lit_share >= ACQUIRE_LIT_SHARE or other.rt is not None:
             return False
         no_track = not self.tracking or self._guide.pose_at(target.time_us) is None or self._lost(target)
         return no_track and self.acquisition.rests(target)
