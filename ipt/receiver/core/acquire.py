@@ -130,8 +130,7 @@ class Acquisition:
         difference and two AprilTag runs each: a shadowed frame of takeoff-open-floor cost 15 ms, a posed one 7 ms."""
         if target.lit_share >= ACQUIRE_LIT_SHARE:
             return False
-        if target.lit_share >= SHADOWED_SHARE and target.index - self.searched_at >= SEARCH_EVERY:
-            self.searched_at = target.index  # the map search's turn goes by too (:meth:`search_map`)
+        self._search_turn(target)  # the map search's turn goes by too, as if searched (:meth:`search_map`)
         if target.index != self.shadowed_at and target.index - self.shadowed_at < REST_EVERY:
             self.stages.scales.to_try(target.index)  # its turn of the scales goes by, as if tried
             return True
@@ -146,13 +145,10 @@ class Acquisition:
         were on views lit below 30 %, none found a pose; the four that did, on any flight, had 37-49 % lit; stop 54:
         the seven that did, 40-78 %). A placement whose track fits less than :data:`MIN_SEARCH_FIT` of the map's
         visible edges is not taken (the next is tried). From a live camera, not on a fallback pair (:attr:`live`)."""
-        if target.index - self.searched_at < SEARCH_EVERY or target.lit_share < SHADOWED_SHARE:
-            return None
         if self.live and self.stages.history.phase_error(target.time_us - other.time_us) > FALLBACK_PHASE_ERROR:
             return None  # the next pair, a whole number of periods apart, is searched instead
-        self.searched_at = target.index
-        if target.lit_share < ACQUIRE_LIT_SHARE:
-            return None  # (its turn goes by, as if searched: the frames after meet the turns they would have)
+        if not self._search_turn(target) or target.lit_share < ACQUIRE_LIT_SHARE:
+            return None  # (a dim frame's turn goes by, as if searched: the frames after meet the turns they would have)
         self.map_search = self.map_search or MapSearch.of(self.tag_map)
         lit = diff.valid if target.signal is None else np.minimum(diff.valid, target.signal)
         for h in self.map_search.search(diff.diff, lit, self.pinhole.camera_matrix):
@@ -164,6 +160,14 @@ class Acquisition:
                 target.phase, other.phase = tracked.sign, -tracked.sign
                 return self.stages.candidate(tracked, other.index)
         return None
+
+    def _search_turn(self, target: Frame) -> bool:
+        """Whether the map search's turn falls on ``target`` (one frame in :data:`SEARCH_EVERY`; a view lit below
+        :data:`~ipt.receiver.core.reasons.SHADOWED_SHARE` does not use it up), taking it if so."""
+        if target.index - self.searched_at < SEARCH_EVERY or target.lit_share < SHADOWED_SHARE:
+            return False
+        self.searched_at = target.index
+        return True
 
     def verified(self, tracked: TrackResult, diff: PairDifference, t0: float) -> bool:
         """AprilTag's view of the frame agrees with the track (or sees too little to say)."""
