@@ -194,3 +194,26 @@ def test_a_start_one_tag_off_gives_no_wrong_pose(
     start = POSITION_M + pitch_m * np.array([offset[0], offset[1], 0.0])
     tracked = pipeline.track_from(shadowed[0], rt_of(start, R_ARENA_CAM), shadowed[1])
     assert tracked is None or np.linalg.norm(_position_m(tracked.rvec, tracked.tvec) - POSITION_M) < 0.01
+
+
+def test_a_failed_close_start_is_not_tracked_again_from_where_it_was(
+    pipeline: Pipeline, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A close start that fails is searched around; a search without a clear peak keeps the start, and the same
+    track from it would fail the same way: it runs once (a pair of one phase, whose difference holds no map)."""
+    rng = np.random.default_rng(3)
+    frame = rng.integers(60, 200, (360, 640)).astype(np.uint8)
+    lit = np.full((360, 640), 255, np.uint8)
+    blank = pair_difference(frame, frame.copy(), np.eye(3), lit, lit)
+    init = rt_of(POSITION_M, R_ARENA_CAM)
+    assert pipeline.coarse(blank, init) is init
+    starts: list[tuple[F64, F64]] = []
+    real = pipeline.track_from
+
+    def counted(diff: PairDifference, start: tuple[F64, F64], *rest: object) -> TrackResult | None:
+        starts.append(start)
+        return real(diff, start, *rest)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(pipeline, "track_from", counted)
+    assert pipeline.track_guessed(blank, (init, True), lit) is None
+    assert starts == [init]

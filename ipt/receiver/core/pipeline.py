@@ -565,11 +565,14 @@ class Pipeline:
 
     def track_guessed(self, diff: PairDifference, guess: Guess, lit: U8 | None) -> TrackResult | None:
         """The pose tracked from ``guess``: from its start if close, else from a search around it; a close start
-        that fails is searched around too (the partner's pose or the pair's homography was off)."""
+        that fails is searched around too (the partner's pose or the pair's homography was off), unless the
+        search keeps the start (no clear peak): the same track again would fail again."""
         init, close = guess
         tracked = self.track_from(diff, init if close else self.coarse(diff, init), lit)
         if tracked is None and close:
-            tracked = self.track_from(diff, self.coarse(diff, init), lit)
+            moved = self.coarse(diff, init)
+            if moved is not init:
+                tracked = self.track_from(diff, moved, lit)
         return tracked
 
     def _initial_pose(self, target: Frame, other: Frame, warp_other_to_target: F64) -> Guess | None:
