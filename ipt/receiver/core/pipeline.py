@@ -569,10 +569,8 @@ class Pipeline:
         search keeps the start (no clear peak): the same track again would fail again."""
         init, close = guess
         tracked = self.track_from(diff, init if close else self.coarse(diff, init), lit)
-        if tracked is None and close:
-            moved = self.coarse(diff, init)
-            if moved is not init:
-                tracked = self.track_from(diff, moved, lit)
+        if tracked is None and close and (moved := self.coarse(diff, init)) is not init:
+            tracked = self.track_from(diff, moved, lit)
         return tracked
 
     def _initial_pose(self, target: Frame, other: Frame, warp_other_to_target: F64) -> Guess | None:
