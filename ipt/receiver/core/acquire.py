@@ -1,9 +1,11 @@
 """AprilTag's part in the ipt way (:class:`Acquisition`, held by :class:`~ipt.receiver.core.pipeline.Pipeline`):
-acquiring a pose on a pair's difference when there is no track to follow, checking the track now and then, and
-searching the whole map for a view without a whole tag (:mod:`~ipt.receiver.core.mapsearch`)."""
+acquiring a pose on a pair's difference when there is no track to follow (from two whole tags or more, or the map's
+track started from one), checking the track now and then, and searching the whole map for a view without a whole tag
+(:mod:`~ipt.receiver.core.mapsearch`)."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Protocol
 
 import cv2
@@ -13,7 +15,7 @@ import numpy.typing as npt
 from ipt.config.camera_info import CameraInfo
 from ipt.config.models import PipelineConfig
 from ipt.receiver.core.demodulator import PairDifference, binarise_difference
-from ipt.receiver.core.detection import Detector, DetectorError
+from ipt.receiver.core.detection import Detector, DetectorError, TagDetection
 from ipt.receiver.core.frameresult import FrameResult
 from ipt.receiver.core.history import Candidate, Frame, FrameHistory
 from ipt.receiver.core.mapsearch import MapSearch
@@ -105,6 +107,9 @@ class Acquisition:
             self.runs += 1
             dets = self.detector.detect(binarise_difference(diff, sign, scale.ksize), scale.decimate)
             if len(dets) < self.cfg.pose.min_tags:
+                found = self.one_tag(dets, target, other, diff) if len(dets) == 1 else None
+                if found is not None:
+                    return found
                 continue
             target.phase, other.phase = sign, -sign
             pose = solve_pose(dets, self.tag_map, self.pinhole, self.cfg.pose)
@@ -119,6 +124,35 @@ class Acquisition:
                     return self.stages.candidate(refined, other.index)
             return Candidate(pose, start, len(dets), "apriltag", other.index, 0.0)
         return self.search_map(target, other, diff) if self.stages.tracking else None
+
+    def one_tag(
+        self, dets: Sequence[TagDetection], target: Frame, other: Frame, diff: PairDifference
+    ) -> Candidate | None:
+        """One whole tag (too few for a pose: ``pose.min_tags``): each of its two poses (IPPE's: one small tag leaves
+        the tilt ambiguous) as the start of the map's track, taken only if the track fits :data:`MIN_SEARCH_FIT` of the
+        map's visible edges, as a placement of the map search is (the pose then rests on the edges of every tag in view,
+        not on the one tag's corners). Takeoff's climb from its pad: AprilTag saw one pad tag from frame 97 (0.30 m) on
+        and the pose came at frame 137; with the tag as the track's start, from frame 99 (75.0 -> 79.9 % of the flight,
+        no pose over 23 mm)."""
+        if not self.stages.tracking:
+            return None
+        corners_m = self.tag_map.corners_m(dets[0].tag_id)
+        if corners_m is None:
+            return None
+        k, dist = self.pinhole.camera_matrix, self.pinhole.dist_coeffs
+        obj, img = np.asarray(corners_m, np.float64), np.asarray(dets[0].corners_px, np.float64)
+        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, k, dist, flags=cv2.SOLVEPNP_IPPE)
+        for rvec, tvec in zip(rvecs[:n], tvecs[:n], strict=True):
+            start = (np.asarray(rvec, np.float64).reshape(3), np.asarray(tvec, np.float64).reshape(3))
+            try:
+                tracked = self.stages.track_from(diff, self.stages.coarse(diff, start), target.signal)
+            except np.linalg.LinAlgError:
+                continue
+            if tracked is not None and tracked.inlier_fraction >= MIN_SEARCH_FIT:
+                target.phase, other.phase = tracked.sign, -tracked.sign
+                self.since_verify = 0
+                return self.stages.candidate(tracked, other.index)
+        return None
 
     def rests(self, target: Frame) -> bool:
         """Whether AprilTag skips ``target``, a frame without a track to follow (its pair is then not made either):
