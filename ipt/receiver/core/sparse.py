@@ -124,6 +124,9 @@ class SparseSettings:
     fits: successive steps point back against each other (median cosine −0.5 at the second step, −0.9 by the
     fifth) while shrinking by only 0.6–0.9 each, so most fits ran all their iterations and a third were refused
     unsettled."""
+    damp_from: int = 0
+    """The first step (counted from 0) that :attr:`damp_swings` scales; the steps before it only set the last step
+    that the next is compared with."""
 
 
 @dataclass(frozen=True)
@@ -370,7 +373,9 @@ def fit_sparse(
         kept_push = push[keep]
         moved = float(np.abs(kept_push).max())
         if s.damp_swings:
-            sol = damped(sol, push, last_push, idx, keep)
+            damped_sol = damped(sol, push, last_push, idx, keep)
+            if it >= s.damp_from:
+                sol = damped_sol
         _update(st, sol)
         may_end = not coarse and len(active) == len(every)
         if may_end and (moved < s.converged_px or converged_by_rms(kept_push, moved, s)):

@@ -54,6 +54,9 @@ KEEP_FRAMES = 16
 #: `/work/tools/jointt.py`) all 350 joint fits at 4.1-4.35 px (hover-2.5m) were refused, 26 % of that flight's
 #: processor time, and the smallest cells a joint fit was taken at were 4.79 px (takeoff). A rendered pair started
 #: from its true poses: refused from 2.3 and 2.5 m (4.5 and 4.1 px), found from 2.0 m (5.2 px; tests/test_sparse.py).
+#: Damped from the third step (stop 56) that pair's fits hold from 2.5 m too, but on hover-2.5m without this rule 188 of
+#: 299 joint fits still gave up: 124.6 -> 102.3 frames a second in process, MAE 3.56 / 2.97 / 0.95 -> 3.78 / 3.24 /
+#: 1.02 mm. Kept.
 JOINT_MIN_CELL_RADII = 0.75
 
 
@@ -308,6 +311,7 @@ def chain_settings(
     known_iterations: int = 5,
     known_converged_rms_px: float = 0.15,
     joint_converged_rms_px: float = 0.0,
+    joint_damp_from: int | None = 2,
 ) -> tuple[SparseSettings, SparseSettings]:
     """The fits' settings for a camera ``width_px`` wide (pixel figures are stated at 640 and scale with the width:
     the blur, the profiles' reach, the priors, and the marks of convergence, settling and giving up): with a partner
@@ -317,8 +321,12 @@ def chain_settings(
     held looser than the prototype's 1 px and 3 iterations: a partner's pose is a fit too, and held at 1 px
     its error passed on to the next frame along the chain (dark-scene's sparse MAE 2.68 / 2.05 / 0.73 mm
     against the dense tracker's 2.08 / 1.52 / 0.49; 3 px and 5 iterations: 2.16 / 1.75 / 0.62). The known-partner
-    fits damp their swinging steps (:attr:`~ipt.receiver.core.sparse.SparseSettings.damp_swings`; the joint fits
-    do not: damped too, two-projectors uncalibrated gave a pose 115 mm off). The known-partner fits also stop once
+    fits damp their swinging steps (:attr:`~ipt.receiver.core.sparse.SparseSettings.damp_swings`); the joint fits from
+    their third step (``joint_damp_from``; None: never), once the coarse step and the first fine one have come the long
+    way from the prediction (damped from their first step, two-projectors uncalibrated once gave a pose 115 mm off and
+    keystone uncalibrated seven 100-116 mm off; from the third, stop 56, fast 97.8 -> 99.0 % and 103 -> 116-119 frames
+    per processor-second, moving-content's MAE 1.04 / 0.76 / 0.27 -> 1.20 / 0.96 / 0.32 mm, rolling 98.75 -> 97.60 %:
+    docs/receiver-cores.md). The known-partner fits also stop once
     a step moved the samples by less than ``known_converged_rms_px`` RMS (stop 44: shadow-vibration's known fits
     4.71 -> 3.43 iterations, the same yield and MAE within 0.03 mm; at 0.1 px, 3.77 iterations, and the keystoned
     flight with the uniform arena file lost its chain where that file is furthest off: four poses 105-111 mm off)."""
@@ -351,7 +359,8 @@ def chain_settings(
         radius_px=round(joint_radius_px * ratio),
         half_until_px=joint_half_until_px * ratio,
         coarse_smooth_px=joint_smooth_px * ratio,
-        damp_swings=False,
+        damp_swings=joint_damp_from is not None,
+        damp_from=joint_damp_from if joint_damp_from is not None else 0,
     )
     return known, joint
 
