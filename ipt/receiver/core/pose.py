@@ -14,6 +14,10 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+
+# np.median imports numpy.ma at its first call (for its NaN check): 16-23 ms here, on a daemon's first pose; imported
+# with this module, it is paid while the pipeline is made.
+import numpy.ma
 import numpy.typing as npt
 
 from ipt.config.camera_info import CameraInfo
