@@ -144,14 +144,10 @@ class Acquisition:
         n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, k, dist, flags=cv2.SOLVEPNP_IPPE)
         for rvec, tvec in zip(rvecs[:n], tvecs[:n], strict=True):
             start = (np.asarray(rvec, np.float64).reshape(3), np.asarray(tvec, np.float64).reshape(3))
-            try:
-                tracked = self.stages.track_from(diff, self.stages.coarse(diff, start), target.signal)
-            except np.linalg.LinAlgError:
-                continue
-            if tracked is not None and tracked.inlier_fraction >= MIN_SEARCH_FIT:
-                target.phase, other.phase = tracked.sign, -tracked.sign
+            found = self._placed(target, other, diff, self.stages.coarse(diff, start))
+            if found is not None:
                 self.since_verify = 0
-                return self.stages.candidate(tracked, other.index)
+                return found
         return None
 
     def rests(self, target: Frame) -> bool:
@@ -186,14 +182,25 @@ class Acquisition:
         self.map_search = self.map_search or MapSearch.of(self.tag_map)
         lit = diff.valid if target.signal is None else np.minimum(diff.valid, target.signal)
         for h in self.map_search.search(diff.diff, lit, self.pinhole.camera_matrix):
-            try:  # (a search around the start, not _coarse's: that one lays a level guess's view wrong by a tag)
-                tracked = self.stages.track_from(diff, (h.rvec, h.tvec), target.signal, h.search_px)
-            except np.linalg.LinAlgError:  # a wrong placement's samples may all run one way
-                continue
-            if tracked is not None and tracked.inlier_fraction >= MIN_SEARCH_FIT:
-                target.phase, other.phase = tracked.sign, -tracked.sign
-                return self.stages.candidate(tracked, other.index)
+            # (a search around the start, not _coarse's: that one lays a level guess's view wrong by a tag)
+            found = self._placed(target, other, diff, (h.rvec, h.tvec), h.search_px)
+            if found is not None:
+                return found
         return None
+
+    def _placed(
+        self, target: Frame, other: Frame, diff: PairDifference, start: tuple[F64, F64], coarse_px: float = 0.0
+    ) -> Candidate | None:
+        """The map's track from a placement of it (a search's, or one tag's), taken only if it fits
+        :data:`MIN_SEARCH_FIT` of the map's visible edges (the pair's phases then set from it)."""
+        try:
+            tracked = self.stages.track_from(diff, start, target.signal, coarse_px)
+        except np.linalg.LinAlgError:  # a wrong placement's samples may all run one way
+            return None
+        if tracked is None or tracked.inlier_fraction < MIN_SEARCH_FIT:
+            return None
+        target.phase, other.phase = tracked.sign, -tracked.sign
+        return self.stages.candidate(tracked, other.index)
 
     def _search_turn(self, target: Frame) -> bool:
         """Whether the map search's turn falls on ``target`` (one frame in :data:`SEARCH_EVERY`; a view lit below
