@@ -3,6 +3,7 @@ opposite phase, the partner's pose known, this frame's guessed some pixels off."
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 from dataclasses import dataclass, replace
@@ -297,6 +298,44 @@ def test_the_phase_by_the_clock_at_twice_the_projectors_rate() -> None:
                 if said is None:
                     undecided.append((start_us, k, gap))
     assert undecided == []
+
+
+def _clock_phase_numpy(times_us: list[int], signs: list[int], at_us: int, projector_hz: float) -> int | None:
+    """:func:`~ipt.receiver.core.sparsechain.clock_phase` as it was written with numpy (stop 56)."""
+    if len(signs) < 2:
+        return None
+    ref = times_us[-1]
+    t = (np.asarray(times_us, np.float64) - ref) * 1e-6 * projector_hz
+    offsets = (np.arange(20) + 0.5) / 20.0
+    pattern = 1.0 - 2.0 * (np.floor(t[None, :] + offsets[:, None]) % 2)
+    agree = pattern @ np.asarray(signs, np.float64)
+    best = float(np.abs(agree).max())
+    if best < len(signs) - 2 or best == 0.0:
+        return None
+    ok = np.abs(agree) == best
+    at = (at_us - ref) * 1e-6 * projector_hz
+    predicted = np.sign(agree[ok]) * (1.0 - 2.0 * (np.floor(at + offsets[ok]) % 2))
+    return int(predicted[0]) if np.all(predicted == predicted[0]) else None
+
+
+def test_the_clock_in_plain_python_says_what_numpys_said() -> None:
+    """The clock's phase, written in plain Python for speed, against its numpy form on 20 000 random cases: camera
+    clocks at 100-240 FPS with jitter, 59.94-60 Hz projectors, 2-8 phases of which some are wrong, times rounded
+    to the microsecond, asked 1-3 frames on (undecided answers included)."""
+    rng = np.random.default_rng(7)
+    undecided = 0
+    for _ in range(20_000):
+        fps, hz = float(rng.uniform(100.0, 240.0)), float(rng.choice([60.0, 59.94]))
+        n = int(rng.integers(2, 9))
+        start = int(rng.integers(0, 10**9))
+        times = [start + round(k * 1e6 / fps + rng.normal(0.0, 30.0)) for k in range(n + 3)]
+        truth = [1 if math.floor(t * 1e-6 * hz + 0.37) % 2 == 0 else -1 for t in times]
+        signs = [-s if rng.random() < 0.1 else s for s in truth[:n]]
+        at = times[n + int(rng.integers(0, 3))]
+        said = sparsechain.clock_phase(times[:n], signs, at, hz)
+        assert said == _clock_phase_numpy(times[:n], signs, at, hz)
+        undecided += said is None
+    assert 0 < undecided < 20_000
 
 
 def test_two_phases_that_contradict_each_other_tell_no_phase() -> None:
