@@ -384,6 +384,28 @@ def test_content_that_held_still_is_told_from_content_that_panned(panned: tuple[
         assert sparsechain.content_still(chain, 4, lum, phase, pair.camera, edges) == still
 
 
+def test_a_judge_of_the_content_left_waiting_judges_the_frames_as_they_were(
+    panned: tuple[Pair, U8], edges: MapEdges
+) -> None:
+    """The live chain leaves each second-phase frame's verdict waiting (the next one's replaces it unread, a frame
+    of the first phase asks for it): a judge made over panned content says "moved" even after the chain's frames
+    and poses were replaced by those of content that held still, which the judge made then calls still."""
+    pair, before = panned
+    fitted, why = _fit(pair, edges, _guess_off_by(1.0))
+    assert fitted is not None, why
+    held = lightness(_distorted_view(_photo(0)[1], PREVIOUS_POSITION_M, R_ARENA_CAM, LENS))
+    chain = sparsechain.Chain()
+    chain.rt = {0: rt_of(PREVIOUS_POSITION_M, R_ARENA_CAM), 4: rt_of(OTHER_POSITION_M, R_OTHER)}
+    chain.fitted = {4: fitted}
+    lum, phase = {0: before, 4: pair.other}, {0: -1, 4: -1}
+    judge = sparsechain.still_judge(chain, 4, lum, phase, pair.camera, edges)
+    assert judge is not None
+    lum[0] = held
+    assert judge() is False
+    assert sparsechain.content_still(chain, 4, lum, phase, pair.camera, edges) is True
+    assert sparsechain.still_judge(chain, 4, lum, {4: -1}, pair.camera, edges) is None  # no frame to judge against
+
+
 def test_a_fit_that_reads_half_the_samples_while_far_off_ends_on_all_of_them(
     pinhole_pair: Pair, edges: MapEdges
 ) -> None:

@@ -251,12 +251,34 @@ def content_still(
     same phase of the video frame before (k−4, k−3, k−5), both read at their poses along the map's edges (the
     map cancels between frames of one phase): the spread of their difference (robust) against ``k``'s pair fit's
     residual, at most ``spread_ratio`` times it. None: no such frame, or too few of the map's edges in view."""
+    judge = still_judge(chain, k, lum, phase, camera, edges, spread_ratio)
+    return judge() if judge is not None else None
+
+
+def still_judge(
+    chain: Chain,
+    k: int,
+    lum: Mapping[int, U8],
+    phase: Mapping[int, int],
+    camera: SparseCamera,
+    edges: MapEdges,
+    spread_ratio: float = STILL_SPREAD,
+) -> Callable[[], bool | None] | None:
+    """:func:`content_still` for ``k`` as it stands now, to be judged later or never (None: no frame to judge it
+    against): the chain's poses, the frames and the fit's residual it reads are taken now."""
     m = next((m for m in (k - 4, k - 3, k - 5) if phase.get(m) == phase.get(k) and m in chain.rt and m in lum), None)
     if m is None:
         return None
-    r_k, _ = cv2.Rodrigues(np.asarray(chain.rt[k][0], np.float64).reshape(3, 1))
-    r_m, _ = cv2.Rodrigues(np.asarray(chain.rt[m][0], np.float64).reshape(3, 1))
-    t_k, t_m = np.asarray(chain.rt[k][1], np.float64).reshape(3), np.asarray(chain.rt[m][1], np.float64).reshape(3)
+    rt_k, rt_m, lum_k, lum_m, rms_px = chain.rt[k], chain.rt[m], lum[k], lum[m], chain.fitted[k].rms_px
+    return lambda: _still(rt_k, rt_m, lum_k, lum_m, rms_px, camera, edges, spread_ratio)
+
+
+def _still(
+    rt_k: RT, rt_m: RT, lum_k: U8, lum_m: U8, rms_px: float, camera: SparseCamera, edges: MapEdges, spread_ratio: float
+) -> bool | None:
+    r_k, _ = cv2.Rodrigues(np.asarray(rt_k[0], np.float64).reshape(3, 1))
+    r_m, _ = cv2.Rodrigues(np.asarray(rt_m[0], np.float64).reshape(3, 1))
+    t_k, t_m = np.asarray(rt_k[1], np.float64).reshape(3), np.asarray(rt_m[1], np.float64).reshape(3)
     chosen = select(edges, camera, r_k, t_k, 300)
     _, pk, pm, _ = kernels.sparse_profiles(
         edges.points_m[chosen],
@@ -267,8 +289,8 @@ def content_still(
         t_m,
         camera.camera_matrix,
         camera.dist_coeffs,
-        lum[k],
-        lum[m],
+        lum_k,
+        lum_m,
         4,
         3.0,
         3,
@@ -278,7 +300,7 @@ def content_still(
     gain = float(np.median(pk.mean(axis=1) / np.maximum(pm.mean(axis=1), 1.0)))
     d = (pk - gain * pm).ravel()
     spread = 1.4826 * float(np.median(np.abs(d - np.median(d))))
-    return spread <= spread_ratio * max(chain.fitted[k].rms_px, 0.1)
+    return spread <= spread_ratio * max(rms_px, 0.1)
 
 
 def take(chain: Chain, k: int, result: SparseResult, out_at: int) -> None:
@@ -461,6 +483,8 @@ class LiveChain:
         self._times_us: dict[int, int] = {}
         self._phase: dict[int, int] = {}
         self._pending: list[int] = []
+        self._judge: Callable[[], bool | None] | None = None
+        """:func:`still_judge` of the last frame of the second phase posed, until it is judged or replaced."""
         self.pairing = auto_pairing(self._phase) if wait else replace(past_pairing(self._phase), known_first=True)
         self.posed = 0
         """Frames posed by the chain since it was made."""
@@ -474,6 +498,7 @@ class LiveChain:
         """Forget the chain's poses, and with ``frames`` the frames too (else a frame kept may still be seeded):
         the chain waits for a new seed."""
         self.chain = Chain(reseeds=self.chain.reseeds, refused=self.chain.refused)
+        self._judge = None
         if frames:
             for kept in (self._lum, self._times_us, self._phase):
                 kept.clear()
@@ -505,16 +530,16 @@ class LiveChain:
                 out = pair_frame(chain, k, self._lum, self._phase, self._times_us, self.fit, pairing)
                 if k in out:
                     chain.same_rms = [*chain.same_rms[-15:], out[k].rms_px]
-            elif chain.still:
+            elif self._still():
                 past = past_pairing(self._phase)
                 out = pair_frame(chain, k, self._lum, self._phase, self._times_us, self.fit, past)
         for j, result in out.items():
             take(chain, j, result, k)
             if j in self._pending:
                 self._pending.remove(j)
-        if k in out and not waits:
-            verdict = content_still(chain, k, self._lum, self._phase, self.camera, self.edges)
-            chain.still, chain.moved = bool(verdict), verdict is False
+        if k in out and not waits:  # judged when asked: the next frame of the other phase's verdict replaces it unread
+            self._judge = still_judge(chain, k, self._lum, self._phase, self.camera, self.edges)
+            chain.still = chain.moved = False
         waiting = started and waits and k not in out
         if waiting:
             self._pending.append(k)
@@ -523,6 +548,19 @@ class LiveChain:
             self._pending.remove(j)
         self.posed += len(out)
         return ChainStep(out, {j: chain.partner.get(j, -1) for j in out}, given_up, waiting)
+
+    def _still(self) -> bool:
+        """The chain's :attr:`Chain.still`, once the verdict left waiting (:func:`still_judge`) is judged."""
+        if self._judge is not None:
+            verdict = self._judge()
+            self._judge = None
+            self.chain.still, self.chain.moved = bool(verdict), verdict is False
+        return self.chain.still
+
+    def content_moved(self) -> bool:
+        """Whether the floor's content was judged to have moved over the last video frame (:attr:`Chain.moved`)."""
+        self._still()
+        return self.chain.moved
 
     def clock(self) -> PhaseClock | None:
         """The projector's phase clock from the phases of the (at most eight) newest frames the chain has posed,
