@@ -193,6 +193,24 @@ class _MemoryCamera:
 
 
 def run_camera(folder: Path, fps: float, isolation: str = "process", tracker: str = "sparse") -> dict[str, Any]:
+    from ipt.receiver.cli import START_UP_SECONDS, GcHeldForStartUp
+    from ipt.receiver.core import kernels
+    from ipt.receiver.detect import tagworker
+
+    # The start-up of `ipt-receiver run` (ipt/receiver/cli.py, _run_daemon): the garbage collector held until the
+    # first pose, AprilTag's helper forked while this process is lean (not later, from one holding every decoded
+    # frame), the kernels loaded on a thread of their own.
+    hold = GcHeldForStartUp()
+    prestarted = isolation == "process" and tagworker.prestart()
+    hold.release_after(START_UP_SECONDS)
+    kernels.warm_in_background()
+    try:
+        return {**_run_camera_started(folder, fps, isolation, tracker, hold), "helper_prestarted": prestarted}
+    finally:
+        tagworker.drop_prestarted()
+
+
+def _run_camera_started(folder: Path, fps: float, isolation: str, tracker: str, hold: Any) -> dict[str, Any]:
     import asyncio
     import io
 
@@ -215,6 +233,7 @@ def run_camera(folder: Path, fps: float, isolation: str = "process", tracker: st
     sent: list[tuple[int, float]] = []  # per pose sent: (capture time, microseconds; capture -> send, ms)
 
     def on_result(frame: Any, result: Any, datagrams: int) -> None:
+        hold.on_result(frame, result, datagrams)
         if result.pose is not None and datagrams:
             sent.append((frame.capture_time_us, 1e3 * (time.monotonic() - frame.grabbed_s)))
 
