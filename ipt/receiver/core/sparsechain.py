@@ -74,7 +74,8 @@ class Chain:
     same_rms: list[float] = field(default_factory=list)
     """The residuals of the fits with a same-content partner, in order."""
     still: bool = False
-    """The floor's content held still over the last video frame (``auto``)."""
+    """The floor's content held still over the last video frame (``auto``; a :class:`LiveChain` judges it only when
+    asked: read it through the chain, :meth:`LiveChain.content_moved`)."""
     moved: bool = False
     """The floor's content was judged to have moved over the last video frame (``still`` is False also when
     :func:`content_still` could not judge)."""
@@ -537,7 +538,7 @@ class LiveChain:
             take(chain, j, result, k)
             if j in self._pending:
                 self._pending.remove(j)
-        if k in out and not waits:  # judged when asked: the next frame of the other phase's verdict replaces it unread
+        if k in out and not waits:  # judged when asked: the next second-phase frame's verdict replaces it unread
             self._judge = still_judge(chain, k, self._lum, self._phase, self.camera, self.edges)
             chain.still = chain.moved = False
         waiting = started and waits and k not in out
