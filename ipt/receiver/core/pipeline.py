@@ -271,9 +271,7 @@ class Pipeline:
     def live_hints(self) -> tuple[PhaseClock | None, bool]:
         """For a live daemon's choice of frames (:mod:`ipt.receiver.liverun`): the sparse chain's projector phase
         clock (a snapshot another thread may keep; None: none yet) and whether it judged the content to move."""
-        if self.sparse is None:
-            return None, False
-        return self.sparse.chain.clock(), self.sparse.chain.content_moved()
+        return (None, False) if (s := self.sparse) is None else (s.chain.clock(), s.chain.content_moved())
 
     def finish_before(self, time_us: int) -> list[FrameResult]:
         """The results, in frame order, of the frames waiting for later partners that no frame captured at
