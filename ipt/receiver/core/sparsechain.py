@@ -271,10 +271,10 @@ def still_judge(
     if m is None:
         return None
     rt_k, rt_m, lum_k, lum_m, rms_px = chain.rt[k], chain.rt[m], lum[k], lum[m], chain.fitted[k].rms_px
-    return lambda: _still(rt_k, rt_m, lum_k, lum_m, rms_px, camera, edges, spread_ratio)
+    return lambda: _held_still(rt_k, rt_m, lum_k, lum_m, rms_px, camera, edges, spread_ratio)
 
 
-def _still(
+def _held_still(
     rt_k: RT, rt_m: RT, lum_k: U8, lum_m: U8, rms_px: float, camera: SparseCamera, edges: MapEdges, spread_ratio: float
 ) -> bool | None:
     r_k, _ = cv2.Rodrigues(np.asarray(rt_k[0], np.float64).reshape(3, 1))
