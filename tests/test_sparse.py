@@ -655,3 +655,25 @@ def test_the_chain_tries_no_joint_fit_where_the_maps_cells_are_too_small(
     _result, why = fit(blank, blank, low_other, low, 0.0, True)
     assert calls == [True, True]
     assert why != "small_cells"
+
+
+def test_the_samples_of_the_tags_in_view_are_picked_by_their_ranges_as_by_a_look_at_each(edges: MapEdges) -> None:
+    """:func:`~ipt.receiver.core.sparse.select` joins the ranges of the near tags' samples (they lie tag by tag): the
+    same indices as its look at every sample's tag (taken where the samples are not in tag order), over many views."""
+    assert edges.tag_ranges is not None
+    looking = replace(edges)
+    looking.__dict__["tag_ranges"] = None  # (the cached ranges set aside: select looks at every sample)
+    camera = SparseCamera.of(K, np.zeros(5), SIZE)
+    rng = np.random.default_rng(29)
+    sizes = set()
+    for _ in range(300):
+        position = np.array([rng.uniform(-0.5, 2.5), rng.uniform(-0.5, 1.5), rng.uniform(0.3, 2.5)])
+        turn = rot_z(rng.uniform(-np.pi, np.pi)) @ rot_x(rng.uniform(-0.3, 0.3)) @ R_BODY_CAM_DOWNWARD
+        rvec, t = rt_of(position, turn)
+        r = np.asarray(cv2.Rodrigues(rvec.reshape(3, 1))[0], np.float64)
+        for most in (700, 10**6):
+            joined, looked = sparse.select(edges, camera, r, t, most), sparse.select(looking, camera, r, t, most)
+            assert joined.dtype == looked.dtype and np.array_equal(joined, looked)
+            sizes.add(len(joined))
+    assert 0 in sizes and 700 in sizes and len(sizes) > 20  # (views of no tag, of many, and between)
+    assert replace(edges, tag=edges.tag[::-1].copy()).tag_ranges is None

@@ -12,6 +12,7 @@ Pure: a tag map in, arrays out.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -97,6 +98,15 @@ class MapEdges:
     """(M,) index of the cell's tag."""
     tag_cell_m: F64 | None = None
     """(T,) the cell side of each tag (a map of several tag sizes), metres; None: all :attr:`cell_m`."""
+
+    @functools.cached_property
+    def tag_ranges(self) -> tuple[I64, I64] | None:
+        """Each tag's samples as the range ``start[t] : start[t] + count[t]``, where they lie tag by tag (as
+        :meth:`of` lays them); None otherwise."""
+        if np.any(np.diff(self.tag) < 0):
+            return None
+        count = np.bincount(self.tag, minlength=len(self.tag_ids)).astype(np.int64)
+        return np.cumsum(count) - count, count
 
     @property
     def largest_cell_m(self) -> float:

@@ -205,10 +205,26 @@ def select(edges: MapEdges, camera: SparseCamera, r: F64, t: F64, most: int) -> 
     near &= (uv[:, 1] > -reach) & (uv[:, 1] < h + reach)
     cell = edges.tag_cell_m if edges.tag_cell_m is not None else np.full(len(depth), edges.cell_m)
     near &= k[0, 0] * cell / depth >= MIN_CELL_PX
-    chosen = np.flatnonzero(near[edges.tag])
+    ranges = edges.tag_ranges
+    if ranges is None:
+        chosen = np.flatnonzero(near[edges.tag])
+    else:  # the near tags' ranges of samples, joined (the same indices, without a look at every sample)
+        start, count = ranges
+        tags = np.flatnonzero(near)
+        lengths = count[tags]
+        ends = np.cumsum(lengths)
+        chosen = np.arange(int(ends[-1]) if len(ends) else 0) + np.repeat(start[tags] - (ends - lengths), lengths)
     if len(chosen) > most:
-        chosen = chosen[np.linspace(0, len(chosen) - 1, most).astype(np.int64)]
+        chosen = chosen[_spread(len(chosen), most)]
     return chosen
+
+
+@functools.lru_cache(maxsize=64)
+def _spread(n: int, most: int) -> I64:
+    """``most`` indices spread evenly over ``n`` (a chain asks for the same few counts again and again)."""
+    picks = np.linspace(0, n - 1, most).astype(np.int64)
+    picks.flags.writeable = False
+    return picks
 
 
 #: Unknowns of the fit: the pair's brightness ratio's change, the map's step in the difference, this frame's
