@@ -673,7 +673,10 @@ def test_the_samples_of_the_tags_in_view_are_picked_by_their_ranges_as_by_a_look
         r = np.asarray(cv2.Rodrigues(rvec.reshape(3, 1))[0], np.float64)
         for most in (700, 10**6):
             joined, looked = sparse.select(edges, camera, r, t, most), sparse.select(looking, camera, r, t, most)
-            assert joined.dtype == looked.dtype and np.array_equal(joined, looked)
+            assert joined.dtype == looked.dtype
+            assert np.array_equal(joined, looked)
             sizes.add(len(joined))
-    assert 0 in sizes and 700 in sizes and len(sizes) > 20  # (views of no tag, of many, and between)
+    assert 0 in sizes
+    assert 700 in sizes
+    assert len(sizes) > 20  # (views of no tag, of many, and between)
     assert replace(edges, tag=edges.tag[::-1].copy()).tag_ranges is None
