@@ -102,7 +102,7 @@ class MapEdges:
     @functools.cached_property
     def tag_ranges(self) -> tuple[I64, I64] | None:
         """Each tag's samples as the range ``start[t] : start[t] + count[t]``, where they lie tag by tag (as
-        :meth:`of` lays them); None otherwise."""
+        :meth:`from_tag_map` lays them); None otherwise."""
         if np.any(np.diff(self.tag) < 0):
             return None
         count = np.bincount(self.tag, minlength=len(self.tag_ids)).astype(np.int64)
