@@ -14,8 +14,10 @@ frames.mkv) and arena.yaml (else the shipped arena), as ``ipt sim`` writes them.
   frame), waiting for them: the daemon's own :class:`ipt.receiver.liverun.LivePicker`, told after each frame
   and asked after a stall; after frames were dropped it first calls :meth:`Pipeline.finish_before`, as the
   daemon does;
-- each frame of the run is processed in order and takes the wall-clock time it took here (the AprilTag helper
-  process's time included when pinned to one core: ``taskset -c 0``) times ``--slow``;
+- each frame of the run is processed in order, with its wait when the run was handed over (the pipeline's live
+  rule, :data:`ipt.receiver.core.sparsestage.LIVE_LATE_US`, reads it; ``--every-late``: none, a recording's way),
+  and takes the wall-clock time it took here (the AprilTag helper process's time included when pinned to one
+  core: ``taskset -c 0``) times ``--slow``;
 - a result's latency is the (virtual) time it came out minus its frame's capture time.
 
 What the pipeline does depends only on the frames it is given, so a slower computer is modelled by the clock alone:
@@ -84,8 +86,11 @@ class _Held(NamedTuple):
     capture_time_us: int
 
 
-def live_round(pipeline: Pipeline, frames: list[Any], fps: float, slow: float) -> dict[int, tuple[float, FrameResult]]:
-    """Each frame's result with the virtual time it came out (s), under the daemon's live rule."""
+def live_round(
+    pipeline: Pipeline, frames: list[Any], fps: float, slow: float, every_late: bool = False
+) -> dict[int, tuple[float, FrameResult]]:
+    """Each frame's result with the virtual time it came out (s), under the daemon's live rule; each frame handed over
+    with its wait (virtual time minus capture), as the daemon's are, unless ``every_late``."""
     out: dict[int, tuple[float, FrameResult]] = {}
     now_s, last, n = 0.0, -1, len(frames)
     picker = LivePicker()  # the daemon's own: told after each frame, asked after a stall
@@ -121,7 +126,8 @@ def live_round(pipeline: Pipeline, frames: list[Any], fps: float, slow: float) -
             took(t0, pipeline.finish_before(round(run[0] * 1e6 / fps)))
         for k in run:
             t0 = time.perf_counter()
-            took(t0, pipeline.process(k, frames[k], round(k * 1e6 / fps)))
+            waited_us = None if every_late else max(round((now_s - k / fps) * 1e6), 0)  # (the daemon's, at hand-over)
+            took(t0, pipeline.process(k, frames[k], round(k * 1e6 / fps), waited_us))
             picker.note(pipeline.live_hints(), (time.perf_counter() - t0) * slow)
         last = run[-1]
     t0 = time.perf_counter()
@@ -160,12 +166,13 @@ def _figures(out: dict[int, tuple[float, FrameResult]], n: int, fps: float, trut
     return fig
 
 
-def one_round(folder: Path, fps: float, slow: float) -> dict[str, Any]:
-    """One round in this process: a fresh pipeline (its kernels loaded from numba's cache as a daemon's are)."""
+def one_round(folder: Path, fps: float, slow: float, every_late: bool = False) -> dict[str, Any]:
+    """One round in this process: a fresh pipeline (its kernels loaded from numba's cache as a daemon's are);
+    ``every_late``: frames the chain gave up on take the dense way at any age (as before stop 59)."""
     frames = _frames(folder)
     pipeline = _pipeline(folder)
     try:
-        out = live_round(pipeline, frames, fps, slow)
+        out = live_round(pipeline, frames, fps, slow, every_late)
     finally:
         pipeline.close()
     return _figures(out, len(frames), fps, read_tum(folder / "groundtruth.tum"))
@@ -195,6 +202,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--slow", type=float, default=1.0, help="processing times multiplied by this (default 1)")
     parser.add_argument("--rounds", type=int, default=3, help="rounds, each in a fresh process (default 3)")
     parser.add_argument("--fps", type=float, default=120.0, help="the camera's frame rate (default 120)")
+    parser.add_argument(
+        "--every-late",
+        action="store_true",
+        help="frames the sparse chain gave up on take the dense way however old (a recording's rule; the daemon's live "
+        "rule gives them up past ipt.receiver.core.sparsestage.LIVE_LATE_US): to compare the two",
+    )
     parser.add_argument("--one-round", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.slow <= 0 or args.rounds < 1 or args.fps <= 0:
@@ -202,17 +215,19 @@ def main(argv: list[str] | None = None) -> int:
     if not (args.video / "camera.yaml").is_file() or not (args.video / "groundtruth.tum").is_file():
         parser.error(f"{args.video}: no camera.yaml and groundtruth.tum (a folder ipt sim wrote)")
     if args.one_round:
-        print(json.dumps(one_round(args.video, args.fps, args.slow)))
+        print(json.dumps(one_round(args.video, args.fps, args.slow, args.every_late)))
         return 0
     rounds = []
     cmd = [sys.executable, __file__, "--video", str(args.video), "--fps", str(args.fps), "--slow", str(args.slow)]
+    cmd += ["--every-late"] if args.every_late else []
     for k in range(args.rounds):
         proc = subprocess.run([*cmd, "--one-round"], capture_output=True, text=True, check=False)
         if proc.returncode != 0:
             raise SystemExit(f"live_sim: round {k + 1} failed:\n{proc.stderr[-2000:]}")
         rounds.append(json.loads(proc.stdout.strip().splitlines()[-1]))
         print(f"live_sim: round {k + 1}/{args.rounds}: {rounds[-1]['poses_per_s']} poses/s", file=sys.stderr)
-    report = {"flight": args.video.name, "slow": args.slow, "fps": args.fps, "rounds": rounds}
+    report = {"flight": args.video.name, "slow": args.slow, "fps": args.fps, "every_late": args.every_late}
+    report["rounds"] = rounds
     report.update(medians=_medians(rounds), loadavg=list(os.getloadavg()))
     print(json.dumps(report, indent=1))
     return 0

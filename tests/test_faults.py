@@ -381,10 +381,12 @@ async def test_a_receiver_slower_than_its_camera_gets_runs_of_consecutive_frames
             worker_log.append(("finished", [r.index for r in out]))
             return out
 
-        def process(self, index: int, frame: npt.NDArray[np.uint8], capture_time_us: int) -> list[FrameResult]:
+        def process(
+            self, index: int, frame: npt.NDArray[np.uint8], capture_time_us: int, waited_us: int | None = None
+        ) -> list[FrameResult]:
             processed.append(index)
             worker_log.append(("process", [index]))
-            out = super().process(index, frame, capture_time_us)
+            out = super().process(index, frame, capture_time_us, waited_us)
             camera.burst()  # the frames that came while this one was processed ...
             asyncio.run_coroutine_threadsafe(loop_turns(1), loop).result(10.0)  # ... are in the queue now
             return out

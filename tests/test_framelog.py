@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import os
 import resource
 import socket
 import subprocess
 import sys
+import zlib
 from dataclasses import replace
 from pathlib import Path
 
@@ -24,6 +26,8 @@ from ipt.receiver.capture.framelog import (
     FRAMES_NAME,
     KIND_FINISH,
     KIND_FRAME,
+    MAGIC,
+    RECORD_V1,
     FrameLog,
     FrameLogError,
     FrameLogWriter,
@@ -216,6 +220,28 @@ def test_frames_come_back_losslessly_with_their_marks(tmp_path: Path, codec: str
         assert e.image is not None
         assert e.image.dtype == np.uint8
         np.testing.assert_array_equal(e.image, f.image)
+
+
+def test_a_live_frames_wait_comes_back_with_it_and_a_version_1_recording_still_reads(tmp_path: Path) -> None:
+    """Issue 29 (stop 59): the pipeline's live rule reads each frame's wait before the hand-over, so a replay needs it
+    to give the poses the live run sent; a recording's frame has none. A version 1 recording (no wait in its
+    records) still reads, its frames without one: the pipeline then treats them as it did when they were made."""
+    said: list[str] = []
+    w = FrameLogWriter(tmp_path / "rec", {}, shipped_config_path("camera.yaml"), say=said.append, codec="raw")
+    for k, waited_us in enumerate((None, 0, 12_345, 2**40)):
+        w.add(_frame(k), waited_us)
+    w.close()
+    assert [e.waited_us for e in FrameLog(tmp_path / "rec").events()] == [None, 0, 12_345, 2**40]
+    old = tmp_path / "v1"
+    old.mkdir()
+    meta = json.loads((tmp_path / "rec" / "recording.json").read_text())
+    (old / "recording.json").write_text(json.dumps({**meta, "version": 1}))
+    image = _frame(3).image
+    head = RECORD_V1.pack(MAGIC, KIND_FRAME, 0, 1, 3, 1234, 640, 360, image.size, zlib.crc32(image.tobytes()))
+    (old / "frames.bin").write_bytes(head + image.tobytes())
+    (events,) = list(FrameLog(old).events())
+    assert (events.index, events.capture_time_us, events.waited_us) == (3, 1234, None)
+    np.testing.assert_array_equal(events.image, image)
 
 
 def test_size_bound_is_said_once_and_stops_recording(tmp_path: Path) -> None:

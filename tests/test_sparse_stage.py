@@ -141,3 +141,19 @@ def test_the_bridge_being_possible_prepares_no_frame() -> None:
     f.candidates, f.best = [], None  # its dense pairs failed: the bridge may want it
     assert stage.bridge_ready()
     assert prepared == []
+
+
+def test_live_a_frame_the_chain_waited_for_in_vain_takes_the_dense_way_only_while_young() -> None:
+    """Issue 29, target 3 (stop 59): live, a frame the chain gave up on is three frames old at least, and its dense
+    pairs took 10-60 ms more while every frame behind it waited. Past ``LIVE_LATE_US`` (20 ms, from its capture to
+    the newest frame's capture plus that frame's wait before the pipeline took it) it is given up, ``late``;
+    younger, and a recording's frame (no wait: ``now_us`` None), it is paired as before."""
+    for waited_us, expect_late in ((None, False), (0, False), (3_000, False), (4_000, True), (90_000, True)):
+        stage, solved, f = _stage(0.2)
+        newest = stage.history[-1].time_us  # frame 4: frame 2 is two frames (16.7 ms) older
+        stage.now_us = None if waited_us is None else newest + waited_us
+        f.waiting = True
+        stage.before_finish(f)
+        assert (solved == []) is expect_late
+        assert (f.failure is not None and f.failure.reason == FrameReason.LATE) is expect_late
+        assert stage.late == int(expect_late)

@@ -22,7 +22,9 @@ Three stages, each on its own thread, joined by bounded queues::
   the newest. When it fell behind by more than the queue holds, the projector's phase is known, and the
   floor's content moves or the worker is slower than the camera (:func:`~ipt.receiver.liverun.pairs_pay`),
   the run is the newest + and − frames of one video frame (:func:`~ipt.receiver.liverun.pick_run`; the
-  daemon waits up to three frames for them), the other frames held are dropped. Figures:
+  daemon waits up to three frames for them), the other frames held are dropped. Each frame of a live source goes
+  with its wait since its grab (the pipeline's live rule reads it:
+  :data:`~ipt.receiver.core.sparsestage.LIVE_LATE_US`; the frame recording keeps it). Figures:
   ``docs/receiver-cores.md``.
 - **In order**: the pipeline is stateful (each frame is demodulated against the one before), so it
   must see frames in capture order. It does: one coroutine submits them in the order the FIFO queue
@@ -343,17 +345,17 @@ class _DaemonRun:
         (:meth:`Pipeline.finish_before`)."""
         return self.pipeline.finish_before(capture_time_us), {}
 
-    def process(self, frame: CapturedFrame | None) -> Batch:
+    def process(self, frame: CapturedFrame | None, waited_us: int | None = None) -> Batch:
         """On the worker thread: the results that became final with this frame (``None``: at the end, all
         that wait) and the processor time each stage took for it (from the pipeline's running totals, read
-        on the same thread, so no other frame is counted in)."""
+        on the same thread, so no other frame is counted in). ``waited_us``: a live camera's frame's wait."""
         stage_totals = self.stage_totals
         before = dict(stage_totals) if self.ros is not None and stage_totals is not None else None
         if frame is None:
             batch = self.pipeline.flush()
         else:
             t0 = time.perf_counter()
-            batch = self.pipeline.process(frame.index, frame.image, frame.capture_time_us)
+            batch = self.pipeline.process(frame.index, frame.image, frame.capture_time_us, waited_us)
             if self.source.live:  # (only a live source's runs are picked)
                 self.live.note(self.pipeline.live_hints(), time.perf_counter() - t0)
         if before is None or stage_totals is None:
@@ -383,11 +385,18 @@ class _DaemonRun:
                     results.put_nowait((None, loop.run_in_executor(worker, self.finish_before, t_us), False))
                 self.last_taken = run[-1].index
                 for k, item in enumerate(run):
+                    waited_us = self.waited_us(item)
                     if self.frame_log is not None:
-                        self.frame_log.add(item)
-                    results.put_nowait((item, loop.run_in_executor(worker, self.process, item), k == len(run) - 1))
+                        self.frame_log.add(item, waited_us)
+                    done = loop.run_in_executor(worker, self.process, item, waited_us)
+                    results.put_nowait((item, done, k == len(run) - 1))
         finally:
             results.put_nowait(None)
+
+    def waited_us(self, frame: CapturedFrame) -> int | None:
+        """A live camera's frame's wait between its grab and its hand-over to the pipeline (µs; the pipeline's live
+        rules read it, the frame recording keeps it); None for a recording's."""
+        return max(round((self.clock.now() - frame.grabbed_s) * 1e6), 0) if self.source.live else None
 
     async def more_frames(self, timeout_s: float) -> list[CapturedFrame]:
         """The next frame of a live source and those queued after it, or [] if none came within ``timeout_s`` or

@@ -195,8 +195,8 @@ def exact_tum_line(capture_time_us: int, position_m: Iterable[float], quat_wxyz:
 def replay_frame_log(folder: Path, output_path: Path, progress: TextIO | None = sys.stderr) -> ReplaySummary:
     """Play a ``--record-frames`` recording back through the pipeline the live run had (its arena, camera and
     pipeline settings are in the recording) with the recorded frame numbers and capture times, and the
-    live run's finishing points where it dropped frames: the poses it sent, bit for bit, as exact TUM lines
-    (:func:`exact_tum_line`)."""
+    live run's finishing points where it dropped frames and each frame's wait (its live rules read it): the poses
+    it sent, bit for bit, as exact TUM lines (:func:`exact_tum_line`)."""
     # Here, not at the top: the capture package (cameras, PyAV, asyncio) is not for a replay of a recording.
     from ipt.receiver.capture.framelog import KIND_FINISH, KIND_LOST, FrameLog
 
@@ -230,7 +230,7 @@ def replay_frame_log(folder: Path, output_path: Path, progress: TextIO | None = 
             elif event.kind == KIND_LOST:
                 notes.append(f"frames were not recorded before frame {event.index}: poses from there on may differ")
             elif event.image is not None:
-                poses += write(pipeline.process(event.index, event.image, event.capture_time_us))
+                poses += write(pipeline.process(event.index, event.image, event.capture_time_us, event.waited_us))
                 frames += 1
         poses += write(pipeline.flush())
     summary = ReplaySummary(frames, poses, time.monotonic() - start, dict(pipeline.reasons), shortfall=log.problem)

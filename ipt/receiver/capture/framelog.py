@@ -7,11 +7,13 @@ A recording is a folder:
   pipeline settings, the map hash, the codec; written first, atomically.
 - ``camera.yaml``: a byte copy of the camera_info file the run used.
 - ``frames.bin``: records one after the other, each a fixed header (:data:`RECORD`: magic, kind, codec,
-  channels, frame number, capture time in µs, width, height, payload length, CRC-32 of the payload) and a
-  payload. A *frame* record holds one image as the pipeline got it (H×W luma, or H×W×3); a *finish* record
-  says that the live run finished the results waiting before a capture time because frames were dropped
-  (``Pipeline.finish_before``); a *lost* record says that frames were handed to the pipeline but not kept
-  here (the writer fell behind), so the replay cannot be exact after it and says so.
+  channels, frame number, capture time in µs, width, height, payload length, CRC-32 of the payload, and how
+  long a live camera's frame waited before the pipeline took it, in µs, or −1) and a payload. A *frame* record
+  holds one image as the pipeline got it (H×W luma, or H×W×3), and its wait, which the pipeline's live rules
+  read (``Pipeline.process``'s ``waited_us``; version 1, made before there was any, has none: still read); a
+  *finish* record says that the live run finished the results waiting before a capture time because frames
+  were dropped (``Pipeline.finish_before``); a *lost* record says that frames were handed to the pipeline but
+  not kept here (the writer fell behind), so the replay cannot be exact after it and says so.
 
 The reader stops at the first record that is cut short or fails its CRC (a full disk, a power cut): what
 came before stays readable.
@@ -55,10 +57,12 @@ FRAMES_NAME = "frames.bin"
 META_NAME = "recording.json"
 CAMERA_NAME = "camera.yaml"
 FORMAT = "ipt-frame-log"
-VERSION = 1
-RECORD = struct.Struct("<4sBBBxqqHHII")
+VERSION = 2
+RECORD = struct.Struct("<4sBBBxqqHHIIq")
 """Record header: magic, kind, codec, channels, pad, frame number, capture time (µs), width, height, payload
-bytes, CRC-32 of the payload."""
+bytes, CRC-32 of the payload, the frame's wait (µs; −1: not a live camera's frame)."""
+RECORD_V1 = struct.Struct("<4sBBBxqqHHII")
+"""Version 1's header (read still): the same without the wait."""
 MAGIC = b"IPTF"
 KIND_FRAME, KIND_FINISH, KIND_LOST = 1, 2, 3
 CODECS = {"raw": 0, "zstd": 1}
@@ -120,6 +124,7 @@ class _Item:
     index: int
     capture_time_us: int
     image: U8 | None = None
+    waited_us: int | None = None
 
 
 class FrameLogWriter:
@@ -164,8 +169,8 @@ class FrameLogWriter:
         self._thread = threading.Thread(target=self._run, name="ipt-framelog", daemon=True)
         self._thread.start()
 
-    def add(self, frame: CapturedFrame) -> None:
-        """Keep this frame (it is about to go to the pipeline); never blocks."""
+    def add(self, frame: CapturedFrame, waited_us: int | None = None) -> None:
+        """Keep this frame (it is about to go to the pipeline, with ``waited_us``); never blocks."""
         if self.stopped is not None or self._ended:
             return
         if self._first_us is None:
@@ -183,7 +188,8 @@ class FrameLogWriter:
                 self._items.append(_Item(KIND_LOST, frame.index, frame.capture_time_us))  # before this frame
                 self._pending_lost = 0
             # A copy (20 µs at 640x360): the frame is kept as the pipeline got it, whatever is done to it later.
-            self._items.append(_Item(KIND_FRAME, frame.index, frame.capture_time_us, frame.image.copy()))
+            item = _Item(KIND_FRAME, frame.index, frame.capture_time_us, frame.image.copy(), waited_us)
+            self._items.append(item)
             self._queued += 1
             self._cond.notify()
 
@@ -253,6 +259,7 @@ class FrameLogWriter:
             shape[0],
             len(payload),
             zlib.crc32(payload),
+            -1 if item.waited_us is None else item.waited_us,
         )
         if self.bytes + len(head) + len(payload) > self.max_bytes:
             self._stop(f"reached its bound of {self.max_bytes / 1e6:g} MB at frame {item.index}")
@@ -321,6 +328,8 @@ class FrameLogEvent:
     index: int
     capture_time_us: int
     image: U8 | None = None
+    waited_us: int | None = None
+    """How long a live camera's frame waited before the pipeline took it (None: not recorded, or not live)."""
 
 
 class FrameLog:
@@ -334,8 +343,9 @@ class FrameLog:
         except (OSError, ValueError) as exc:
             why = exc.strerror if isinstance(exc, OSError) else f"not JSON ({exc})"
             raise FrameLogError(f"{folder / META_NAME}: {why}; is {folder} a frame recording?") from None
-        if self.meta.get("format") != FORMAT or self.meta.get("version") != VERSION:
-            raise FrameLogError(f"{folder / META_NAME}: not a {FORMAT} version {VERSION}")
+        if self.meta.get("format") != FORMAT or self.meta.get("version") not in (1, VERSION):
+            raise FrameLogError(f"{folder / META_NAME}: not a {FORMAT} version 1 or {VERSION}")
+        self._record = RECORD if self.meta["version"] == VERSION else RECORD_V1
         self.camera_file = folder / CAMERA_NAME
         self.problem: str | None = None
 
@@ -348,11 +358,13 @@ class FrameLog:
             raise FrameLogError(f"{path}: {exc.strerror}") from None
         with f:
             k = 0
-            while head := f.read(RECORD.size):
-                if len(head) < RECORD.size:
+            record = self._record
+            while head := f.read(record.size):
+                if len(head) < record.size:
                     self.problem = f"{path}: record {k} is cut short (header); the frames before it were read"
                     return
-                magic, kind, codec, ch, index, t_us, w, h, n, crc = RECORD.unpack(head)
+                magic, kind, codec, ch, index, t_us, w, h, n, crc, *rest = record.unpack(head)
+                waited_us = rest[0] if rest and rest[0] >= 0 else None
                 payload = f.read(n)
                 if magic != MAGIC or len(payload) < n or zlib.crc32(payload) != crc:
                     self.problem = f"{path}: record {k} is damaged or cut short; the frames before it were read"
@@ -360,7 +372,7 @@ class FrameLog:
                 image = None
                 if kind == KIND_FRAME:
                     image = _decode(codec, payload, (h, w) if ch == 1 else (h, w, ch))
-                yield FrameLogEvent(kind, index, t_us, image)
+                yield FrameLogEvent(kind, index, t_us, image, waited_us)
                 k += 1
 
 
@@ -370,6 +382,9 @@ __all__ = [
     "KIND_FINISH",
     "KIND_FRAME",
     "KIND_LOST",
+    "MAGIC",
+    "RECORD",
+    "RECORD_V1",
     "FrameLog",
     "FrameLogError",
     "FrameLogEvent",

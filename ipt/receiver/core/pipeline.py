@@ -224,12 +224,15 @@ class Pipeline:
         self.dense_prepared += 1
         self.lap("prepare", t0)
 
-    def process(self, index: int, frame: U8 | Prepared, capture_time_us: int) -> list[FrameResult]:
-        """Take camera frame ``index`` (H×W×3 RGB, or H×W grey: a mono camera's, or the luma plane of a YUV
-        or JPEG frame; or what :meth:`prepare` made of it); return the results that became final, in frame
-        order (this frame's, earlier ones' that waited for it, or none yet). Never raises for a bad frame: its
-        result says why (:mod:`ipt.receiver.core.framecheck`: "bad_frame", "wrong_size", "dark", "saturated";
-        "time_gap" for the first frame after a gap in capture times, which pairing starts afresh from)."""
+    def process(
+        self, index: int, frame: U8 | Prepared, capture_time_us: int, waited_us: int | None = None
+    ) -> list[FrameResult]:
+        """Take camera frame ``index`` (H×W×3 RGB, or H×W grey: a mono camera's, or the luma plane of a YUV or JPEG
+        frame; or what :meth:`prepare` made of it), and for a live camera's frame how long it ``waited_us`` since its
+        grab (the sparse stage's live rule); return the results that became final, in frame order (this frame's,
+        earlier ones' that waited for it, or none yet). Never raises for a bad frame: its result says why
+        (:mod:`ipt.receiver.core.framecheck`: "bad_frame", "wrong_size", "dark", "saturated"; "time_gap" for the
+        first frame after a gap in capture times, which pairing starts afresh from)."""
         t0 = time.thread_time()
         ready = frame if isinstance(frame, Prepared) else self.prepare(frame)
         problem = ready.problem
@@ -250,7 +253,7 @@ class Pipeline:
         if ready.signal is not None:  # the share of the view (the undistorted sensor's pixels) it lights
             new.lit_share = cv2.countNonZero(ready.signal) / self._view_px
         if self.sparse is not None:
-            new.raw = ready.lum
+            new.raw, self.sparse.now_us = ready.lum, None if waited_us is None else capture_time_us + waited_us
         if gap:  # its reason unless a later frame pairs with it
             new.failure = FrameResult(index, capture_time_us, None, 0, FrameReason.TIME_GAP)
         t0 = self.lap("lightness", t0)
@@ -274,11 +277,10 @@ class Pipeline:
         return (None, False) if (s := self.sparse) is None else (s.chain.clock(), s.chain.content_moved())
 
     def finish_before(self, time_us: int) -> list[FrameResult]:
-        """The results, in frame order, of the frames waiting for later partners that no frame captured at
-        ``time_us`` or later can be (it is more than :data:`~ipt.receiver.core.history.MAX_PAIR_PERIODS`
-        projector periods after them). Processing that frame would give the same results, only after it: a
-        live daemon that dropped frames calls this before handing over the next frame it took, so their
-        results do not wait for it."""
+        """The results, in frame order, of the frames waiting for later partners that no frame captured at ``time_us``
+        or later can be (it is more than :data:`~ipt.receiver.core.history.MAX_PAIR_PERIODS` projector periods after
+        them). Processing that frame would give the same results, only after it: a live daemon that dropped frames
+        calls this before handing over the next frame it took, so their results do not wait for it."""
         for f in self._pending:  # in frame order: the frames before one still waiting are final or finished here
             if not f.final and time_us - f.time_us > self.pair_span_us:
                 self._finish(f)
@@ -368,10 +370,9 @@ class Pipeline:
         return self.gates.doubt(f.time_us, best.pose) is None
 
     def _finish(self, f: Frame) -> None:
-        """Judge ``f``'s candidates (earlier frames are final already), after a second look if the recent motion
-        doubts them all: the best fit it does not doubt, or else the best fit, which the gates then hold back.
-        A frame the sparse chain still waits for, or whose sparse poses the gates all doubt, takes the dense way
-        first."""
+        """Judge ``f``'s candidates (earlier frames are final already), after a second look if the recent motion doubts
+        them all: the best fit it does not doubt, or else the best fit, which the gates then hold back. A frame the
+        sparse chain still waits for, or whose sparse poses the gates all doubt, takes the dense way first."""
         if self.sparse is not None:
             self.sparse.before_finish(f)
         f.final = True

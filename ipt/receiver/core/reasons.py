@@ -50,6 +50,8 @@ class FrameReason(StrEnum):
     """A pose farther from the last one than the drone can move in the time."""
     BAD_POSE = "bad_pose"
     """A pose that cannot be sent (e.g. a non-finite position): counted by the daemon."""
+    LATE = "late"
+    """Live: too old by the time its pose could be made the dense way (the chain waited for it in vain)."""
     ERROR = "error"
     """Processing the frame raised: counted by the daemon, reported on stderr."""
 

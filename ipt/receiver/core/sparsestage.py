@@ -8,7 +8,9 @@ method ``sparse`` and goes through the same gates; such a frame goes out at once
 the frames the chain waited for in vain, those whose sparse poses the gates all doubt, and acquisition (no chain
 yet). Dense poses the gates do not doubt re-seed the chain. Against drift: every :data:`CHECK_EVERY` sparse poses a
 frame is posed the dense way too (which also lets AprilTag's periodic check of the track run); a sparse pose more
-than :data:`CHECK_M` off the dense one restarts the chain from the dense pose, and the dense pose is taken.
+than :data:`CHECK_M` off the dense one restarts the chain from the dense pose, and the dense pose is taken. Live
+(a live camera's frames come with their wait: :attr:`SparseStage.now_us`), a frame the chain gave up on that is
+already :data:`LIVE_LATE_US` old takes no dense way: it goes out without a pose (``late``).
 """
 
 from __future__ import annotations
@@ -18,14 +20,22 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ipt.receiver.core.frameresult import FrameResult
 from ipt.receiver.core.gates import PoseGates
 from ipt.receiver.core.history import GOOD_QUALITY, Candidate, Frame, FrameHistory
+from ipt.receiver.core.reasons import FrameReason
 from ipt.receiver.core.sparsechain import LiveChain
 
 #: Every this many sparse poses one frame is posed the dense way too, as a check.
 CHECK_EVERY = 16
 #: ... and a sparse pose further than this from the dense one restarts the chain from the dense pose.
 CHECK_M = 0.02
+#: Live, a frame the chain waited for in vain (or whose sparse poses the gates all doubt) this long after its capture
+#: gets no dense way: it is at least three frames old then (the chain's wait), the dense way takes 10-60 ms more (its
+#: partners on both sides; a replay's frame 57 of shadow-vibration, 59 ms), and every frame behind it waits as long:
+#: live on shadow-vibration (five rounds alternating) 11-30 poses over 30 ms against 24-85 without it
+#: (docs/receiver-cores.md, stop 59).
+LIVE_LATE_US = 20_000
 
 
 class SparseStage:
@@ -49,6 +59,12 @@ class SparseStage:
         self._since_check = 0
         self.checks_failed = 0
         """Dense checks that found the chain's pose more than :data:`CHECK_M` off."""
+        self.now_us: int | None = None
+        """A live camera's newest frame's capture time plus how long it waited before the pipeline took it (the
+        camera's clock): a frame older than :data:`LIVE_LATE_US` then gets no :meth:`dense_late`. None (a recording,
+        whose frames never wait): every frame is posed."""
+        self.late = 0
+        """Frames given up as ``late``."""
 
     def step(self, new: Frame) -> bool:
         """Feed ``new`` to the chain; its poses (``new``'s, and earlier frames' that waited for it) join their
@@ -106,7 +122,12 @@ class SparseStage:
     def dense_late(self, f: Frame) -> None:
         """``f``'s dense pairs with the partners on both sides it has not been paired with (a frame the chain waited
         for in vain, or whose sparse poses the gates doubt). (All of them: stopping at the first that fitted 0.8 of
-        the map's edges took two-projectors uncalibrated from 99.17 to 96.35 %; these poses re-seed the chain.)"""
+        the map's edges took two-projectors uncalibrated from 99.17 to 96.35 %; these poses re-seed the chain.) Live,
+        none for a frame :data:`LIVE_LATE_US` old (:attr:`now_us`): its result says ``late``."""
+        if self.now_us is not None and self.now_us - f.time_us > LIVE_LATE_US:
+            f.failure = FrameResult(f.index, f.time_us, None, 0, FrameReason.LATE)
+            self.late += 1
+            return
         partners = [*self.history.partners(f, earlier=True), *self.history.partners(f, earlier=False)]
         for other in partners:
             if other.index not in f.tried:
