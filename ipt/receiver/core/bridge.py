@@ -297,6 +297,8 @@ class ContentBridge:
         self.prepare: Callable[[Frame], None] | None = None
         """The dense preparation of the three frames of a bridge that is tried, where frames may lack it (the sparse
         tracker's have only their lightness: the pipeline sets it then); None: every frame has it."""
+        self.too_late: Callable[[Frame], bool] = lambda frame: False
+        """Whether a frame is too old for a bridge to be worth it (a live camera's: the sparse stage's rule)."""
 
     def keep_only(self, live: set[int]) -> None:
         """Forget the frames not in ``live`` (indices of the frames still kept)."""
@@ -309,7 +311,7 @@ class ContentBridge:
         frame before it and ``new`` when those two show the same phase (see the module's note on which
         neighbours keep the tags)."""
         for target in self.history:
-            if target.final or target.best is not None:
+            if target.final or target.best is not None or self.too_late(target):
                 continue
             if new.index - target.index == WIDE_AFTER:
                 before = next((f for f in self.history if f.index == target.index - 1), None)
@@ -325,8 +327,10 @@ class ContentBridge:
     def wait(self, frame: Frame) -> int:
         """How many frames longer than the pipeline's lookahead ``frame`` waits: one for a frame no pair gave a
         pose, which may still be bridged with the frame :data:`WIDE_AFTER` after it, when the lookahead is the
-        default two frames (a shorter one was chosen for its latency; a longer one waits long enough)."""
-        return int(self.lookahead == WIDE_AFTER - 1 and frame.best is None and bool(frame.tried))
+        default two frames (a shorter one was chosen for its latency; a longer one waits long enough); none for a
+        frame :attr:`too_late` for a bridge."""
+        wants = frame.best is None and bool(frame.tried) and not self.too_late(frame)
+        return int(self.lookahead == WIDE_AFTER - 1 and wants)
 
     def frame_pose(self, frame: Frame) -> Pose | None:
         """``frame``'s pose for the bridge's warps: found (or its best candidate yet); else between the nearest

@@ -167,7 +167,7 @@ class Pipeline:
             self.sparse = SparseStage(
                 chain, self.history, self.gates, self._solve, self._dense, self.add_candidate, self.lap, self._tracked
             )
-            self.bridge.prepare = self.sparse.prepare  # (a bridge it tries prepares its three frames)
+            self.bridge.prepare, self.bridge.too_late = self.sparse.prepare, self.sparse.too_late  # (see the bridge)
         self.dense_prepared = 0
         """Frames given the dense preparation after their arrival (sparse tracker), for tests and benchmarks."""
         self.paper = PaperWay(cfg, camera, tag_map, detector, self.history, self.gates, self.lap)

@@ -10,7 +10,7 @@ yet). Dense poses the gates do not doubt re-seed the chain. Against drift: every
 frame is posed the dense way too (which also lets AprilTag's periodic check of the track run); a sparse pose more
 than :data:`CHECK_M` off the dense one restarts the chain from the dense pose, and the dense pose is taken. Live
 (a live camera's frames come with their wait: :attr:`SparseStage.now_us`), a frame the chain gave up on that is
-already :data:`LIVE_LATE_US` old takes no dense way: it goes out without a pose (``late``).
+already :data:`LIVE_LATE_US` old takes no dense way and no bridge: it goes out without a pose (``late``).
 """
 
 from __future__ import annotations
@@ -31,10 +31,11 @@ CHECK_EVERY = 16
 #: ... and a sparse pose further than this from the dense one restarts the chain from the dense pose.
 CHECK_M = 0.02
 #: Live, a frame the chain waited for in vain (or whose sparse poses the gates all doubt) this long after its capture
-#: gets no dense way: it is at least three frames old then (the chain's wait), the dense way takes 10-60 ms more (its
-#: partners on both sides; a replay's frame 57 of shadow-vibration, 59 ms), and every frame behind it waits as long:
-#: live on shadow-vibration (five rounds alternating) 11-30 poses over 30 ms against 24-85 without it
-#: (docs/receiver-cores.md, stop 59).
+#: gets no dense way, and no bridge (:meth:`SparseStage.too_late`): it is two or three frames old then, the dense way
+#: takes 10-60 ms more (its partners on both sides; shadow-vibration's frame 57, 59 ms; a bridge 77 ms), and every
+#: frame behind it waits as long. Live on shadow-vibration, poses over 30 ms of ~940 in a run, the median of 10-20
+#: runs alternating: 30.5 without it, 22.5 with the dense way spared, 20 with the bridge too; after the first second
+#: 18 -> 7.5-8.5 (docs/receiver-cores.md, stop 59). 10 ms did no better in five runs (17).
 LIVE_LATE_US = 20_000
 
 
@@ -124,7 +125,7 @@ class SparseStage:
         for in vain, or whose sparse poses the gates doubt). (All of them: stopping at the first that fitted 0.8 of
         the map's edges took two-projectors uncalibrated from 99.17 to 96.35 %; these poses re-seed the chain.) Live,
         none for a frame :data:`LIVE_LATE_US` old (:attr:`now_us`): its result says ``late``."""
-        if self.now_us is not None and self.now_us - f.time_us > LIVE_LATE_US:
+        if self.too_late(f):
             f.failure = FrameResult(f.index, f.time_us, None, 0, FrameReason.LATE)
             self.late += 1
             return
@@ -134,6 +135,10 @@ class SparseStage:
                 a, b = (other, f) if other.index < f.index else (f, other)
                 self._solve(a, b, f)
         self.after_dense(f)
+
+    def too_late(self, f: Frame) -> bool:
+        """Live, whether ``f`` is :data:`LIVE_LATE_US` old: no more dense pairs nor bridges for it."""
+        return self.now_us is not None and self.now_us - f.time_us > LIVE_LATE_US
 
     def reset(self, frames: bool) -> None:
         """The chain starts afresh (``frames``: forgetting the frames it has); the frames it made wait take the
