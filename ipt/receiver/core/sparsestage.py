@@ -33,9 +33,9 @@ CHECK_M = 0.02
 #: Live, a frame the chain waited for in vain (or whose sparse poses the gates all doubt) this long after its capture
 #: gets no dense way, and no bridge (:meth:`SparseStage.too_late`): it is two or three frames old then, the dense way
 #: takes 10-60 ms more (its partners on both sides; shadow-vibration's frame 57, 59 ms; a bridge 77 ms), and every
-#: frame behind it waits as long. Live on shadow-vibration, poses over 30 ms of ~940 in a run, the median of 10-20
-#: runs alternating: 30.5 without it, 22.5 with the dense way spared, 20 with the bridge too; after the first second
-#: 18 -> 7.5-8.5 (docs/receiver-cores.md, stop 59). 10 ms did no better in five runs (17).
+#: frame behind it waits as long. Live on shadow-vibration, poses over 30 ms of ~940 in a run, the median of 11-21
+#: runs alternating: 30.5 without it, 24 with the dense way spared, 19 with the bridge too; after the first second
+#: 18 -> 7 (docs/receiver-cores.md, stop 59). 10 ms did no better in five runs (17).
 LIVE_LATE_US = 20_000
 
 
