@@ -234,7 +234,7 @@ def _run_camera_started(folder: Path, fps: float, isolation: str, tracker: str, 
 
     def on_result(frame: Any, result: Any, datagrams: int) -> None:
         hold.on_result(frame, result, datagrams)
-        if result.pose is not None and datagrams:
+        if result is not None and result.pose is not None and datagrams:  # (None: processing the frame raised)
             sent.append((frame.capture_time_us, 1e3 * (time.monotonic() - frame.grabbed_s)))
 
     t0 = time.monotonic()
