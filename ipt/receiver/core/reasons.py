@@ -51,7 +51,8 @@ class FrameReason(StrEnum):
     BAD_POSE = "bad_pose"
     """A pose that cannot be sent (e.g. a non-finite position): counted by the daemon."""
     LATE = "late"
-    """Live: too old by the time its pose could be made the dense way (the chain waited for it in vain)."""
+    """Live: the sparse chain gave up on it (or the gates doubted its sparse poses), and it was too old by then for the
+    dense way or the bridge (:data:`~ipt.receiver.core.sparsestage.LIVE_LATE_US`)."""
     ERROR = "error"
     """Processing the frame raised: counted by the daemon, reported on stderr."""
 
