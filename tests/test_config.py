@@ -181,6 +181,19 @@ def test_load_yaml_model_other_models(tmp_path: Path) -> None:
         load_yaml_model(path, PipelineConfig)
 
 
+@pytest.mark.parametrize("decimate", [1.0, 1.5, 2.0, 3.0, 8.0])
+def test_quad_decimate_apriltag_carries_out_is_taken(decimate: float) -> None:
+    assert PipelineConfig.model_validate({"detector": {"quad_decimate": decimate}}).detector.quad_decimate == decimate
+
+
+@pytest.mark.parametrize("decimate", [1.25, 1.75, 2.5])
+def test_quad_decimate_apriltag_would_misplace_is_refused(tmp_path: Path, decimate: float) -> None:
+    path = _dump(tmp_path, "p.yaml", {"detector": {"quad_decimate": decimate}})
+    with pytest.raises(ConfigError, match=r"detector\.quad_decimate: .*not a factor AprilTag carries out") as err:
+        load_yaml_model(path, PipelineConfig)
+    assert "\n" not in str(err.value)
+
+
 # --- every field described -------------------------------------------------------------------------------
 
 

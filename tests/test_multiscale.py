@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -24,6 +25,7 @@ from ipt.receiver.core.scales import (
     DetectScale,
     ScaleChooser,
     gate_growth,
+    honoured_decimation,
     scale_at_height,
     scale_for_cell,
     tag_cells_m,
@@ -139,6 +141,40 @@ def test_scales_follow_the_cell_size_in_the_image() -> None:
     ksizes = [scale_at_height(h, cells, 460.0, 360, BASE).ksize for h in (0.8, 1.6, 2.5)]
     assert ksizes == sorted(ksizes, reverse=True)
     assert ksizes[0] > ksizes[-1]
+
+
+def test_every_scale_decimates_as_apriltag_does(shipped_map: TagMap) -> None:
+    # AprilTag shrinks the image by 1.5 or by a whole factor only, and scales the quads back by the factor asked.
+    assert [honoured_decimation(d) for d in (1.0, 1.25, 1.5, 1.75, 2.0, 2.25, 2.5, 2.75, 3.0)] == [
+        1.0, 1.0, 1.5, 1.5, 2.0, 2.0, 2.0, 2.0, 3.0,
+    ]  # fmt: skip
+    for focal_px, short_px in ((460.0, 360), (420.0, 400), (520.0, 600), (980.0, 720)):
+        chooser = ScaleChooser(shipped_map, focal_px, short_px, BASE)
+        for height_m in np.arange(0.1, 3.6, 0.05):
+            for scale in (chooser.at(float(height_m)), *chooser.sizes_at(float(height_m))):
+                assert scale.decimate == 1.5 or scale.decimate == int(scale.decimate), (focal_px, height_m, scale)
+
+
+def test_the_pads_scale_at_0_8_m_finds_its_tags(shipped_map: TagMap) -> None:
+    """The pad's small tags from 0.8 m (5.2 px cells): the chosen scale decodes them with real AprilTag, where the
+    decimation the cell size asks for (1.75) decodes none (the library looks at the full image and misplaces each
+    quad by 75 %). If a newer AprilTag carries out 1.75, the second assertion says so."""
+    cell_px = 0.009 * 460.0 / 0.8
+    scale = ScaleChooser(shipped_map, 460.0, 360, BASE).sizes_at(0.8)[1]
+    assert scale == scale_for_cell(cell_px, BASE) == DetectScale(3, 1.5)
+    image = shipped_map.render_image()
+    side = float(np.linalg.norm(np.subtract(shipped_map.tags[-1].corners_px[1], shipped_map.tags[-1].corners_px[0])))
+    factor = cell_px / (side / 8.0)  # the pad's tags are the map's last; 8 cells across the border
+    small = cv2.resize(image, None, fx=factor, fy=factor, interpolation=cv2.INTER_AREA)
+    detector = TagDetector(PipelineConfig().detector.model_copy(update={"isolation": "inline"}))
+    try:
+        pad_ids = {t.tag_id for t in pad_tags(SHIPPED)[0]}
+        found = {d.tag_id for d in detector.detect(small, scale.decimate)} & pad_ids
+        asked = {d.tag_id for d in detector.detect(small, 1.75)} & pad_ids
+    finally:
+        detector.close()
+    assert len(found) >= len(pad_ids) // 2, (len(found), len(pad_ids))
+    assert not asked
 
 
 def test_chooser_tries_both_tag_sizes_and_cycles_the_rest(shipped_map: TagMap) -> None:

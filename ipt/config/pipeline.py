@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from ipt.config.base import ConfigError, StrictModel
 
@@ -124,8 +124,11 @@ class DetectorConfig(StrictModel):
         3.0,
         ge=1.0,
         le=8.0,
-        description="Decimation before quad detection (edges are refined at full size). 3 finds as many "
-        "tags as 2 on the binary tag image at 640x360 and 1280x720, as accurately, in two thirds of the time.",
+        description="Decimation before quad detection (edges are refined at full size): 1 (none), 1.5 or a "
+        "whole number, the factors AprilTag carries out (it shrinks the image by the whole part of any other "
+        "and then misplaces every quad). 3 finds as many tags as 2 on the binary tag image at 640x360 and "
+        "1280x720, as accurately, in two thirds of the time; smaller tags in view get less "
+        "(ipt/receiver/core/scales.py).",
     )
     quad_sigma: float = Field(0.0, ge=0.0, le=5.0, description="Gaussian blur sigma before quad detection.")
     refine_edges: bool = Field(True, description="Snap quad edges to strong gradients.")
@@ -154,6 +157,13 @@ class DetectorConfig(StrictModel):
         description="With isolation 'process': the helper is replaced once its own memory (RssAnon) grew "
         "by this many MB since it warmed up. At 120 frames/s the leak reaches 4 MB in one to five minutes.",
     )
+
+    @field_validator("quad_decimate")
+    @classmethod
+    def _honoured(cls, value: float) -> float:
+        if value != 1.5 and value != int(value):
+            raise ValueError(f"{value:g} is not a factor AprilTag carries out: use 1, 1.5, 2, 3, ... 8")
+        return value
 
 
 class TrackConfig(StrictModel):

@@ -73,12 +73,25 @@ def tag_cells_m(tag_map: TagMap) -> tuple[float, ...]:
     return tuple(sorted(sides, reverse=True))
 
 
+def honoured_decimation(decimate: float) -> float:
+    """The finest quad decimation AprilTag 3 carries out as asked that is no coarser than ``decimate``: 1 (none),
+    1.5, or a whole number. The C library (``image_u8_decimate``) shrinks the image by 1.5 or by the whole part of
+    any other factor, yet scales the quads' corners back by the factor asked: with 1.75 it looks at the full image
+    and puts every corner 75 % too far out, and decodes nothing (at 1.25, 2.25, 2.5 and 2.75 likewise)."""
+    if decimate < 1.5:
+        return 1.0
+    if decimate < 2.0:
+        return 1.5
+    return float(math.floor(decimate))
+
+
 def scale_for_cell(cell_px: float, base: DetectScale) -> DetectScale:
-    """The scale for cells ``cell_px`` wide in the image: never coarser than ``base`` (the configured one)."""
+    """The scale for cells ``cell_px`` wide in the image: never coarser than ``base`` (the configured one), and
+    with a decimation AprilTag honours (:func:`honoured_decimation`)."""
     ksize = 2 * round((KSIZE_PER_CELL * cell_px - 1) / 2) + 1
     ksize = int(min(max(ksize, 1), base.ksize))
     decimate = min(max(cell_px / CELL_PX_PER_DECIMATION, 1.0), base.decimate)
-    return DetectScale(ksize, round(decimate * 4) / 4)
+    return DetectScale(ksize, honoured_decimation(round(decimate * 4) / 4))
 
 
 def scale_at_height(
