@@ -114,13 +114,11 @@ class Pipeline:
         camera much wider than the ipt profile's settings are made for (``demodulation.work_width_px``)."""
         camera = camera.binned(self.binning)
         self.tag_map, self.camera, self.cfg = tag_map, camera, cfg
-        self.projector_hz = projector_hz
-        self.history = FrameHistory(projector_hz, cfg.demodulation.pairing)
-        """The frames kept for pairing, and the rules that pair them."""
+        self.projector_hz, self.history = projector_hz, FrameHistory(projector_hz, cfg.demodulation.pairing)
+        """(:attr:`history`:) the frames kept for pairing, and the rules that pair them."""
         self.pair_span_us = self.history.pair_span_us
         """Frames further apart than this are never paired (:data:`~ipt.receiver.core.history.MAX_PAIR_PERIODS`)."""
-        self.detector = detector
-        self.ipt = demod.alignment == "gradient"
+        self.detector, self.ipt = detector, demod.alignment == "gradient"
         self.tracking = self.ipt and cfg.pose.method == "track"
         size = (camera.width_px, camera.height_px)
         self.undistort = (
@@ -287,9 +285,8 @@ class Pipeline:
         return self._emit()
 
     def _finish_pending(self) -> None:
-        for f in self._pending:
-            if not f.final:
-                self._finish(f)
+        for f in (f for f in self._pending if not f.final):
+            self._finish(f)
 
     # -- frames and results ---------------------------------------------------------------------------
 
@@ -339,14 +336,18 @@ class Pipeline:
         changed between its frames doubles the edges and fits fewer) once no later frame can pair with it,
         and the gates judge it then, in frame order. Once ``new`` has a good pose its other partners are paired
         only for their own sake, if they have none (fast: 84.2 → 88.3 %: a frame exposed across a flip often has
-        its strongest pair with its later neighbour, which had found its own pose with the frame before)."""
+        its strongest pair with its later neighbour, which had found its own pose with the frame before). A pair
+        that poses the partner where ``new`` found none is tried again for ``new``, from the partner's pose."""
         if self.sparse is None or self.sparse.step(new):
             good = False
             for partner in self.history.partners(new, earlier=True):
                 if not good:
                     self._solve(partner, new, new)
                 if not partner.final and not (good and partner.best is not None):
+                    had = partner.best
                     self._solve(partner, new, partner)
+                    if new.best is None and partner.best is not had:
+                        self._solve(partner, new, new)
                 good = new.best is not None and new.best.quality >= GOOD_QUALITY
             if self.sparse is not None:
                 self.sparse.after_dense(new)
@@ -360,10 +361,9 @@ class Pipeline:
                 self._finish(f)
 
     def _good_now(self, f: Frame) -> bool:
-        """With the sparse tracker, whether ``f`` (which took the dense way: a check, or a frame the chain refused)
-        goes out now: its dense pose so far fits well (:data:`GOOD_QUALITY`) and the gates do not doubt it. Later
-        frames mostly pose themselves sparsely and never pair with it: waiting held it and the frames after it
-        (results leave in frame order) two frames longer for nothing."""
+        """With the sparse tracker, whether ``f`` (a check, or a frame the chain refused) goes out now: its dense pose
+        fits well (:data:`GOOD_QUALITY`) and the gates do not doubt it (later frames mostly pose themselves sparsely
+        and never pair with it: waiting held it, and the frames after it, two frames longer for nothing)."""
         best = f.best
         if self.sparse is None or best is None or best.quality < GOOD_QUALITY:
             return False
