@@ -227,7 +227,7 @@ class MapSearch:
                 energy = np.full(corr.shape, self.mean_energy * float(weight.sum()), np.float32)
             # Normalised correlation: the patch's energy once, the map's under the patch's support per shift.
             norm = float(np.sqrt((patch * patch).sum())) * np.sqrt(np.maximum(energy, 0.05 * float(weight.sum())))
-            ncc = corr / norm
+            ncc = np.divide(corr, norm, out=np.zeros_like(corr), where=norm > 0)  # (a flat view: nothing to place)
             peak = int(np.argmax(np.abs(ncc)))
             ty, tx = divmod(peak, cols)
             ty = ty - rows if ty > rows - patch.shape[0] else ty
