@@ -25,7 +25,7 @@ Three stages, each on its own thread, joined by bounded queues::
   daemon waits up to three frames for them), the other frames held are dropped. Each frame of a live source goes
   with its wait since its grab (the pipeline's live rule reads it:
   :data:`~ipt.receiver.core.sparsestage.LIVE_LATE_US`; the frame recording keeps it). Figures:
-  ``docs/receiver-cores.md``.
+  ``docs/receiver-cores.md``. Before a live camera starts, the worker rehearses (:mod:`ipt.receiver.rehearsal`).
 - **In order**: the pipeline is stateful (each frame is demodulated against the one before), so it
   must see frames in capture order. It does: one coroutine submits them in the order the FIFO queue
   yields them, and one worker thread takes them from the executor's FIFO queue one after the other.
@@ -86,6 +86,7 @@ from ipt.receiver.detect.detector import pipeline_detector
 from ipt.receiver.liverun import LIVE_RUN_FRAMES, LivePicker
 from ipt.receiver.options import ProcessedHook, ReceiverOptions, ReceiverSetup, ResultHook, load_setup
 from ipt.receiver.outputs.udp import PacketMaker, UdpPoseSender, new_stream_id
+from ipt.receiver.rehearsal import warm_up
 from ipt.runtime import Clock, Histogram, Interval, ShutdownBudget, TaskSet, run_loop, write_line
 
 if TYPE_CHECKING:
@@ -320,6 +321,8 @@ class _DaemonRun:
         await self.sender.open()
         if self.mavlink is not None:
             await self.mavlink.open()  # the link itself is (re)opened in the background
+        if self.source.live and not self.stop.is_set():  # the first frames then find the code warm
+            await self.loop.run_in_executor(self.worker, warm_up, self.pipeline, self.out)
         if not self.stop.is_set():  # a signal while starting: do not begin to capture at all
             self.capture.start()
         ready = asyncio.wrap_future(self.capture.ready)
