@@ -5,13 +5,13 @@ A pipeline's first frames cost more than the same frames later: first calls into
 each size, the AprilTag helper's first images, the first pair's alignment and track. Live, that cost lands on the
 frames that wait behind the first acquisition, when the start already holds the worker longest: shadow-vibration's
 first pose took 25-31 ms of a warm pipeline's wall time and 52 ms as the daemon's first (``docs/receiver-cores.md``,
-"A rehearsal before a live camera starts").
-The rehearsal's frames show the map from :data:`REHEARSAL_HEIGHT_M` straight above its middle, without lens
+stop 60). The rehearsal's frames show the map from :data:`REHEARSAL_HEIGHT_M` straight above its middle, without lens
 distortion (the throwaway pipeline is told the camera has none), each with the ± phase the camera sees at twice the
 projector's rate; the throwaway pipeline shares the detector (the helper process warms too) and is dropped, so the
 daemon's own pipeline starts as new. A recording needs none (its frames wait for the worker).
 
-Pure apart from the pipeline it runs: the tag map, the camera and the projector's rate in, frames and a pose count out.
+No clock, socket or thread of its own: the tag map, the camera, the settings and the detector in; frames, a pose count
+and the processor time out (the daemon calls :func:`warm_up` on its worker thread).
 """
 
 from __future__ import annotations
