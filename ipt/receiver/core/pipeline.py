@@ -337,7 +337,7 @@ class Pipeline:
         and the gates judge it then, in frame order. Once ``new`` has a good pose its other partners are paired
         only for their own sake, if they have none (fast: 84.2 → 88.3 %: a frame exposed across a flip often has
         its strongest pair with its later neighbour, which had found its own pose with the frame before). A pair
-        that poses the partner where ``new`` found none is tried again for ``new``, from the partner's pose."""
+        that poses the partner where ``new`` found none is tried again for ``new`` from that pose (sparse tracker)."""
         if self.sparse is None or self.sparse.step(new):
             good = False
             for partner in self.history.partners(new, earlier=True):
@@ -346,7 +346,7 @@ class Pipeline:
                 if not partner.final and not (good and partner.best is not None):
                     had = partner.best
                     self._solve(partner, new, partner)
-                    if new.best is None and partner.best is not had:
+                    if self.sparse is not None and new.best is None and partner.best is not had:
                         self._solve(partner, new, new)
                 good = new.best is not None and new.best.quality >= GOOD_QUALITY
             if self.sparse is not None:
