@@ -30,7 +30,7 @@ from ipt.config.models import PipelineConfig
 from ipt.receiver.core.detection import Detector
 from ipt.receiver.core.pipeline import Pipeline
 from ipt.runtime import write_line
-from ipt.tagmap import TagMap
+from ipt.tagmap import TagMap, pixel_to_arena
 
 F64 = npt.NDArray[np.float64]
 
@@ -44,14 +44,6 @@ REHEARSAL_GREY = 150.0
 REHEARSAL_CONTENT = 8.0
 #: The camera's frame rate the rehearsal assumes (IPT's: twice the projector's 60 Hz).
 REHEARSAL_FPS = 120.0
-
-
-def floor_from_map_px(tag_map: TagMap) -> npt.NDArray[np.float64]:
-    """The homography from the map image's pixels to the floor (metres), fitted to every tag corner."""
-    px = np.array([c for t in tag_map.tags for c in t.corners_px], np.float64)
-    m = np.array([c[:2] for t in tag_map.tags for c in t.corners_m], np.float64)
-    h, _ = cv2.findHomography(px, m, 0)
-    return np.asarray(h, np.float64)
 
 
 def _in_view(image_from_floor: F64, corners_m: F64, size: tuple[int, int]) -> bool:
@@ -70,7 +62,7 @@ def rehearsal_frames(
     r_cam_arena = np.diag([1.0, -1.0, -1.0])  # looking down: the camera's z is the floor's -z
     t = -r_cam_arena @ centre
     image_from_floor = camera.camera_matrix @ np.column_stack([r_cam_arena[:, 0], r_cam_arena[:, 1], t])
-    warp = image_from_floor @ floor_from_map_px(tag_map)
+    warp = image_from_floor @ pixel_to_arena(tag_map)
     size = (camera.width_px, camera.height_px)
     in_view = tuple(t for t in tag_map.tags if _in_view(image_from_floor, np.asarray(t.corners_m)[:, :2], size))
     mask = TagMap(tag_map.width_px, tag_map.height_px, in_view).render_mask().view(np.uint8)  # (the whole map: slow)
