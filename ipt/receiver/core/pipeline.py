@@ -113,9 +113,9 @@ class Pipeline:
         """The side of the square of the sensor's pixels that :attr:`camera`'s pixel averages: 1, or more for a
         camera much wider than the ipt profile's settings are made for (``demodulation.work_width_px``)."""
         camera = camera.binned(self.binning)
-        self.tag_map, self.camera, self.cfg = tag_map, camera, cfg
-        self.projector_hz, self.history = projector_hz, FrameHistory(projector_hz, cfg.demodulation.pairing)
-        """(:attr:`history`:) the frames kept for pairing, and the rules that pair them."""
+        self.tag_map, self.camera, self.cfg, self.projector_hz = tag_map, camera, cfg, projector_hz
+        self.history = FrameHistory(projector_hz, cfg.demodulation.pairing)
+        """The frames kept for pairing, and the rules that pair them."""
         self.pair_span_us = self.history.pair_span_us
         """Frames further apart than this are never paired (:data:`~ipt.receiver.core.history.MAX_PAIR_PERIODS`)."""
         self.detector, self.ipt = detector, demod.alignment == "gradient"
