@@ -426,7 +426,8 @@ JOINT = SparseSettings(iterations=12, coarse_iterations=1, other_sigma_px=10.0, 
 def _iterations_of(
     monkeypatch: pytest.MonkeyPatch, pair: Pair, edges: MapEdges, start: tuple[F64, F64], settings: SparseSettings
 ) -> tuple[SparseResult | None, str, int]:
-    """The fit, and how many Gauss-Newton steps it took (its pose updates)."""
+    """The fit, and how many Gauss-Newton steps it took (a result's count; a failed fit's pose updates, counted: the
+    fits that stop early, the joint ones, run the Python loop)."""
     count = [0]
     update = sparse._update
 
@@ -437,7 +438,7 @@ def _iterations_of(
     with monkeypatch.context() as patch:
         patch.setattr(sparse, "_update", counted)
         result, why = _fit(pair, edges, start, settings)
-    return result, why, count[0]
+    return result, why, result.iterations if result is not None else count[0]
 
 
 def test_a_joint_fit_whose_steps_stay_large_gives_up_early(

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from ipt.receiver.core import alignkernels, diffkernels, sparsekernels, trackkernels
+from ipt.receiver.core import alignkernels, diffkernels, sparsekernels, sparseloop, trackkernels
 from ipt.receiver.core.kernelbuild import Signature, fits
 
 COMPILED = True
@@ -216,13 +216,35 @@ def _compile_sparse() -> None:
     sparsekernels.normal = _jit(sparsekernels.normal_py)
     sparsekernels.residuals = _jit(sparsekernels.residuals_py)
     sparsekernels.cholesky_solve = _jit(sparsekernels.cholesky_solve_py)
-    for kernel in (sparse_solve_step, sparse_moments, sparse_profiles):  # sparse_profiles last: the flag
-        kernel.compiled = _jit(kernel.py_func)
+    solve, mom, prof = (_jit(kernel.py_func) for kernel in (sparse_solve_step, sparse_moments, sparse_profiles))
+    # The fit's iterations call the three (:mod:`~ipt.receiver.core.sparseloop`'s globals when it compiles).
+    sparseloop.solve_step, sparseloop.moments, sparseloop.profiles = solve, mom, prof
+    for name in sparseloop.HELPERS:
+        setattr(sparseloop, name, _jit(getattr(sparseloop, name + "_py"), inline=True))
+    sparse_iterate.compiled = _jit(sparse_iterate.py_func)
+    sparse_solve_step.compiled, sparse_moments.compiled = solve, mom
+    sparse_profiles.compiled = prof  # last: the flag
 
 
 sparse_profiles = _SparseKernel(sparsekernels.profiles)
 sparse_moments = _SparseKernel(sparsekernels.moments)
 sparse_solve_step = _SparseKernel(sparsekernels.solve_step)
+sparse_iterate = _SparseKernel(sparseloop.iterate)
+
+
+def sparse_iterate_compiled() -> bool:
+    """Whether :data:`sparse_iterate` runs compiled (ahead of time, or by numba: compiled now if not yet); else
+    :func:`~ipt.receiver.core.sparse.fit_sparse` keeps its own loop around the three kernels."""
+    kernel = BY_NAME["sparse_iterate"]  # (the kernel itself, wherever a caller's name for it points)
+    if kernel.ahead is not None or kernel.compiled is not None:
+        return COMPILED
+    ensure()
+    if kernel.ahead is None:
+        with _lock:
+            _compile_dense()
+            _compile_sparse()
+    return COMPILED
+
 
 BY_NAME: dict[str, _Kernel] = {
     "measure": measure,
@@ -236,6 +258,7 @@ BY_NAME: dict[str, _Kernel] = {
     "sparse_profiles": sparse_profiles,
     "sparse_moments": sparse_moments,
     "sparse_solve_step": sparse_solve_step,
+    "sparse_iterate": sparse_iterate,
 }
 """Every kernel by the name its ahead-of-time build exports it under."""
 
@@ -277,6 +300,11 @@ def warm_sparse() -> None:
     model = np.zeros(width)
     gram, uy, yy = sparse_moments(pk, pj, np.zeros(n), 1.0, 0.0, model, model, 1.0, np.zeros((n, 2)), False)
     sparse_solve_step(gram, uy, yy, a_rows, np.ones(n, np.bool_), np.zeros(6), 1.0, 0.0, False, width)
+    reals, counts, flags = np.ones(9), np.full(7, 4, np.int64), np.ones(4, np.bool_)
+    sparse_iterate(
+        *(one, one, np.zeros(1), eye.copy(), t.copy(), eye.copy(), t.copy(), eye, np.zeros(5), u8, u8),
+        *(np.array([1.0, 0.0]), np.zeros(6), model, model, reals, counts, flags),
+    )
 
 
 _warming = False

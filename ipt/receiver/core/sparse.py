@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ipt.receiver.core import kernels
+from ipt.receiver.core import kernels, sparseloop
 from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.pose import PoseEstimate, estimate_from_step
 from ipt.receiver.core.track import MIN_CELL_PX, fast_median
@@ -344,8 +344,9 @@ def fit_sparse(
         return None, "few_samples"
     obj, nrm, steps = edges.points_m[chosen], edges.normals_m[chosen], edges.step[chosen]
     k, dist = camera.camera_matrix, camera.dist_coeffs
-    moved, it, gain_set = np.inf, 0, False
-    large = 0  # how many steps running moved a sample by more than give_up_px
+    if s.coarse_iterations == 0 and s.smooth_px == 0.0 and s.half_until_px <= 0 and kernels.sparse_iterate_compiled():
+        return _fit_compiled(st, image, other, k, dist, edges, chosen, obj, nrm, steps, s)
+    moved, it, gain_set, large = np.inf, 0, False, 0  # (large: steps running that moved a sample over give_up_px)
     kept = np.ones(len(chosen), np.bool_)  # per chosen sample: its profile is not an outlier
     # per chosen sample: the weights of its frames' own steps (-1: not yet known)
     weights = np.full((len(chosen), 2), -1.0 if s.own_steps else 0.0)
@@ -353,7 +354,6 @@ def fit_sparse(
     every = np.arange(len(chosen))
     half = every[::2] if s.half_until_px > 0 else every
     last_push = np.full(len(chosen), np.nan)  # per chosen sample: the last step's displacement (pixels)
-    ends = (s.border_px, s.lines)
     for it in range(s.iterations):
         coarse = it < s.coarse_iterations
         radius = s.radius_px if coarse else s.fine_radius_px
@@ -362,7 +362,7 @@ def fit_sparse(
         idx, pk, pj, a_rows = kernels.sparse_profiles(
             obj if reading_all else obj[active],
             nrm if reading_all else nrm[active],
-            *(st.r, st.t, st.r_other, st.t_other, k, dist, image, other, radius, *ends),
+            *(st.r, st.t, st.r_other, st.t_other, k, dist, image, other, radius, s.border_px, s.lines),
         )
         idx = idx if reading_all else active[idx]
         if len(idx) < s.min_inliers * len(active) / len(every):
@@ -402,6 +402,45 @@ def fit_sparse(
     if len(active) < len(every):  # still reading half the samples at the last iteration: far from settled
         return None, "not_converged"
     return _finish(st, edges, chosen, idx, keep, rms, normal, moved, it, a_rows[:, 6:12], s)
+
+
+def _fit_compiled(
+    st: _State,
+    image: U8,
+    other: U8,
+    k: F64,
+    dist: F64,
+    edges: MapEdges,
+    chosen: I64,
+    obj: F64,
+    nrm: F64,
+    steps: F64,
+    s: SparseSettings,
+) -> tuple[SparseResult | None, str]:
+    """:func:`fit_sparse`'s iterations in one compiled call (:func:`~ipt.receiver.core.sparseloop.iterate`: every
+    sample, unsmoothed, at the fine reach), then its checks."""
+    cdf, pdf = _step_model(2 * s.fine_radius_px + 1, math.hypot(s.blur_px, 0.0))
+    gain_step = np.array([st.gain, st.step])
+    reals, counts, flags = _settings_arrays(s)
+    outcome, it, moved, idx, keep, rms, normal, a_rows = kernels.sparse_iterate(
+        *(obj, nrm, steps, st.r, st.t, st.r_other, st.t_other, k, dist, image, other, gain_step, st.other_moved),
+        *(cdf, pdf, reals, counts, flags),
+    )
+    if outcome != sparseloop.DONE:
+        return None, sparseloop.WHY[outcome]
+    st.gain, st.step = float(gain_step[0]), float(gain_step[1])
+    return _finish(st, edges, chosen, idx, keep, rms, normal, float(moved), int(it), a_rows[:, 6:12], s)
+
+
+def _settings_arrays(s: SparseSettings) -> tuple[F64, I64, npt.NDArray[np.bool_]]:
+    """What :func:`~ipt.receiver.core.sparseloop.iterate` takes of a fit's settings (at the fine reach), as three
+    arrays."""
+    reals = [s.border_px, s.min_inliers, s.outlier_factor, s.converged_px, s.converged_rms_px, s.settled_px]
+    reals += [s.give_up_px, s.other_sigma_px, s.flow_sigma_px]
+    counts = [s.fine_radius_px, s.lines, s.iterations, s.give_up_steps, s.give_up_from, s.damp_from]
+    counts.append(2 * s.fine_radius_px + 1)
+    flags = [s.damp_swings, s.own_steps, s.esm_partner, s.fit_gain]
+    return np.array(reals, np.float64), np.array(counts, np.int64), np.array(flags, np.bool_)
 
 
 def converged_by_rms(push: F64, moved: float, s: SparseSettings) -> bool:

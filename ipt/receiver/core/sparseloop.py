@@ -1,0 +1,240 @@
+"""The sparse fit's Gauss-Newton iterations in one compiled call (:func:`iterate`), for the fits that read every
+sample unsmoothed at one reach (the chain's known-partner fits, most of a flight's frames).
+
+:func:`ipt.receiver.core.sparse.fit_sparse` runs its iterations as a Python loop around three compiled kernels
+(the profiles, their moments, the solve), with some twenty numpy calls a step besides them (the gain's and the
+noise's medians, the outlier marks, the samples' moves, the damping, the pose's update). :func:`iterate` is that
+loop, step for step, as plain Python that :mod:`ipt.receiver.core.kernels` compiles with the three kernels called
+from inside it; the setup (which samples) and the checks after (``sparse._finish``) stay with ``fit_sparse``. On
+272 fits captured from shadow-vibration's replay, 2.41 -> 2.06 ms a fit (one core, thread time). The same
+arithmetic, not the same bits (numpy's means and matrix products sum in another order, OpenCV's rotation vectors
+take another formula): those fits' poses within 1e-8 m and 2e-8 rad of the Python loop's, the same outcome and
+iterations (``tests/test_sparseloop.py`` holds them within 1e-7).
+
+:data:`profiles`, :data:`moments`, :data:`solve_step`, :data:`median_of` and :data:`rotate_by` are the module's
+globals that ``kernels._compile_sparse`` replaces by their compiled versions before it compiles :func:`iterate`.
+Where numba cannot compile, ``fit_sparse`` keeps its own loop (this one, as Python, would read every pixel in the
+interpreter).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+from ipt.receiver.core import sparsekernels
+
+F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
+I64 = npt.NDArray[np.int64]
+U8 = npt.NDArray[np.uint8]
+
+DONE, FEW_IN_VIEW, FEW_KEPT, GAVE_UP = 0, 1, 2, 3
+""":func:`iterate`'s outcome: ran to convergence or its last iteration, or why it stopped early."""
+WHY = {FEW_IN_VIEW: "few_in_view", FEW_KEPT: "few_kept", GAVE_UP: "gave_up"}
+
+profiles = sparsekernels.profiles
+moments = sparsekernels.moments
+solve_step = sparsekernels.solve_step
+
+
+def median_of_py(values: npt.NDArray[np.floating]) -> float:
+    """The median of a non-empty 1-D array (the middle one, or the mean of the middle two)."""
+    n = len(values)
+    half = n // 2
+    part = np.partition(values, half)
+    if n % 2:
+        return float(part[half])
+    return 0.5 * (float(np.max(part[:half])) + float(part[half]))
+
+
+def rotate_by_py(v0: float, v1: float, v2: float, r: F64) -> None:
+    """``r`` (3x3) turned by the rotation vector (v0, v1, v2), in place: R(v) @ r (Rodrigues' formula)."""
+    theta = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    rot = np.eye(3)
+    if theta > 1e-300:
+        c, s = math.cos(theta), math.sin(theta)
+        kx, ky, kz = v0 / theta, v1 / theta, v2 / theta
+        c1 = 1.0 - c
+        rot[0, 0], rot[0, 1], rot[0, 2] = c + c1 * kx * kx, c1 * kx * ky - s * kz, c1 * kx * kz + s * ky
+        rot[1, 0], rot[1, 1], rot[1, 2] = c1 * ky * kx + s * kz, c + c1 * ky * ky, c1 * ky * kz - s * kx
+        rot[2, 0], rot[2, 1], rot[2, 2] = c1 * kz * kx - s * ky, c1 * kz * ky + s * kx, c + c1 * kz * kz
+    out = np.zeros((3, 3))
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = rot[i, 0] * r[0, j] + rot[i, 1] * r[1, j] + rot[i, 2] * r[2, j]
+    r[:, :] = out
+
+
+def pair_gain_py(pk: F32, pj: F32) -> float:
+    """The pair's brightness ratio: the median over the profiles of their means' ratio (the partner's at least 1)."""
+    m, w = pk.shape
+    ratios = np.empty(m, np.float32)
+    for i in range(m):
+        sk = np.float32(0.0)
+        sj = np.float32(0.0)
+        for j in range(w):
+            sk += pk[i, j]
+            sj += pj[i, j]
+        ratios[i] = (sk / np.float32(w)) / max(sj / np.float32(w), np.float32(1.0))
+    return median_of(ratios)
+
+
+def pixel_noise_py(pk: F32) -> float:
+    """A frame's pixel noise (variance) from its profiles' second differences (white noise: 6σ²), robustly."""
+    m, w = pk.shape
+    curvature = np.empty(m * (w - 2), np.float32)
+    for i in range(m):
+        for j in range(w - 2):
+            curvature[i * (w - 2) + j] = abs(pk[i, j + 2] - np.float32(2.0) * pk[i, j + 1] + pk[i, j])
+    return max((1.4826 * median_of(curvature)) ** 2 / 6.0, 0.01)
+
+
+def pushed_py(a_rows: F64, sol: F64, keep: npt.NDArray[np.bool_]) -> tuple[F64, float, float]:
+    """Each read sample's displacement by the step ``sol`` (pixels), the kept ones' largest and their RMS."""
+    m = len(keep)
+    push = np.empty(m)
+    moved = 0.0
+    sum2 = 0.0
+    n_kept = 0
+    for i in range(m):
+        p = 0.0
+        for q in range(6):
+            p += a_rows[i, q] * sol[2 + q]
+        push[i] = p
+        if keep[i]:
+            moved = max(moved, abs(p))
+            sum2 += p * p
+            n_kept += 1
+    return push, moved, math.sqrt(sum2 / max(n_kept, 1))
+
+
+def damped_py(sol: F64, push: F64, last_push: F64, idx: I64, keep: npt.NDArray[np.bool_], scale: bool) -> F64:
+    """:func:`ipt.receiver.core.sparse.damped`: the step scaled by 1 / (1 + q) if it takes back the share q > 0 of
+    the last (only if ``scale``); ``last_push`` (per chosen sample) updated either way."""
+    m = len(idx)
+    before = np.empty(m)
+    for i in range(m):
+        before[i] = last_push[idx[i]]
+    last_push[:] = np.nan
+    pb = 0.0
+    bb = 0.0
+    both = False
+    for i in range(m):
+        last_push[idx[i]] = push[i]
+        if keep[i] and np.isfinite(before[i]):
+            both = True
+            pb += push[i] * before[i]
+            bb += before[i] * before[i]
+    if not (scale and both):
+        return sol
+    back = -pb / max(bb, 1e-12)
+    return sol / (1.0 + min(back, 1.0)) if back > 0.0 else sol
+
+
+def stepped_py(sol: F64, r: F64, t: F64, r_other: F64, t_other: F64, other_moved: F64, gain_step: F64) -> None:
+    """The step ``sol`` applied in place: both poses, the partner's move so far, the gain and the map's step."""
+    rotate_by(sol[2], sol[3], sol[4], r)
+    rotate_by(sol[8], sol[9], sol[10], r_other)
+    for q in range(3):
+        t[q] += sol[5 + q]
+        t_other[q] += sol[11 + q]
+    for q in range(6):
+        other_moved[q] += sol[8 + q]
+    gain_step[0] += sol[0]
+    gain_step[1] += sol[1]
+
+
+HELPERS = ("median_of", "rotate_by", "pair_gain", "pixel_noise", "pushed", "damped", "stepped")
+"""The helpers :func:`iterate` calls, each the module's global ``name`` (``name_py`` compiled), callees first."""
+median_of = median_of_py
+rotate_by = rotate_by_py
+pair_gain = pair_gain_py
+pixel_noise = pixel_noise_py
+pushed = pushed_py
+damped = damped_py
+stepped = stepped_py
+
+
+def iterate(
+    obj: F64,
+    nrm: F64,
+    steps: F64,
+    r: F64,
+    t: F64,
+    r_other: F64,
+    t_other: F64,
+    k: F64,
+    dist: F64,
+    image: U8,
+    other: U8,
+    gain_step: F64,
+    other_moved: F64,
+    cdf: F64,
+    pdf: F64,
+    reals: F64,
+    counts: I64,
+    flags: npt.NDArray[np.bool_],
+) -> tuple[int, int, float, I64, npt.NDArray[np.bool_], F64, F64, F64]:
+    """``fit_sparse``'s iterations over every sample (``obj``, ``nrm``, ``steps``: the chosen samples' floor
+    points, normals and steps), unsmoothed, at one reach: the poses (``r``, ``t``; ``r_other``, ``t_other``),
+    ``gain_step`` (the gain, the step) and the partner's move so far (``other_moved``) updated in place; the
+    settings in ``sparse._settings_arrays``' order. Returns the outcome (:data:`DONE` or why it stopped), the last
+    iteration's number, the largest move of its step, the samples read (indices into the chosen), which were kept,
+    their RMS residuals, the normal matrix and the read samples' rows of the displacements."""
+    border_px, min_inliers, outlier_factor, converged_px = reals[0], reals[1], reals[2], reals[3]
+    converged_rms_px, settled_px, give_up_px = reals[4], reals[5], reals[6]
+    other_sigma_px, flow_sigma_px = reals[7], reals[8]
+    radius, lines, iterations, give_up_steps = counts[0], counts[1], counts[2], counts[3]
+    give_up_from, damp_from, width = counts[4], counts[5], counts[6]
+    damp_swings, own_steps, esm_partner, fit_gain = flags[0], flags[1], flags[2], flags[3]
+    n = len(obj)
+    moved, large, noise2, it = np.inf, 0, -1.0, 0
+    kept = np.ones(n, np.bool_)
+    weights = np.full((n, 2), -1.0 if own_steps else 0.0)
+    last_push = np.full(n, np.nan)
+    idx, keep, rms, normal, a_rows = (
+        np.zeros(0, np.int64),
+        np.zeros(0, np.bool_),
+        np.zeros(0),
+        np.eye(16),
+        np.eye(0, 14),
+    )
+    for it in range(iterations):
+        idx, pk, pj, a_rows = profiles(
+            obj, nrm, r, t, r_other, t_other, k, dist, image, other, radius, border_px, lines
+        )
+        if len(idx) < min_inliers:
+            return FEW_IN_VIEW, it, moved, idx, keep, rms, normal, a_rows
+        if it == 0:
+            gain_step[0] = pair_gain(pk, pj)
+        if noise2 < 0:
+            noise2 = pixel_noise(pk)
+        frame_weights = weights[idx]
+        keep = kept[idx]
+        gram, uy, yy = moments(
+            pk, pj, steps[idx], gain_step[0], gain_step[1], cdf, pdf, noise2, frame_weights, esm_partner
+        )
+        weights[idx] = frame_weights
+        sol = np.zeros(16)
+        for _ in range(2 if it == 0 else 1):  # robust: drop profiles far worse than the typical one
+            if keep.sum() < min_inliers:
+                return FEW_KEPT, it, moved, idx, keep, rms, normal, a_rows
+            sol, rss, normal, _ok = solve_step(
+                gram, uy, yy, a_rows, keep, other_moved, other_sigma_px, flow_sigma_px, fit_gain, width
+            )
+            rms = np.sqrt(rss / width)
+            keep = rms < outlier_factor * max(median_of(rms[keep]), 0.5)
+        kept[idx] = keep
+        push, moved, push_rms = pushed(a_rows, sol, keep)
+        if damp_swings:
+            sol = damped(sol, push, last_push, idx, keep, it >= damp_from)
+        stepped(sol, r, t, r_other, t_other, other_moved, gain_step)
+        if moved < converged_px or (converged_rms_px > 0.0 and moved <= settled_px and push_rms < converged_rms_px):
+            break
+        large = large + 1 if give_up_px > 0.0 and moved > give_up_px else 0
+        if large >= give_up_steps and it + 1 >= give_up_from and it + 1 < iterations:
+            return GAVE_UP, it, moved, idx, keep, rms, normal, a_rows
+    return DONE, it, moved, idx, keep, rms, normal, a_rows
