@@ -74,9 +74,9 @@ def _same(a: tuple[SparseResult | None, str], b: tuple[SparseResult | None, str]
     assert np.abs(x.other_tvec - y.other_tvec).max() < 1e-7
     assert (x.iterations, x.inliers, x.tried, x.sign, x.tags) == (y.iterations, y.inliers, y.tried, y.sign, y.tags)
     assert x.amplitude == pytest.approx(y.amplitude, rel=1e-6)
-    assert x.rms_px == pytest.approx(y.rms_px, rel=1e-6)
+    assert x.rms_px == pytest.approx(y.rms_px, rel=1e-5)  # (OpenCV's blur and ours: float32 sums in two orders)
     assert x.gain == pytest.approx(y.gain, rel=1e-6)
-    assert np.allclose(x.cov_rt, y.cov_rt, rtol=1e-5, atol=1e-18)
+    assert np.allclose(x.cov_rt, y.cov_rt, rtol=1e-4, atol=1e-18)
 
 
 @pytest.mark.parametrize("name", ["pinhole", "lens", "noisy"])
@@ -91,6 +91,28 @@ def test_the_compiled_iterations_fit_as_the_python_loop(
     _same(python, compiled)
 
 
+@pytest.mark.parametrize("name", ["pinhole", "lens", "noisy"])
+@pytest.mark.parametrize("off_px", [2.0, 5.0])
+def test_a_joint_fit_compiled_fits_as_the_python_loop(
+    pairs: dict[str, Pair], edges: MapEdges, name: str, off_px: float
+) -> None:
+    """The chain's joint fit (its first step over profiles reaching further, smoothed, the partner only predicted)."""
+    start = _guess_off_by(off_px)
+    python = _fit(pairs[name], edges, start, JOINT, compiled=False)
+    compiled = _fit(pairs[name], edges, start, JOINT, compiled=True)
+    assert python[0] is not None, python[1]
+    _same(python, compiled)
+
+
+def test_the_smoothing_is_opencvs() -> None:
+    profiles = np.random.default_rng(4).uniform(0, 255, (50, 13)).astype(np.float32)
+    for sigma in (0.7, 1.5, 3.0):
+        size = 2 * int(np.ceil(2.5 * sigma)) + 1
+        expected = cv2.GaussianBlur(profiles, (size, 1), sigma, borderType=cv2.BORDER_REPLICATE)
+        assert np.abs(sparseloop.smoothed_py(profiles, sigma) - expected).max() < 1e-3  # (levels, of 0-255)
+    assert sparseloop.smoothed_py(profiles, 0.0) is profiles
+
+
 @pytest.mark.parametrize(
     ("settings", "why"),
     [
@@ -98,6 +120,7 @@ def test_the_compiled_iterations_fit_as_the_python_loop(
         (replace(KNOWN, iterations=1), "not_converged"),  # (settled: the checks after, the same for both)
         (replace(KNOWN, give_up_px=0.01, give_up_steps=1, give_up_from=1), "gave_up"),
         (replace(KNOWN, min_step_sigmas=1e6), "weak_step"),
+        (replace(JOINT, give_up_px=0.01, give_up_steps=1, give_up_from=2), "gave_up"),
     ],
 )
 def test_a_fit_that_stops_early_says_why_as_the_python_loop_does(
@@ -111,12 +134,12 @@ def test_a_fit_that_stops_early_says_why_as_the_python_loop_does(
 
 
 def test_the_fits_it_is_not_for_keep_the_python_loop(pairs: dict[str, Pair], edges: MapEdges) -> None:
-    """A joint fit (a coarse, smoothed first step), a fit reading half its samples while far off, and a process
-    where numba cannot compile: the compiled loop is not called."""
+    """A fit reading half its samples while far off, one smoothing every step, and a process where numba cannot
+    compile: the compiled loop is not called."""
     start = _guess_off_by(2.0)
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(kernels, "sparse_iterate", _refused)
-        for settings in (JOINT, replace(KNOWN, half_until_px=1.0), replace(KNOWN, smooth_px=0.7)):
+        for settings in (replace(KNOWN, half_until_px=1.0), replace(KNOWN, smooth_px=0.7)):
             result, why = fit_sparse(
                 *(pairs["pinhole"].image, pairs["pinhole"].other, pairs["pinhole"].camera, edges),
                 *(rt_of(OTHER_POSITION_M, R_OTHER), start, settings),

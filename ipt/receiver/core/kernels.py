@@ -300,10 +300,10 @@ def warm_sparse() -> None:
     model = np.zeros(width)
     gram, uy, yy = sparse_moments(pk, pj, np.zeros(n), 1.0, 0.0, model, model, 1.0, np.zeros((n, 2)), False)
     sparse_solve_step(gram, uy, yy, a_rows, np.ones(n, np.bool_), np.zeros(6), 1.0, 0.0, False, width)
-    reals, counts, flags = np.ones(9), np.full(7, 4, np.int64), np.ones(4, np.bool_)
+    reals, counts, flags = np.ones(10), np.full(9, 4, np.int64), np.ones(4, np.bool_)
     sparse_iterate(
         *(one, one, np.zeros(1), eye.copy(), t.copy(), eye.copy(), t.copy(), eye, np.zeros(5), u8, u8),
-        *(np.array([1.0, 0.0]), np.zeros(6), model, model, reals, counts, flags),
+        *(np.array([1.0, 0.0]), np.zeros(6), np.zeros((2, width)), np.zeros((2, width)), reals, counts, flags),
     )
 
 

@@ -344,7 +344,7 @@ def fit_sparse(
         return None, "few_samples"
     obj, nrm, steps = edges.points_m[chosen], edges.normals_m[chosen], edges.step[chosen]
     k, dist = camera.camera_matrix, camera.dist_coeffs
-    if s.coarse_iterations == 0 and s.smooth_px == 0.0 and s.half_until_px <= 0 and kernels.sparse_iterate_compiled():
+    if s.smooth_px == 0.0 and s.half_until_px <= 0 and kernels.sparse_iterate_compiled():
         return _fit_compiled(st, image, other, k, dist, edges, chosen, obj, nrm, steps, s)
     moved, it, gain_set, large = np.inf, 0, False, 0  # (large: steps running that moved a sample over give_up_px)
     kept = np.ones(len(chosen), np.bool_)  # per chosen sample: its profile is not an outlier
@@ -418,13 +418,14 @@ def _fit_compiled(
     s: SparseSettings,
 ) -> tuple[SparseResult | None, str]:
     """:func:`fit_sparse`'s iterations in one compiled call (:func:`~ipt.receiver.core.sparseloop.iterate`: every
-    sample, unsmoothed, at the fine reach), then its checks."""
-    cdf, pdf = _step_model(2 * s.fine_radius_px + 1, math.hypot(s.blur_px, 0.0))
+    sample; the coarse steps smoothed at their reach, the others unsmoothed at the fine reach), then its checks."""
+    fine = np.array(_step_model(2 * s.fine_radius_px + 1, math.hypot(s.blur_px, 0.0)))
+    coarse = np.array(_step_model(2 * s.radius_px + 1, math.hypot(s.blur_px, s.coarse_smooth_px)))
     gain_step = np.array([st.gain, st.step])
     reals, counts, flags = _settings_arrays(s)
     outcome, it, moved, idx, keep, rms, normal, a_rows = kernels.sparse_iterate(
         *(obj, nrm, steps, st.r, st.t, st.r_other, st.t_other, k, dist, image, other, gain_step, st.other_moved),
-        *(cdf, pdf, reals, counts, flags),
+        *(fine, coarse, reals, counts, flags),
     )
     if outcome != sparseloop.DONE:
         return None, sparseloop.WHY[outcome]
@@ -433,12 +434,11 @@ def _fit_compiled(
 
 
 def _settings_arrays(s: SparseSettings) -> tuple[F64, I64, npt.NDArray[np.bool_]]:
-    """What :func:`~ipt.receiver.core.sparseloop.iterate` takes of a fit's settings (at the fine reach), as three
-    arrays."""
+    """What :func:`~ipt.receiver.core.sparseloop.iterate` takes of a fit's settings, as three arrays."""
     reals = [s.border_px, s.min_inliers, s.outlier_factor, s.converged_px, s.converged_rms_px, s.settled_px]
-    reals += [s.give_up_px, s.other_sigma_px, s.flow_sigma_px]
+    reals += [s.give_up_px, s.other_sigma_px, s.flow_sigma_px, s.coarse_smooth_px]
     counts = [s.fine_radius_px, s.lines, s.iterations, s.give_up_steps, s.give_up_from, s.damp_from]
-    counts.append(2 * s.fine_radius_px + 1)
+    counts += [2 * s.fine_radius_px + 1, s.coarse_iterations, s.radius_px]
     flags = [s.damp_swings, s.own_steps, s.esm_partner, s.fit_gain]
     return np.array(reals, np.float64), np.array(counts, np.int64), np.array(flags, np.bool_)
 

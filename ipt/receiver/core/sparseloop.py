@@ -1,20 +1,21 @@
 """The sparse fit's Gauss-Newton iterations in one compiled call (:func:`iterate`), for the fits that read every
-sample unsmoothed at one reach (the chain's known-partner fits, most of a flight's frames).
+sample (the chain's fits: its known-partner fits, most of a flight's frames, and its joint fits, whose first steps
+reach further over smoothed profiles).
 
 :func:`ipt.receiver.core.sparse.fit_sparse` runs its iterations as a Python loop around three compiled kernels
 (the profiles, their moments, the solve), with some twenty numpy calls a step besides them (the gain's and the
-noise's medians, the outlier marks, the samples' moves, the damping, the pose's update). :func:`iterate` is that
-loop, step for step, as plain Python that :mod:`ipt.receiver.core.kernels` compiles with the three kernels called
-from inside it; the setup (which samples) and the checks after (``sparse._finish``) stay with ``fit_sparse``. On
-272 fits captured from shadow-vibration's replay, 2.41 -> 2.06 ms a fit (one core, thread time). The same
-arithmetic, not the same bits (numpy's means and matrix products sum in another order, OpenCV's rotation vectors
-take another formula): those fits' poses within 1e-8 m and 2e-8 rad of the Python loop's, the same outcome and
-iterations (``tests/test_sparseloop.py`` holds them within 1e-7).
+noise's medians, the coarse steps' smoothing, the outlier marks, the samples' moves, the damping, the pose's
+update). :func:`iterate` is that loop, step for step, as plain Python that :mod:`ipt.receiver.core.kernels` compiles
+with the three kernels called from inside it; the setup (which samples) and the checks after (``sparse._finish``)
+stay with ``fit_sparse``, and so does a fit that smooths every step or reads half its samples (no chain's fit does).
+On fits captured from replays (one core, thread time): shadow-vibration's 272 (known-partner), 2.41 -> 2.06 ms a
+fit; fast's 277 (joint and known), 3.59 -> 3.24 ms. The same arithmetic, not the same bits (numpy's means and matrix
+products sum in another order, OpenCV's rotation vectors and blur take other formulas): those fits' poses within
+8e-8 m and 1.2e-7 rad of the Python loop's, the same outcomes and iterations (``tests/test_sparseloop.py``).
 
-:data:`profiles`, :data:`moments`, :data:`solve_step`, :data:`median_of` and :data:`rotate_by` are the module's
-globals that ``kernels._compile_sparse`` replaces by their compiled versions before it compiles :func:`iterate`.
-Where numba cannot compile, ``fit_sparse`` keeps its own loop (this one, as Python, would read every pixel in the
-interpreter).
+The helpers (:data:`HELPERS`) and :data:`profiles`, :data:`moments`, :data:`solve_step` are the module's globals that
+``kernels._compile_sparse`` replaces by their compiled versions before it compiles :func:`iterate`. Where numba
+cannot compile, ``fit_sparse`` keeps its own loop (this one, as Python, would read every pixel in the interpreter).
 """
 
 from __future__ import annotations
@@ -92,6 +93,29 @@ def pixel_noise_py(pk: F32) -> float:
     return max((1.4826 * median_of(curvature)) ** 2 / 6.0, 0.01)
 
 
+def smoothed_py(profiles: F32, sigma_px: float) -> F32:
+    """Each profile blurred along itself by a Gaussian of ``sigma_px`` (its ends repeated), as ``sparse._smooth``
+    (OpenCV's ``GaussianBlur``: 2·⌈2.5σ⌉ + 1 taps, the kernel in float32); ``profiles`` itself where σ is 0."""
+    if sigma_px <= 0.0:
+        return profiles
+    half = math.ceil(2.5 * sigma_px)
+    taps = np.empty(2 * half + 1)
+    for j in range(2 * half + 1):
+        o = (j - half) / sigma_px
+        taps[j] = math.exp(-0.5 * o * o)
+    taps32 = (taps / taps.sum()).astype(np.float32)
+    m, w = profiles.shape
+    out = np.empty((m, w), np.float32)
+    for i in range(m):
+        for c in range(w):
+            acc = np.float32(0.0)
+            for j in range(2 * half + 1):
+                at = min(max(c + j - half, 0), w - 1)
+                acc += taps32[j] * profiles[i, at]
+            out[i, c] = acc
+    return out
+
+
 def pushed_py(a_rows: F64, sol: F64, keep: npt.NDArray[np.bool_]) -> tuple[F64, float, float]:
     """Each read sample's displacement by the step ``sol`` (pixels), the kept ones' largest and their RMS."""
     m = len(keep)
@@ -147,12 +171,13 @@ def stepped_py(sol: F64, r: F64, t: F64, r_other: F64, t_other: F64, other_moved
     gain_step[1] += sol[1]
 
 
-HELPERS = ("median_of", "rotate_by", "pair_gain", "pixel_noise", "pushed", "damped", "stepped")
+HELPERS = ("median_of", "rotate_by", "pair_gain", "pixel_noise", "smoothed", "pushed", "damped", "stepped")
 """The helpers :func:`iterate` calls, each the module's global ``name`` (``name_py`` compiled), callees first."""
 median_of = median_of_py
 rotate_by = rotate_by_py
 pair_gain = pair_gain_py
 pixel_noise = pixel_noise_py
+smoothed = smoothed_py
 pushed = pushed_py
 damped = damped_py
 stepped = stepped_py
@@ -172,50 +197,47 @@ def iterate(
     other: U8,
     gain_step: F64,
     other_moved: F64,
-    cdf: F64,
-    pdf: F64,
+    fine_model: F64,
+    coarse_model: F64,
     reals: F64,
     counts: I64,
     flags: npt.NDArray[np.bool_],
 ) -> tuple[int, int, float, I64, npt.NDArray[np.bool_], F64, F64, F64]:
-    """``fit_sparse``'s iterations over every sample (``obj``, ``nrm``, ``steps``: the chosen samples' floor
-    points, normals and steps), unsmoothed, at one reach: the poses (``r``, ``t``; ``r_other``, ``t_other``),
-    ``gain_step`` (the gain, the step) and the partner's move so far (``other_moved``) updated in place; the
-    settings in ``sparse._settings_arrays``' order. Returns the outcome (:data:`DONE` or why it stopped), the last
-    iteration's number, the largest move of its step, the samples read (indices into the chosen), which were kept,
-    their RMS residuals, the normal matrix and the read samples' rows of the displacements."""
+    """``fit_sparse``'s iterations over every sample (``obj``, ``nrm``, ``steps``: the chosen samples' floor points,
+    normals and steps): the poses (``r``, ``t``; ``r_other``, ``t_other``), ``gain_step`` (the gain, the step) and
+    the partner's move so far (``other_moved``) updated in place; the step model and its slope (``*_model``, rows)
+    of the fine and the coarse steps; the settings in ``sparse._settings_arrays``' order. Returns the outcome
+    (:data:`DONE` or why it stopped), the last iteration's number, the largest move of its step, the samples read
+    (indices into the chosen), which were kept, their RMS residuals, the normal matrix and their rows."""
     border_px, min_inliers, outlier_factor, converged_px = reals[0], reals[1], reals[2], reals[3]
     converged_rms_px, settled_px, give_up_px = reals[4], reals[5], reals[6]
-    other_sigma_px, flow_sigma_px = reals[7], reals[8]
+    other_sigma_px, flow_sigma_px, coarse_smooth_px = reals[7], reals[8], reals[9]
     radius, lines, iterations, give_up_steps = counts[0], counts[1], counts[2], counts[3]
-    give_up_from, damp_from, width = counts[4], counts[5], counts[6]
+    give_up_from, damp_from, width, coarse_steps, coarse_reach = counts[4], counts[5], counts[6], counts[7], counts[8]
     damp_swings, own_steps, esm_partner, fit_gain = flags[0], flags[1], flags[2], flags[3]
     n = len(obj)
     moved, large, noise2, it = np.inf, 0, -1.0, 0
-    kept = np.ones(n, np.bool_)
+    kept, last_push = np.ones(n, np.bool_), np.full(n, np.nan)
     weights = np.full((n, 2), -1.0 if own_steps else 0.0)
-    last_push = np.full(n, np.nan)
-    idx, keep, rms, normal, a_rows = (
-        np.zeros(0, np.int64),
-        np.zeros(0, np.bool_),
-        np.zeros(0),
-        np.eye(16),
-        np.eye(0, 14),
-    )
+    idx, keep, rms = np.zeros(0, np.int64), np.zeros(0, np.bool_), np.zeros(0)
+    normal, a_rows = np.eye(16), np.eye(0, 14)
     for it in range(iterations):
-        idx, pk, pj, a_rows = profiles(
-            obj, nrm, r, t, r_other, t_other, k, dist, image, other, radius, border_px, lines
-        )
+        coarse = it < coarse_steps
+        reach = coarse_reach if coarse else radius
+        idx, pk, pj, a_rows = profiles(obj, nrm, r, t, r_other, t_other, k, dist, image, other, reach, border_px, lines)
         if len(idx) < min_inliers:
             return FEW_IN_VIEW, it, moved, idx, keep, rms, normal, a_rows
         if it == 0:
             gain_step[0] = pair_gain(pk, pj)
+        if coarse:
+            pk, pj = smoothed(pk, coarse_smooth_px), smoothed(pj, coarse_smooth_px)
         if noise2 < 0:
             noise2 = pixel_noise(pk)
         frame_weights = weights[idx]
         keep = kept[idx]
+        model = coarse_model if coarse else fine_model
         gram, uy, yy = moments(
-            pk, pj, steps[idx], gain_step[0], gain_step[1], cdf, pdf, noise2, frame_weights, esm_partner
+            pk, pj, steps[idx], gain_step[0], gain_step[1], model[0], model[1], noise2, frame_weights, esm_partner
         )
         weights[idx] = frame_weights
         sol = np.zeros(16)
@@ -232,7 +254,10 @@ def iterate(
         if damp_swings:
             sol = damped(sol, push, last_push, idx, keep, it >= damp_from)
         stepped(sol, r, t, r_other, t_other, other_moved, gain_step)
-        if moved < converged_px or (converged_rms_px > 0.0 and moved <= settled_px and push_rms < converged_rms_px):
+        settled = moved < converged_px or (
+            converged_rms_px > 0.0 and moved <= settled_px and push_rms < converged_rms_px
+        )
+        if settled and not coarse:
             break
         large = large + 1 if give_up_px > 0.0 and moved > give_up_px else 0
         if large >= give_up_steps and it + 1 >= give_up_from and it + 1 < iterations:
