@@ -80,26 +80,18 @@ def _same(a: tuple[SparseResult | None, str], b: tuple[SparseResult | None, str]
 
 
 @pytest.mark.parametrize("name", ["pinhole", "lens", "noisy"])
-@pytest.mark.parametrize("off_px", [0.5, 2.0, 4.0])
+@pytest.mark.parametrize(
+    ("fit", "off_px"), [("known", 0.5), ("known", 2.0), ("known", 4.0), ("joint", 2.0), ("joint", 5.0)]
+)
 def test_the_compiled_iterations_fit_as_the_python_loop(
-    pairs: dict[str, Pair], edges: MapEdges, name: str, off_px: float
+    pairs: dict[str, Pair], edges: MapEdges, name: str, fit: str, off_px: float
 ) -> None:
+    """The chain's known-partner fits, and its joint fits (the partner only predicted; the first step over profiles
+    reaching further, smoothed)."""
+    settings = KNOWN if fit == "known" else JOINT
     start = _guess_off_by(off_px)
-    python = _fit(pairs[name], edges, start, KNOWN, compiled=False)
-    compiled = _fit(pairs[name], edges, start, KNOWN, compiled=True)
-    assert python[0] is not None, python[1]
-    _same(python, compiled)
-
-
-@pytest.mark.parametrize("name", ["pinhole", "lens", "noisy"])
-@pytest.mark.parametrize("off_px", [2.0, 5.0])
-def test_a_joint_fit_compiled_fits_as_the_python_loop(
-    pairs: dict[str, Pair], edges: MapEdges, name: str, off_px: float
-) -> None:
-    """The chain's joint fit (its first step over profiles reaching further, smoothed, the partner only predicted)."""
-    start = _guess_off_by(off_px)
-    python = _fit(pairs[name], edges, start, JOINT, compiled=False)
-    compiled = _fit(pairs[name], edges, start, JOINT, compiled=True)
+    python = _fit(pairs[name], edges, start, settings, compiled=False)
+    compiled = _fit(pairs[name], edges, start, settings, compiled=True)
     assert python[0] is not None, python[1]
     _same(python, compiled)
 
