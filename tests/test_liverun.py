@@ -1,7 +1,7 @@
 """Which frames a live daemon that fell behind hands the pipeline (:func:`ipt.receiver.liverun.pick_run`): all it
 holds while it keeps up or the projector's phase is unknown; once behind, the newest + and − frames of one video
 frame, or a wait for them when they are one to three frames away. The phases come from a real
-:class:`~ipt.receiver.core.sparsechain.PhaseClock` on a 120 FPS camera under a 60 Hz projector."""
+:class:`~ipt.receiver.core.phaseclock.PhaseClock` on a 120 FPS camera under a 60 Hz projector."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import pytest
 
-from ipt.receiver.core.sparsechain import PhaseClock
+from ipt.receiver.core.phaseclock import PhaseClock
 from ipt.receiver.liverun import (
     LIVE_RUN_FRAMES,
     PAIR_WAIT_PERIODS,

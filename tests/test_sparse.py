@@ -17,7 +17,7 @@ from floorview import render_view
 
 from ipt.config.models import ArenaConfig
 from ipt.geometry import R_BODY_CAM_DOWNWARD, rot_x, rot_y, rot_z, rotation_angle_rad
-from ipt.receiver.core import kernels, sparse, sparsechain
+from ipt.receiver.core import kernels, phaseclock, sparse, sparsechain
 from ipt.receiver.core.demodulator import lightness
 from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.pose import pose_of, rt_of
@@ -293,7 +293,7 @@ def test_the_phase_by_the_clock_at_twice_the_projectors_rate() -> None:
         for k in range(10, 24):
             for gap in (1, 2, 3):
                 known = slice(k - gap - 7, k - gap + 1)
-                said = sparsechain.clock_phase(times[known], pattern[known], times[k], 60.0)
+                said = phaseclock.clock_phase(times[known], pattern[known], times[k], 60.0)
                 assert said in (pattern[k], None), (start_us, k, gap)
                 if said is None:
                     undecided.append((start_us, k, gap))
@@ -301,7 +301,7 @@ def test_the_phase_by_the_clock_at_twice_the_projectors_rate() -> None:
 
 
 def _clock_phase_numpy(times_us: list[int], signs: list[int], at_us: int, projector_hz: float) -> int | None:
-    """:func:`~ipt.receiver.core.sparsechain.clock_phase` as it was written with numpy (stop 56)."""
+    """:func:`~ipt.receiver.core.phaseclock.clock_phase` as it was written with numpy (stop 56)."""
     if len(signs) < 2:
         return None
     ref = times_us[-1]
@@ -332,7 +332,7 @@ def test_the_clock_in_plain_python_says_what_numpys_said() -> None:
         truth = [1 if math.floor(t * 1e-6 * hz + 0.37) % 2 == 0 else -1 for t in times]
         signs = [-s if rng.random() < 0.1 else s for s in truth[:n]]
         at = times[n + int(rng.integers(0, 3))]
-        said = sparsechain.clock_phase(times[:n], signs, at, hz)
+        said = phaseclock.clock_phase(times[:n], signs, at, hz)
         assert said == _clock_phase_numpy(times[:n], signs, at, hz)
         undecided += said is None
     assert 0 < undecided < 20_000
@@ -343,9 +343,9 @@ def test_two_phases_that_contradict_each_other_tell_no_phase() -> None:
     projector period apart, where the projector has flipped) give no phase, not 0 (the chain stored 0 as a
     frame's phase: dark-scene once, rolling twice, low-fast-big-shadow once in a replay)."""
     times = [0, 16_667]
-    assert sparsechain.clock_phase(times, [1, 1], 33_333, 60.0) is None
-    assert sparsechain.clock_phase(times, [1, -1], 33_333, 60.0) == 1  # agreeing ones still tell
-    assert sparsechain.clock_phase(times, [-1, 1], 33_333, 60.0) == -1
+    assert phaseclock.clock_phase(times, [1, 1], 33_333, 60.0) is None
+    assert phaseclock.clock_phase(times, [1, -1], 33_333, 60.0) == 1  # agreeing ones still tell
+    assert phaseclock.clock_phase(times, [-1, 1], 33_333, 60.0) == -1
 
 
 def test_both_frames_moved_together_see_the_maps_step_alone() -> None:

@@ -8,7 +8,7 @@ out); :class:`LivePicker` holds what the daemon keeps for it and waits for frame
   processing, and the run is all of them (:data:`LIVE_RUN_FRAMES` at most: what the queue keeps).
 - When it fell further behind (the queue dropped frames since the last run), the chain's last pose is too old
   to carry on from, and the pipeline starts again from the frames it is given. Then, once the projector's phase
-  is known (:class:`~ipt.receiver.core.sparsechain.PhaseClock`), the run is the newest **pair of one video
+  is known (:class:`~ipt.receiver.core.phaseclock.PhaseClock`), the run is the newest **pair of one video
   frame**, its + frame and the − frame right after it (IPT's sender shows each video frame in its + phase,
   then its −: at twice the projector's rate a video frame is [+, +, −, −]): the pair the chain fits best, and
   only two frames' work, so that the next run starts sooner, closer to this one. Without such a pair among
@@ -27,7 +27,7 @@ from collections.abc import Awaitable, Callable, Sequence
 from typing import TYPE_CHECKING, Protocol, TypeVar
 
 if TYPE_CHECKING:
-    from ipt.receiver.core.sparsechain import PhaseClock
+    from ipt.receiver.core.phaseclock import PhaseClock
 
 LIVE_RUN_FRAMES = 3
 """The longest run of consecutive frames a live source hands the pipeline at once (the queue keeps that many

@@ -27,6 +27,7 @@ jump faster than a drone flies is held back (``motion_jump``) until it repeats.
 
 from __future__ import annotations
 
+import math
 import time
 from collections import Counter, defaultdict, deque
 from dataclasses import replace
@@ -58,12 +59,13 @@ from ipt.receiver.core.imagealign import AlignTarget, alignment_features, floor_
 from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.motion import MotionTrack, floor_warp
 from ipt.receiver.core.paperway import PaperWay
+from ipt.receiver.core.phaseclock import PhaseClock
 from ipt.receiver.core.pose import Pose, pose_of, rt_of
 from ipt.receiver.core.reasons import PAIR_FAILURES, SHADOWED_SHARE, FrameReason
 from ipt.receiver.core.scales import DetectScale, ScaleChooser
 from ipt.receiver.core.secondlook import SecondLook
 from ipt.receiver.core.sparse import SparseCamera
-from ipt.receiver.core.sparsechain import LiveChain, PhaseClock, chain_settings, fitter
+from ipt.receiver.core.sparsechain import LiveChain, chain_settings, fitter
 from ipt.receiver.core.sparsestage import SparseStage
 from ipt.receiver.core.sparsestage import posed as sparse_posed
 from ipt.receiver.core.track import (
@@ -426,12 +428,8 @@ class Pipeline:
             return None
         centre = np.array([self.camera.width_px / 2, self.camera.height_px / 2, 1.0])
         moved = warp @ centre
-        if (
-            moved[2] <= 0
-            or np.linalg.norm(moved[:2] / moved[2] - centre[:2]) > MAX_PREDICTED_MOVE * self.camera.width_px
-        ):
-            return None
-        return warp
+        off_px = float(np.linalg.norm(moved[:2] / moved[2] - centre[:2])) if moved[2] > 0 else math.inf
+        return None if off_px > MAX_PREDICTED_MOVE * self.camera.width_px else warp
 
     def difference_in(self, pair: Pair, target_is_later: bool) -> PairDifference:
         """The pair's difference in the target frame's geometry, as target minus other."""

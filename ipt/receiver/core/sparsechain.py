@@ -28,6 +28,7 @@ import numpy.typing as npt
 
 from ipt.receiver.core import kernels
 from ipt.receiver.core.mapedges import MapEdges
+from ipt.receiver.core.phaseclock import PhaseClock
 from ipt.receiver.core.pose import pose_of
 from ipt.receiver.core.sparse import SparseCamera, SparseResult, SparseSettings, extrapolate, fit_sparse, select
 
@@ -409,52 +410,6 @@ def cell_px(camera: SparseCamera, cell_m: float, rt: RT) -> float:
     position, _ = pose_of(*rt)
     height = float(position[2])
     return cell_m * float(camera.camera_matrix[0, 0]) / height if height > 0 else math.inf
-
-
-def clock_phase(times_us: list[int], signs: list[int], at_us: int, projector_hz: float) -> int | None:
-    """The projector phase at ``at_us`` from the phases ``signs`` of frames captured at ``times_us``: the phase
-    is ±(−1)^⌊t·f + φ⌋ (f the projector's rate), φ the unknown offset of its clock against the camera's; the
-    offsets (twentieths of a period, each in the middle of its twentieth) and signs that agree with the most of
-    the given phases (all but at most one) must all predict the same phase, else None. (At 120 FPS against
-    60 Hz a frame is half a period from its neighbours, so a single known phase does not tell whether its
-    neighbour flipped; two known phases that every offset finds one right and one wrong tell nothing either.)"""
-    if len(signs) < 2:
-        return None
-    # In plain Python (it runs once a frame on at most eight phases: numpy's calls cost 0.1 ms of a frame's 4-5), with
-    # numpy's steps: the same floats, so the same answer to the bit (tests/test_sparse.py compares the two).
-    ref = times_us[-1]
-    t = [(float(time_us) - ref) * 1e-6 * projector_hz for time_us in times_us]
-    # Not 0 nor 1/2: a camera at twice the projector's rate captures every frame half a period after the last,
-    # so those offsets put every frame on a flip, where a microsecond of the clocks' rounding decides its side.
-    offsets = [(i + 0.5) / 20.0 for i in range(20)]
-    agree = [
-        sum(sign if math.floor(ti + offset) % 2 == 0 else -sign for ti, sign in zip(t, signs, strict=True))
-        for offset in offsets
-    ]
-    best = max(abs(a) for a in agree)
-    if best < len(signs) - 2 or best == 0:  # (0: agreement's sign, the phase predicted, would be 0)
-        return None
-    at = (at_us - ref) * 1e-6 * projector_hz
-    predicted = {
-        (1 if a > 0 else -1) * (1 if math.floor(at + offset) % 2 == 0 else -1)
-        for a, offset in zip(agree, offsets, strict=True)
-        if abs(a) == best
-    }
-    return predicted.pop() if len(predicted) == 1 else None
-
-
-@dataclass(frozen=True)
-class PhaseClock:
-    """The projector's phase at any capture time (:func:`clock_phase`) from the phases found for some recent
-    frames: a snapshot, which another thread may keep and ask (the live daemon choosing its next frames)."""
-
-    times_us: tuple[int, ...]
-    signs: tuple[int, ...]
-    projector_hz: float
-
-    def at(self, time_us: int) -> int | None:
-        """+1 or −1: the phase at ``time_us``; None when the phases found do not tell."""
-        return clock_phase(list(self.times_us), list(self.signs), time_us, self.projector_hz)
 
 
 @dataclass(frozen=True)
