@@ -9,8 +9,8 @@ its own to complain about.
 
 Image bombs: a PNG of a few hundred kilobytes can hold 20000x20000 pixels (1.2 GB once decoded as RGB).
 Before anything is decoded, the size the file's header gives (read by Pillow, which parses only the
-header) is checked against a cap, :data:`MAX_IMAGE_PIXELS` unless the caller gives its own (a camera's
-frames: the camera's size); a file over it is refused with one line, undecoded.
+header; an uncompressed 24-bit BMP's is read here) is checked against a cap, :data:`MAX_IMAGE_PIXELS` unless the
+caller gives its own (a camera's frames: the camera's size); a file over it is refused with one line, undecoded.
 """
 
 from __future__ import annotations
@@ -83,16 +83,26 @@ def _plain_bmp(data: bytes | memoryview) -> tuple[U8, bool] | None:
     """The pixels of an uncompressed 24-bit BMP as a view of ``data`` (BGR, rows as stored) and whether the
     bottom row comes first (a positive height), or None for any other file, or one too short for its pixels:
     OpenCV's decoder then has it."""
-    if len(data) < 54 or bytes(data[:2]) != b"BM":
+    header = _plain_bmp_header(data)
+    if header is None:
         return None
-    offset, info, width, height, planes, bits, compression = struct.unpack_from("<IIiiHHI", data, 10)
-    if info not in _BMP_INFO_HEADERS or planes != 1 or bits != 24 or compression != 0:
-        return None
+    offset, info, width, height = header
     rows, stride = abs(height), (3 * width + 3) & ~3
-    if width <= 0 or rows == 0 or offset < 14 + info or len(data) < offset + stride * rows:
+    if offset < 14 + info or len(data) < offset + stride * rows:
         return None
     stored = np.frombuffer(data, np.uint8, count=stride * rows, offset=offset).reshape(rows, stride)
     return stored[:, : 3 * width].reshape(rows, width, 3), height > 0
+
+
+def _plain_bmp_header(data: bytes | memoryview) -> tuple[int, int, int, int] | None:
+    """(pixel offset, info header size, width, height as stored: negative for rows top first) of an uncompressed
+    24-bit BMP's header, or None for any other file."""
+    if len(data) < 54 or bytes(data[:2]) != b"BM":
+        return None
+    offset, info, width, height, planes, bits, compression = struct.unpack_from("<IIiiHHI", data, 10)
+    if info not in _BMP_INFO_HEADERS or planes != 1 or bits != 24 or compression != 0 or width <= 0 or height == 0:
+        return None
+    return offset, info, width, height
 
 
 def _from_bgr(rows: U8, bottom_up: bool, mode: ImageMode) -> U8:
@@ -118,6 +128,9 @@ def header_size(data: bytes | memoryview) -> tuple[int, int] | None:
     file's first :data:`HEADER_PREFIX_BYTES` (parsing a header reads no further than it, so a size found
     there is the whole file's), else from the whole file.
     """
+    bmp = _plain_bmp_header(data)
+    if bmp is not None:  # (the benchmarks' frames: Pillow's import and its parse of each frame spared)
+        return bmp[2], abs(bmp[3])
     from PIL import Image  # Pillow comes with matplotlib; loaded only when an image is read
 
     # Pillow's common formats first (BMP, GIF, JPEG, PPM, PNG: a camera's frames), as ``Image.open`` does:

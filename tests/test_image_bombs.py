@@ -3,6 +3,7 @@ image) or skipped and counted (a frame of a folder) before it is decoded."""
 
 from __future__ import annotations
 
+import io
 import struct
 import subprocess
 import sys
@@ -158,3 +159,23 @@ def test_the_sender_skips_and_says_a_bomb_in_its_video_folder(tmp_path: Path) ->
     assert "skipped" in said[0]
     with open_frames(tmp_path / "out.mkv") as out:
         assert len(list(out)) == 8
+
+
+@pytest.mark.parametrize("top_first", [False, True])
+def test_a_plain_bmp_s_size_is_read_without_pillow_as_pillow_reads_it(top_first: bool) -> None:
+    """An uncompressed 24-bit BMP (the benchmarks' frames; rows stored bottom first, or top first with a negative
+    height) gives the size Pillow gives, and a bomb of one is refused, without Pillow's plugins."""
+    from PIL import Image
+
+    ok, encoded = cv2.imencode(".bmp", np.zeros((30, 40, 3), np.uint8))
+    assert ok
+    data = bytearray(encoded.tobytes())
+    if top_first:
+        struct.pack_into("<i", data, 22, -30)
+    with Image.open(io.BytesIO(bytes(data))) as img:
+        assert img.size == (40, 30)
+    assert header_size(bytes(data)) == (40, 30)
+    struct.pack_into("<ii", data, 18, 20000, 20000)  # a bomb's header: 20000x20000, its pixels never there
+    why = too_many_pixels(bytes(data))
+    assert why is not None
+    assert "20000x20000 pixels" in why
