@@ -81,9 +81,9 @@ class SparseSettings:
     """The Gaussian blur (σ) of a step in the camera's image: the model of the map's step."""
     border_px: float = 3.0
     lines: int = 3
+    """Each profile is the mean of this many parallel lines a pixel apart along the edge."""
     own_steps: bool = True
     """Fit each frame's own step beside the pair's, where the floor is flat (False: the pair's alone)."""
-    """Each profile is the mean of this many parallel lines a pixel apart along the edge."""
     outlier_factor: float = 2.5
     """A profile whose RMS residual exceeds this many times the median one is left out."""
     other_sigma_px: float = 1.0
