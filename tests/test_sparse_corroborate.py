@@ -41,7 +41,7 @@ def _result(position_m: np.ndarray, partner_position_m: np.ndarray, sign: int) -
     )
 
 
-def _run(landings_m: dict[int, np.ndarray]) -> tuple[dict[int, SparseResult], Chain, list[int]]:
+def _run(landings_m: dict[int, np.ndarray], refine: bool = False) -> tuple[dict[int, SparseResult], Chain, list[int]]:
     """Frame 8's pair step from a hovering chain, each partner's fit landing ``landings_m[partner]`` from the hover
     (both frames of the pair moved alike); the poses found, the chain and the partners fitted, in order."""
     chain = Chain()
@@ -55,7 +55,7 @@ def _run(landings_m: dict[int, np.ndarray]) -> tuple[dict[int, SparseResult], Ch
         moved = landings_m[partner]
         return _result(HOVER_M + moved, HOVER_M + moved, PHASE[int(image[0, 0])]), ""
 
-    pairing = replace(order_pairing(PHASE), known_first=True)
+    pairing = replace(order_pairing(PHASE), known_first=True, refine=refine)
     found = pair_frame(chain, 8, LUM, PHASE, TIMES_US, fit, pairing)
     return found, chain, tried
 
@@ -93,6 +93,19 @@ def test_two_partners_fits_landing_together_far_from_the_prediction_are_taken(of
     assert np.allclose(_position(found[8]), HOVER_M + second)
     assert np.allclose(_position(found[6]), HOVER_M + second)
     assert chain.corroborated == 1
+    assert chain.refused["far_from_prediction"] == 2
+
+
+def test_a_waiting_frame_refitted_after_a_corroborated_fit_starts_where_the_chain_s_error_puts_it() -> None:
+    """Frame 7, still waiting once 8 and 6 are posed together, is refitted against 8 from its own prediction moved
+    as far as 8's fit landed from 8's: its fit (landing with the others) is then near its start and taken. (Started
+    from the prediction alone, it was refused as far: realcam's frame 176, whose three frames then went the dense
+    way.)"""
+    off = np.array([1.5 * MAX_JUMP_M, 0.0, -0.01])
+    found, chain, tried = _run({7: off, 6: off, 8: off}, refine=True)
+    assert tried == [7, 6, 8, 8]  # (both waiting frames refitted against 8: 6 from its joint pose, 7 moved)
+    assert set(found) == {8, 7, 6}
+    assert np.allclose(_position(found[7]), HOVER_M + off)
     assert chain.refused["far_from_prediction"] == 2
 
 

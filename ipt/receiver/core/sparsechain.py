@@ -192,6 +192,12 @@ def corroborates(first: SparseResult, second: SparseResult, guess: RT) -> bool:
     )
 
 
+def moved_by(rt: RT, off_m: F64) -> RT:
+    """The pose ``rt`` (rvec, tvec: arena → camera) with the camera moved by ``off_m`` (arena frame), turned alike."""
+    r, _ = cv2.Rodrigues(np.asarray(rt[0], np.float64).reshape(3, 1))
+    return np.asarray(rt[0], np.float64).reshape(3), np.asarray(rt[1], np.float64).reshape(3) - r @ off_m
+
+
 def pair_frame(
     chain: Chain,
     k: int,
@@ -216,6 +222,9 @@ def pair_frame(
     far: SparseResult | None = None
     """A fit refused only for landing far from the prediction (:data:`MAX_JUMP_M`): a later partner's fit that lands
     where it did (:func:`corroborates`) is taken."""
+    corrected_m: F64 | None = None
+    """How far (arena frame) such a fit landed from its prediction: the chain's error, which its partner's pose and
+    the starts of the waiting frames refitted after it share."""
     for j in candidates:
         known = j in chain.rt
         partner_rt = chain.rt[j] if known else predict(chain, j, times_us, joint)
@@ -240,10 +249,10 @@ def pair_frame(
         assert result is not None
         found[k], chain.partner[k] = result, j
         chain.corroborated += agreed
+        corrected_m = shift_m(result, start) if agreed else None
         if not known:
             other = result.partner()
-            # (a corroborated fit's partner, predicted by the same chain, is judged net of the prediction's error)
-            offset = shift_m(result, start) if agreed else 0.0
+            offset = corrected_m if corrected_m is not None else 0.0
             if float(np.linalg.norm(shift_m(other, partner_rt) - offset)) > MAX_JUMP_M:
                 chain.refused["partner_far_from_prediction"] += 1
                 found.clear()
@@ -251,7 +260,7 @@ def pair_frame(
             found[j], chain.partner[j] = other, k
         break
     if k in found and pairing.refine:
-        _refine(chain, k, found, candidates, lum, phase, times_us, fit, pairing.baseline)
+        _refine(chain, k, found, candidates, lum, phase, times_us, fit, pairing.baseline, corrected_m)
     return found
 
 
@@ -265,8 +274,11 @@ def _refine(
     times_us: Mapping[int, int],
     fit: Fit,
     baseline: int,
+    off_m: F64 | None = None,
 ) -> None:
-    """Each frame still waiting among ``candidates`` fitted on its own against ``k``, held at its fitted pose."""
+    """Each frame still waiting among ``candidates`` fitted on its own against ``k``, held at its fitted pose; one
+    not posed yet started from its prediction, moved by ``off_m`` (arena frame, metres: how far ``k``'s corroborated
+    fit landed from its own prediction, the same chain's error; None: not moved)."""
     held = (found[k].rvec, found[k].tvec)
     for j in candidates:
         if j in chain.rt or phase.get(j) != -phase[k]:
@@ -274,6 +286,8 @@ def _refine(
         start = (found[j].rvec, found[j].tvec) if j in found else predict(chain, j, times_us, baseline)
         if start is None:
             continue
+        if j not in found and off_m is not None:
+            start = moved_by(start, off_m)
         result, why = fit(lum[j], lum[k], held, start, -found[k].sign * found[k].amplitude, False)
         if accept(chain, result, why, start, phase[j]):
             assert result is not None
