@@ -46,7 +46,8 @@ MAX_JUMP_M = 0.03
 #: prediction was off, not the fits. Takeoff (stop 62, `/work/scratch/s62/refused.py`): of 36 fits refused as far from
 #: their prediction, 32 were within 10 mm of the truth, their predictions 30-75 mm off (the chain's last pose a noisy
 #: one, its velocity over one frame carried three frames on); a frame whose fits are all refused goes the dense way
-#: with its partners (20-30 ms each). Taken when two agree, takeoff's dense frames 137 -> 87.
+#: with its partners (20-30 ms each). Taken when two agree (and the frames refitted after them started as far off),
+#: takeoff's dense frames 125-133 -> 95-97 over three 1e-12 m nudges of every start (docs/receiver-cores.md, stop 62).
 AGREE_M = 0.01
 MAX_CORROBORATED_M = 0.09
 #: The spread of two same-phase frames' difference (a video frame apart) up to this many times a pair fit's
