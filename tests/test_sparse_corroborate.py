@@ -72,7 +72,8 @@ def test_a_fit_near_the_prediction_is_taken_at_once() -> None:
     assert chain.corroborated == 0
 
 
-def test_a_lone_fit_far_from_the_prediction_is_refused() -> None:
+def test_far_fits_that_do_not_land_together_are_refused() -> None:
+    """Two partners' fits both far from the prediction, 30 mm apart: neither is taken."""
     far = np.array([1.5 * MAX_JUMP_M, 0.0, 0.0])
     found, chain, tried = _run({7: far, 6: far + np.array([0.0, 3 * AGREE_M, 0.0])})
     assert tried == [7, 6]
