@@ -41,9 +41,12 @@ def _result(position_m: np.ndarray, partner_position_m: np.ndarray, sign: int) -
     )
 
 
-def _run(landings_m: dict[int, np.ndarray], refine: bool = False) -> tuple[dict[int, SparseResult], Chain, list[int]]:
+def _run(
+    landings_m: dict[int, np.ndarray], refine: bool = False, partner_apart_m: np.ndarray | None = None
+) -> tuple[dict[int, SparseResult], Chain, list[int]]:
     """Frame 8's pair step from a hovering chain, each partner's fit landing ``landings_m[partner]`` from the hover
-    (both frames of the pair moved alike); the poses found, the chain and the partners fitted, in order."""
+    (both frames of the pair moved alike, or the partner ``partner_apart_m`` further); the poses found, the chain and
+    the partners fitted, in order."""
     chain = Chain()
     for k in (4, 5):
         chain.rt[k], chain.sign[k] = rt_of(HOVER_M, DOWN), PHASE[k]
@@ -53,7 +56,8 @@ def _run(landings_m: dict[int, np.ndarray], refine: bool = False) -> tuple[dict[
         partner = int(other[0, 0])
         tried.append(partner)
         moved = landings_m[partner]
-        return _result(HOVER_M + moved, HOVER_M + moved, PHASE[int(image[0, 0])]), ""
+        apart = partner_apart_m if partner_apart_m is not None else np.zeros(3)
+        return _result(HOVER_M + moved, HOVER_M + moved + apart, PHASE[int(image[0, 0])]), ""
 
     pairing = replace(order_pairing(PHASE), known_first=True, refine=refine)
     found = pair_frame(chain, 8, LUM, PHASE, TIMES_US, fit, pairing)
@@ -121,13 +125,6 @@ def test_a_corroborated_fit_whose_partner_moved_otherwise_is_refused() -> None:
     """The partner's pose, predicted by the same chain, is judged net of the prediction's error: moved by as much
     as this frame, it passes (above); moved apart from it by more than the chain allows, it does not."""
     first = np.array([1.5 * MAX_JUMP_M, 0.0, 0.0])
-    chain = Chain()
-    for k in (4, 5):
-        chain.rt[k], chain.sign[k] = rt_of(HOVER_M, DOWN), PHASE[k]
-
-    def fit(image: np.ndarray, other: np.ndarray, other_rt: RT, guess: RT, hint: float, predicted: bool) -> FitResult:
-        return _result(HOVER_M + first, HOVER_M + first + np.array([0.0, 1.5 * MAX_JUMP_M, 0.0]), -1), ""
-
-    found = pair_frame(chain, 8, LUM, PHASE, TIMES_US, fit, replace(order_pairing(PHASE), known_first=True))
+    found, chain, _ = _run({7: first, 6: first}, partner_apart_m=np.array([0.0, 1.5 * MAX_JUMP_M, 0.0]))
     assert found == {}
     assert chain.refused["partner_far_from_prediction"] == 1
