@@ -419,10 +419,8 @@ def _fit_compiled(
 ) -> tuple[SparseResult | None, str]:
     """:func:`fit_sparse`'s iterations in one compiled call (:func:`~ipt.receiver.core.sparseloop.iterate`: every
     sample; the coarse steps smoothed at their reach, the others unsmoothed at the fine reach), then its checks."""
-    fine = np.array(_step_model(2 * s.fine_radius_px + 1, math.hypot(s.blur_px, 0.0)))
-    coarse = np.array(_step_model(2 * s.radius_px + 1, math.hypot(s.blur_px, s.coarse_smooth_px)))
+    fine, coarse, reals, counts, flags = _settings_arrays(s)
     gain_step = np.array([st.gain, st.step])
-    reals, counts, flags = _settings_arrays(s)
     outcome, it, moved, idx, keep, rms, normal, a_rows = kernels.sparse_iterate(
         *(obj, nrm, steps, st.r, st.t, st.r_other, st.t_other, k, dist, image, other, gain_step, st.other_moved),
         *(fine, coarse, reals, counts, flags),
@@ -433,14 +431,20 @@ def _fit_compiled(
     return _finish(st, edges, chosen, idx, keep, rms, normal, float(moved), int(it), a_rows[:, 6:12], s)
 
 
-def _settings_arrays(s: SparseSettings) -> tuple[F64, I64, npt.NDArray[np.bool_]]:
-    """What :func:`~ipt.receiver.core.sparseloop.iterate` takes of a fit's settings, as three arrays."""
+@functools.lru_cache(maxsize=16)
+def _settings_arrays(s: SparseSettings) -> tuple[F64, F64, F64, I64, npt.NDArray[np.bool_]]:
+    """What :func:`~ipt.receiver.core.sparseloop.iterate` takes of a fit's settings (which it only reads): the
+    step model of the fine and of the coarse steps (:func:`_step_model`: the map's blurred step and its slope),
+    and the rest as three arrays. Made once per settings (a chain has two): ~0.1 ms of every fit when made
+    for each."""
+    fine = np.array(_step_model(2 * s.fine_radius_px + 1, math.hypot(s.blur_px, 0.0)))
+    coarse = np.array(_step_model(2 * s.radius_px + 1, math.hypot(s.blur_px, s.coarse_smooth_px)))
     reals = [s.border_px, s.min_inliers, s.outlier_factor, s.converged_px, s.converged_rms_px, s.settled_px]
     reals += [s.give_up_px, s.other_sigma_px, s.flow_sigma_px, s.coarse_smooth_px]
     counts = [s.fine_radius_px, s.lines, s.iterations, s.give_up_steps, s.give_up_from, s.damp_from]
     counts += [2 * s.fine_radius_px + 1, s.coarse_iterations, s.radius_px]
     flags = [s.damp_swings, s.own_steps, s.esm_partner, s.fit_gain]
-    return np.array(reals, np.float64), np.array(counts, np.int64), np.array(flags, np.bool_)
+    return fine, coarse, np.array(reals, np.float64), np.array(counts, np.int64), np.array(flags, np.bool_)
 
 
 def converged_by_rms(push: F64, moved: float, s: SparseSettings) -> bool:
