@@ -27,6 +27,7 @@ comes from :mod:`ipt.receiver.core.imagealign`.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -261,8 +262,29 @@ def signal_mask(lum: U8, coverage: U8 | None = None) -> U8:
     # penumbra, which has no signal): the margin grows by as much. Without that, the held-out flight under a
     # big shadow (low-fast-big-shadow) fell from 87.0 to 72.1 % (its fits counted penumbra samples as tried).
     margin = max(1, round((DARK_MARGIN_PX + MASK_BOX_PX // 2) * w / REFERENCE_WIDTH_PX))
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1, 2 * margin + 1))
-    return np.asarray(cv2.erode(cv2.morphologyEx(lit, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)), kernel), np.uint8)
+    return erode_ellipse(cv2.morphologyEx(lit, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)), 2 * margin + 1)
+
+
+@functools.lru_cache(maxsize=8)
+def _ellipse_rectangles(size: int) -> tuple[npt.NDArray[np.uint8], ...]:
+    """OpenCV's ``size`` × ``size`` ellipse (``MORPH_ELLIPSE``) as the union of the centred rectangles it is made of:
+    one per width of its rows (each row a centred run), as tall as the rows at least that wide."""
+    ellipse = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+    runs = ellipse.sum(axis=1)
+    return tuple(np.ones((int(np.count_nonzero(runs >= w)), int(w)), np.uint8) for w in sorted(set(runs[runs > 0])))
+
+
+def erode_ellipse(image: U8, size: int) -> U8:
+    """``cv2.erode(image, the size × size ellipse)``, the same pixels: the minimum of the erosions by the
+    ellipse's rectangles (:func:`_ellipse_rectangles`; the minimum over a union is the minimum of the minima, and
+    outside the image erosion takes nothing either way), each separable where the ellipse is not: 260 µs against
+    340 at 640×360 (15 px), 2.7 ms against 4.8 at 1280×720 (29 px)."""
+    out: U8 | None = None
+    for rectangle in _ellipse_rectangles(size):
+        eroded = np.asarray(cv2.erode(image, rectangle), np.uint8)
+        out = eroded if out is None else np.minimum(out, eroded, out=out)
+    assert out is not None
+    return out
 
 
 #: A difference larger than this many times the typical tag step is content that changed (a new video
