@@ -8,7 +8,10 @@ method ``sparse`` and goes through the same gates; such a frame goes out at once
 the frames the chain waited for in vain, those whose sparse poses the gates all doubt, and acquisition (no chain
 yet). Dense poses the gates do not doubt re-seed the chain. Against drift: every :data:`CHECK_EVERY` sparse poses a
 frame is posed the dense way too (which also lets AprilTag's periodic check of the track run); a sparse pose more
-than :data:`CHECK_M` off the dense one restarts the chain from the dense pose, and the dense pose is taken. Live
+than :data:`CHECK_M` off the dense one restarts the chain from the dense pose, and the dense pose is taken. Once
+:data:`TRUSTED_AFTER` checks in a row found the chain within :data:`TRUSTED_M` of a dense pose that fits the map well
+(:data:`TRUSTED_QUALITY`), the checks come every :data:`TRUSTED_CHECK_EVERY` sparse poses instead, while the chain
+fits each frame against a posed partner (no joint fit: the video still). Live
 (a live camera's frames come with their wait: :attr:`SparseStage.now_us`), a frame the chain gave up on that is
 already :data:`LIVE_LATE_US` old takes no dense way and no bridge: it goes out without a pose (``late``).
 """
@@ -30,6 +33,19 @@ from ipt.receiver.core.sparsechain import LiveChain
 CHECK_EVERY = 16
 #: ... and a sparse pose further than this from the dense one restarts the chain from the dense pose.
 CHECK_M = 0.02
+#: The checks come every this many sparse poses once :data:`TRUSTED_AFTER` checks in a row found the chain within
+#: :data:`TRUSTED_M` of a dense pose fitting at least :data:`TRUSTED_QUALITY` of the map's edges in view. A check is
+#: 11-13 ms where a sparse frame is 3-4 (shadow-vibration: 61 checks, a sixth of its time). The dense fit's share
+#: is what tells a wrong arena file: at the checks the uncalibrated keystoned flight's dense poses fit 0.45 of the
+#: edges (median; 0.23-0.62 where the chain agreed within 3 mm), shadow-vibration's 0.78 (p10 0.63). Every 32 sparse
+#: poses after close checks alone (stops 57, 62), that flight's chain went otherwise where its file is 5-6 cm off,
+#: and the dense way then posed frames 10-14 cm off (docs/receiver-cores.md, stop 63). Not after a joint fit since
+#: the last check (a new video frame: both poses predicted): there the checks' dense poses re-seed a chain whose
+#: next joint fits start from them (every check after 32 anyway: realcam 59 -> 65 dense frames, takeoff 97 -> 100).
+TRUSTED_CHECK_EVERY = 32
+TRUSTED_AFTER = 2
+TRUSTED_M = 0.003
+TRUSTED_QUALITY = 0.6
 #: Live, a frame the chain waited for in vain (or whose sparse poses the gates all doubt) this long after its capture
 #: gets no dense way, and no bridge (:meth:`SparseStage.too_late`): it is two or three frames old then, the dense way
 #: takes 10-60 ms more (its partners on both sides; shadow-vibration's frame 57, 59 ms; a bridge 77 ms), and every
@@ -58,6 +74,12 @@ class SparseStage:
         self.chain, self.history, self.gates = chain, history, gates
         self._solve, self._prepare, self._add, self._lap, self._tracked = solve, prepare, add_candidate, lap, tracked
         self._since_check = 0
+        self._trusted = 0
+        """Checks in a row that found the chain within :data:`TRUSTED_M` of a dense pose of :data:`TRUSTED_QUALITY`."""
+        self._checking: int | None = None
+        """The frame a check is due on (posed by the chain, then the dense way)."""
+        self._checked = -1
+        """The frame of the last check."""
         self.checks_failed = 0
         """Dense checks that found the chain's pose more than :data:`CHECK_M` off."""
         self.now_us: int | None = None
@@ -93,23 +115,31 @@ class SparseStage:
         if new.index not in step.poses:
             return not step.waits
         self._since_check += 1
-        if self._since_check < CHECK_EVERY:
+        trusted = self._trusted >= TRUSTED_AFTER and not self.chain.joint_since(self._checked)
+        if self._since_check < (TRUSTED_CHECK_EVERY if trusted else CHECK_EVERY):
             return False
-        self._since_check = 0
+        self._since_check, self._checking, self._checked = 0, new.index, new.index
         return True
 
     def after_dense(self, new: Frame) -> None:
         """After ``new``'s dense pairs: the check of a sparse pose (the chain starts afresh if the two are more than
-        :data:`CHECK_M` apart; the dense pose is taken either way); then the dense poses the gates do not doubt
+        :data:`CHECK_M` apart; the dense pose is taken either way; one within :data:`TRUSTED_M` of a dense pose of
+        :data:`TRUSTED_QUALITY` counts towards :data:`TRUSTED_AFTER`, any other ends the run); then the dense poses
+        the gates do not doubt
         re-seed the chain, and those of frames that went out already (a dense frame goes out once its pose is good)."""
         dense = [c for c in new.candidates if c.method != "sparse"]
+        trusted = False
         if dense and len(dense) < len(new.candidates):
             best = max(dense, key=lambda c: c.quality)
             sparse = next(c for c in new.candidates if c.method == "sparse")
-            if float(np.linalg.norm(best.pose.position_m - sparse.pose.position_m)) > CHECK_M:
+            apart_m = float(np.linalg.norm(best.pose.position_m - sparse.pose.position_m))
+            if apart_m > CHECK_M:
                 self.checks_failed += 1
                 self.reset(False)
+            trusted = apart_m <= TRUSTED_M and best.quality >= TRUSTED_QUALITY
             new.candidates, new.best, new.rt = dense, best, best.rt
+        if new.index == self._checking:  # (a check without a dense pose, or not close: every CHECK_EVERY again)
+            self._checking, self._trusted = None, self._trusted + 1 if trusted else 0
         for f in self.history:
             if f.best is None or f.best.method == "sparse" or f.phase is None:
                 continue
@@ -144,6 +174,7 @@ class SparseStage:
         """The chain starts afresh (``frames``: forgetting the frames it has); the frames it made wait take the
         dense way."""
         self.chain.reset(frames)
+        self._trusted = 0
         for f in self.history:
             if f.waiting and not f.final:
                 f.waiting = False
