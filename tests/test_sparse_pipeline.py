@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -228,13 +229,13 @@ def test_the_checks_come_less_often_once_two_in_a_row_found_the_chain_on_a_dense
     from ipt.receiver.core.sparsestage import TRUSTED_AFTER, TRUSTED_QUALITY
 
     trusting = _checks(short_flight, frames, monkeypatch)
-    gaps = [b[0] - a[0] for a, b in zip(trusting, trusting[1:])]
+    gaps = [b[0] - a[0] for a, b in pairwise(trusting)]
     assert [t for _, t in trusting[: TRUSTED_AFTER + 1]] == list(range(TRUSTED_AFTER + 1))
     assert gaps[0] < 12 <= gaps[TRUSTED_AFTER]
     never = _checks(short_flight, frames, monkeypatch, quality=1.01)
     assert all(trusted == 0 for _, trusted in never)
-    assert max(b[0] - a[0] for a, b in zip(never, never[1:])) < 12
+    assert max(b[0] - a[0] for a, b in pairwise(never)) < 12
     assert len(never) > len(trusting)
     moving = _checks(short_flight, frames, monkeypatch, quality=TRUSTED_QUALITY, joint=True)
     assert [t for _, t in moving[: TRUSTED_AFTER + 1]] == list(range(TRUSTED_AFTER + 1))  # (trusted, but not calm)
-    assert max(b[0] - a[0] for a, b in zip(moving, moving[1:])) < 12
+    assert max(b[0] - a[0] for a, b in pairwise(moving)) < 12
