@@ -184,7 +184,6 @@ def test_a_chain_drifting_off_is_caught_and_restarted(
 CHECK_EVERY = 8
 
 
-
 def _checks(
     folder: Path, frames: list[Any], monkeypatch: pytest.MonkeyPatch, quality: float | None = None, joint: bool = False
 ) -> list[tuple[int, int]]:
