@@ -125,8 +125,8 @@ class SparseStage:
         """After ``new``'s dense pairs: the check of a sparse pose (the chain starts afresh if the two are more than
         :data:`CHECK_M` apart; the dense pose is taken either way; one within :data:`TRUSTED_M` of a dense pose of
         :data:`TRUSTED_QUALITY` counts towards :data:`TRUSTED_AFTER`, any other ends the run); then the dense poses
-        the gates do not doubt
-        re-seed the chain, and those of frames that went out already (a dense frame goes out once its pose is good)."""
+        the gates do not doubt re-seed the chain, and those of frames that went out already (a dense frame goes out
+        once its pose is good)."""
         dense = [c for c in new.candidates if c.method != "sparse"]
         trusted = False
         if dense and len(dense) < len(new.candidates):
