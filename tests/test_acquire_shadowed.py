@@ -1,7 +1,7 @@
 """Without a track, AprilTag rests on views mostly in the drone's shadow (lit below ``ACQUIRE_LIT_SHARE``, which is
-above ``SHADOWED_SHARE``): it is tried on one such frame in ``REST_EVERY`` (with each of that frame's partners), and the
-pairs of the frames between are not made. Once the view is lit again, AprilTag is tried on every frame and the pose is
-found at once."""
+above ``SHADOWED_SHARE``): it is tried on one such frame in ``REST_EVERY`` (with each of that frame's earlier partners:
+its pairs with later ones rest too), and the pairs of the frames between are not made. Once the view is lit again,
+AprilTag is tried on every frame and the pose is found at once."""
 
 from __future__ import annotations
 
@@ -72,7 +72,8 @@ def test_a_lit_view_never_rests_and_a_shadowed_one_every_eighth(short_flight: Pa
     rested = [acq.rests(f) for f in dark]
     assert REST_EVERY == 8
     assert [i for i, r in enumerate(rested) if not r] == [0, 8, 16]
-    assert not acq.rests(dark[16])  # the frame tried is tried with each of its partners
+    assert not acq.rests(dark[16])  # the frame tried is tried with each of its earlier partners ...
+    assert acq.rests(dark[16], later=True)  # ... and rests with its later ones
 
 
 def test_a_dim_view_rests_too_and_its_turns_of_the_search_go_by(short_flight: Path) -> None:

@@ -150,18 +150,20 @@ class Acquisition:
                 return found
         return None
 
-    def rests(self, target: Frame) -> bool:
+    def rests(self, target: Frame, later: bool = False) -> bool:
         """Whether AprilTag skips ``target``, a frame without a track to follow (its pair is then not made either):
         most of its view is unlit (below :data:`ACQUIRE_LIT_SHARE`: the drone's shadow on the ground and early in
-        the climb) and it is less than :data:`REST_EVERY` frames after the last such frame
-        tried (whose every pair is tried); the scales' cycle moves on over it as over a frame tried, so the frames
-        after meet the scales they would have. Of 2 106 AprilTag attempts on views lit below 40 % (takeoff-open-floor
+        the climb) and it is less than :data:`REST_EVERY` frames after the last such frame tried, or it is that frame
+        and its partner is a ``later`` one (it is tried with its earlier partners only: its later pairs were two more
+        alignments, differences and AprilTag runs on each of the next two frames, takeoff's tried frames came in
+        threes of 7-11 ms; stop 63). The scales' cycle moves on over it as over a frame tried, so the frames after
+        meet the scales they would have. Of 2 106 AprilTag attempts on views lit below 40 % (takeoff-open-floor
         1 263, takeoff 835, the held-out low-fast-big-shadow 8; stop 43) none found a pose, at a pair's alignment and
         difference and two AprilTag runs each: a shadowed frame of takeoff-open-floor cost 15 ms, a posed one 7 ms."""
         if target.lit_share >= ACQUIRE_LIT_SHARE:
             return False
         self._search_turn(target)  # the map search's turn goes by too, as if searched (:meth:`search_map`)
-        if target.index != self.shadowed_at and target.index - self.shadowed_at < REST_EVERY:
+        if later or (target.index != self.shadowed_at and target.index - self.shadowed_at < REST_EVERY):
             self.stages.scales.to_try(target.index)  # its turn of the scales goes by, as if tried
             return True
         self.shadowed_at = target.index

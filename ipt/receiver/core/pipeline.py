@@ -503,7 +503,7 @@ class Pipeline:
         if target.lit_share >= ACQUIRE_LIT_SHARE or other.rt is not None:
             return False
         no_track = not self.tracking or self._guide.pose_at(target.time_us) is None or self._lost(target)
-        return no_track and self.acquisition.rests(target)
+        return no_track and self.acquisition.rests(target, later=other.index > target.index)
 
     def add_candidate(self, target: Frame, candidate: Candidate) -> None:
         target.candidates.append(candidate)
