@@ -116,3 +116,20 @@ def test_before_the_motion_is_confirmed_a_pose_its_next_two_frames_outvote_is_he
     assert PoseGates(PoseConfig()).judge(0, 0, _pose(0.08), 3, "track", 2, right[:1]).reason == FrameReason.POSE
     split = [(PERIOD_US, _pose(0.0)), (2 * PERIOD_US, _pose(0.16))]
     assert PoseGates(PoseConfig()).judge(0, 0, _pose(0.08), 3, "track", 2, split).reason == FrameReason.POSE
+
+
+def test_a_pose_asked_about_again_is_judged_against_the_motion_as_it_is_now() -> None:
+    """The gates remember their answer for a pose while the motion is unchanged (a frame's pose is asked about two or
+    three times); a pose added to the motion, or the motion cleared, and the same pose is judged afresh."""
+    gates, k = _still_for_100_ms()
+    t_us, astray = k * PERIOD_US, _pose(0.05)
+    assert gates.doubt(t_us, astray) == FrameReason.INCONSISTENT
+    assert gates.doubt(t_us, astray) == FrameReason.INCONSISTENT
+    assert gates.doubt(t_us, _pose(0.0)) is None
+    gates.motion.clear()  # (a restart: nothing to judge against)
+    assert gates.doubt(t_us, astray) is None
+    gates, k = _still_for_100_ms()
+    assert gates.doubt(t_us, astray) == FrameReason.INCONSISTENT
+    for i in range(30):  # the camera moved to x = 0.05 and stayed: once the motion follows, the pose agrees
+        gates.motion.add(t_us - (30 - i) * 1000, np.array([0.05, 0.0, 0.8]), np.eye(3), 0.001)
+    assert gates.doubt(t_us, astray) is None

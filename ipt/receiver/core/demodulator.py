@@ -294,7 +294,7 @@ CHANGE_FACTOR = 3.0
 DIFF_SIGMA_PX = 1.0
 
 
-def _median_f32(values: F32) -> float:
+def median_f32(values: F32) -> float:
     """``np.median`` of a non-empty 1-D float32 array, exactly (the mean of the two middle values taken in
     float32, as numpy takes it), without numpy's overhead on the few thousand values here."""
     n = len(values)
@@ -364,7 +364,7 @@ def pair_difference(
     gain = min(max(gain, 0.5), 2.0)
     offset = ym - gain * xm
     sampled = np.abs(y - (np.float32(gain) * x + np.float32(offset)))
-    amplitude = max(_median_f32(sampled), 0.5)
+    amplitude = max(median_f32(sampled), 0.5)
     limit = CHANGE_FACTOR * amplitude * 2.0
     # Then every pixel in one pass: the difference, where both frames see the floor, what changed.
     diff = np.empty((h, w), np.float32)
@@ -394,7 +394,7 @@ def valid_difference(diff: F32, seen: U8, sample: npt.NDArray[np.bool_], sigma_p
     """The :class:`PairDifference` of a raw difference: the pixels outside ``seen`` (0/255; changed in
     place) and those that changed more than the tags can (with their neighbours) left out, the rest
     smoothed. ``sample`` marks the pixels of ``diff[::4, ::4]`` that both frames light."""
-    amplitude = max(_median_f32(np.abs(diff[::4, ::4][sample])), 0.5)
+    amplitude = max(median_f32(np.abs(diff[::4, ::4][sample])), 0.5)
     changed_px = np.abs(diff) > CHANGE_FACTOR * amplitude * 2.0
     changed = float(np.mean(changed_px[::4, ::4][sample]))
     return _finish_difference(diff, seen, changed_px.view(np.uint8), amplitude, changed, sigma_px)

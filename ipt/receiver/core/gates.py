@@ -57,9 +57,23 @@ class PoseGates:
         self._held: tuple[int, np.ndarray] | None = None
         """The last pose held back as inconsistent since one went out: its capture time, its offset from the
         prediction (m)."""
+        self._doubts: tuple[int, int, dict[int, tuple[PoseEstimate, str | None]]] = (-1, -1, {})
+        """:meth:`doubt`'s answers at one capture time while the motion is unchanged: (the time, the motion's
+        :attr:`~MotionTrack.changes`, answers by pose): a frame's poses are asked about two or three times."""
 
     def doubt(self, t_us: int, pose: PoseEstimate) -> str | None:
         """Why ``pose`` disagrees with the recent motion (the reason counted), or None if it does not."""
+        at_us, changes, answers = self._doubts
+        if at_us != t_us or changes != self.motion.changes:
+            answers = {}
+            self._doubts = (t_us, self.motion.changes, answers)
+        elif (known := answers.get(id(pose))) is not None and known[0] is pose:
+            return known[1]
+        answer = self._doubt(t_us, pose)
+        answers[id(pose)] = (pose, answer)
+        return answer
+
+    def _doubt(self, t_us: int, pose: PoseEstimate) -> str | None:
         cfg = self.cfg
         bound_m = self._consistency_bound_m(pose)
         if bound_m is not None:

@@ -52,6 +52,8 @@ class MotionTrack:
         self._fit: _PositionFit | None = None
         self._fitted = False
         self._rotation: F64 | None = None  # the rotation's coefficients, fitted when first asked for
+        self.changes = 0
+        """Poses added and clearings so far: a prediction asked again before it changes is the same."""
 
     def __len__(self) -> int:
         return len(self._poses)
@@ -60,6 +62,7 @@ class MotionTrack:
         """Forget everything (after a jump in the video or a re-initialised track)."""
         self._poses.clear()
         self._fitted = False
+        self.changes += 1
 
     def add(self, time_us: int, position_m: F64, r_arena_cam: F64, position_std_m: float | None = None) -> None:
         """Record a solved pose and how uncertain its position is (the norm of its per-axis standard
@@ -69,6 +72,7 @@ class MotionTrack:
         std_m = MIN_STD_M if position_std_m is None or not np.isfinite(position_std_m) else position_std_m
         pose = (time_us, np.asarray(position_m, np.float64), np.asarray(r_arena_cam, np.float64), max(std_m, MIN_STD_M))
         self._fitted = False
+        self.changes += 1
         if not self._poses or time_us > self._poses[-1][0]:
             self._poses.append(pose)
             return

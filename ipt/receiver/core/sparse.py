@@ -485,7 +485,7 @@ def _finish(
     s: SparseSettings,
 ) -> tuple[SparseResult | None, str]:
     """The checks on the last iteration's fit, and the result."""
-    present = np.flatnonzero(np.bincount(edges.tag[chosen][idx][keep]))
+    present = np.flatnonzero(np.bincount(edges.tag[chosen[idx[keep]]]))
     if len(present) < s.min_tags:
         return None, "few_tags"
     if moved > s.settled_px:
@@ -501,7 +501,8 @@ def _finish(
         return None, "weak_step"
     if float(np.abs(other_rows[keep] @ st.other_moved).max()) > s.max_partner_px:
         return None, "partner_moved"
-    if keep.sum() < s.min_inlier_fraction * len(idx):
+    inliers = int(keep.sum())
+    if inliers < s.min_inlier_fraction * len(idx):
         return None, "inlier_fraction"
     rvec, _ = cv2.Rodrigues(st.r)
     other_rvec, _ = cv2.Rodrigues(st.r_other)
@@ -510,7 +511,7 @@ def _finish(
     return SparseResult(
         np.asarray(rvec, np.float64).reshape(3),
         st.t.copy(),
-        int(keep.sum()),
+        inliers,
         len(idx),
         sigma,
         sign,

@@ -27,6 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.receiver.core import kernels
+from ipt.receiver.core.demodulator import median_f32
 from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.phaseclock import PhaseClock
 from ipt.receiver.core.pose import pose_of
@@ -354,9 +355,9 @@ def _held_still(
     )
     if len(pk) < 30:
         return None
-    gain = float(np.median(pk.mean(axis=1) / np.maximum(pm.mean(axis=1), 1.0)))
+    gain = median_f32(pk.mean(axis=1) / np.maximum(pm.mean(axis=1), 1.0))  # (float32: np.median's floats)
     d = (pk - gain * pm).ravel()
-    spread = 1.4826 * float(np.median(np.abs(d - np.median(d))))
+    spread = 1.4826 * median_f32(np.abs(d - median_f32(d)))
     return spread <= spread_ratio * max(rms_px, 0.1)
 
 
