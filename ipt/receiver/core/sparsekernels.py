@@ -151,11 +151,11 @@ read_profile: Any = read_profile_py  # compiled by ``ipt.receiver.core.kernels._
 
 
 def edge_row_py(
-    r: F64, t: F64, k: F64, dist: F64, ox: float, oy: float, mx: float, my: float, out: F64, res: F64, jac: F64
+    r: F64, t: F64, k: F64, dist: F64, ox: float, oy: float, mx: float, my: float, out: F64, at: int, res: F64, jac: F64
 ) -> None:
     """The floor point (ox, oy, 0) with floor normal (mx, my) seen at the pose (r, t) through ``k`` and lens
-    ``dist``: its image place (u, v), the image length of one metre along the normal, and into ``out`` the row
-    of the linear system, d(displacement along the image normal, pixels)/d(δ rotation, Δt), the rotation
+    ``dist``: its image place (u, v), the image length of one metre along the normal, and into ``out`` from ``at`` the
+    row of the linear system, d(displacement along the image normal, pixels)/d(δ rotation, Δt), the rotation
     applied on the arena → camera side. (u, v, length) into ``res``, length 0 when the point is behind the
     camera; ``jac`` is scratch (2x2)."""
     res[2] = 0.0
@@ -186,12 +186,12 @@ def edge_row_py(
     g0 = nx * d00 + ny * d10
     g1 = nx * d01 + ny * d11
     g2 = nx * d02 + ny * d12
-    out[0] = p1 * g2 - p2 * g1
-    out[1] = p2 * g0 - p0 * g2
-    out[2] = p0 * g1 - p1 * g0
-    out[3] = g0
-    out[4] = g1
-    out[5] = g2
+    out[at] = p1 * g2 - p2 * g1
+    out[at + 1] = p2 * g0 - p0 * g2
+    out[at + 2] = p0 * g1 - p1 * g0
+    out[at + 3] = g0
+    out[at + 4] = g1
+    out[at + 5] = g2
     res[2] = length
 
 
@@ -229,6 +229,7 @@ def profiles(
     pk = np.empty((n, width), np.float32)
     pj = np.empty((n, width), np.float32)
     a_rows = np.empty((n, 14))
+    flat_rows = a_rows.reshape(14 * n)  # (indexed, not a view of each row: a view costs numba's reference counts)
     scratch = np.empty((2, 2))
     lams = (np.arange(width) - radius) / radius  # each profile point's place on the parabola, −1..1
     here = np.empty(3)
@@ -236,11 +237,11 @@ def profiles(
     count = 0
     for i in range(n):
         ox, oy, mx, my = obj[i, 0], obj[i, 1], nrm[i, 0], nrm[i, 1]
-        edge_row(r, t, k, dist, ox, oy, mx, my, a_rows[count, :6], here, scratch)
+        edge_row(r, t, k, dist, ox, oy, mx, my, flat_rows, 14 * count, here, scratch)
         u, v, length = here[0], here[1], here[2]
         if length <= 0.0 or not (border_px < u < w - 1 - border_px and border_px < v < h - 1 - border_px):
             continue
-        edge_row(r_other, t_other, k, dist, ox, oy, mx, my, a_rows[count, 6:], there, scratch)
+        edge_row(r_other, t_other, k, dist, ox, oy, mx, my, flat_rows, 14 * count + 6, there, scratch)
         if there[2] <= 0.0:
             continue
         step_m = 1.0 / length  # floor metres per pixel of ``image`` along the normal
@@ -262,13 +263,13 @@ def profiles(
 
 
 def centred_moments_py(u: F64, y: F64, mean_u: F64, gram: F64, uy: F64, yy: F64, i: int) -> None:
-    """Add one profile's pair equations to its moments, each basis profile and the target less its mean over
-    the profile (the constant's share): the upper triangle of Σ u uᵀ into ``gram``, Σ u y into ``uy``, Σ y²
-    into ``yy[i]``; ``mean_u`` is scratch."""
+    """Add profile ``i``'s pair equations to its moments, each basis profile and the target ``y[:, 0]`` less its
+    mean (the constant's share): the upper triangle of Σ u uᵀ into ``gram[i]``, Σ u y into ``uy[i]``, Σ y² into
+    ``yy[i]``; ``mean_u`` is scratch. (Indexed: a view costs numba's reference counts, 3 % of a replay.)"""
     width = y.shape[0]
     mean_y = 0.0
     for o in range(width):
-        mean_y += y[o]
+        mean_y += y[o, 0]
     mean_y /= width
     for c in range(5):
         total = 0.0
@@ -277,22 +278,22 @@ def centred_moments_py(u: F64, y: F64, mean_u: F64, gram: F64, uy: F64, yy: F64,
         mean_u[c] = total / width
     total = yy[i]  # centred in place, each sum in a register (the same terms in the same order as in memory)
     for o in range(width):
-        yc = y[o] - mean_y
-        y[o] = yc
+        yc = y[o, 0] - mean_y
+        y[o, 0] = yc
         total += yc * yc
         for c in range(5):
             u[o, c] = u[o, c] - mean_u[c]
     yy[i] = total
     for a in range(5):
-        total = uy[a]
+        total = uy[i, a]
         for o in range(width):
-            total += u[o, a] * y[o]
-        uy[a] = total
+            total += u[o, a] * y[o, 0]
+        uy[i, a] = total
         for b in range(a, 5):
-            total = gram[a, b]
+            total = gram[i, a, b]
             for o in range(width):
                 total += u[o, a] * u[o, b]
-            gram[a, b] = total
+            gram[i, a, b] = total
 
 
 centred_moments: Any = centred_moments_py  # compiled by ``ipt.receiver.core.kernels._compile_sparse``
@@ -321,7 +322,7 @@ def moments(
     uy = np.zeros((n, 5))
     yy = np.zeros(n)
     u = np.empty((width, 5))
-    y = np.empty(width)
+    y = np.empty((width, 1))
     mean_u = np.empty(5)
     # The straight line's second basis vector (the first is the constant): o − centre, unit length.
     line = np.arange(width) - (width - 1) / 2.0
@@ -343,10 +344,10 @@ def moments(
             # that both frames moved together see the map's step alone (the content's slopes cancel)
             u[o, 3] = 0.5 * (gain * slope + own - step * sv[i] * pdf[o]) if esm_partner else gain * slope
             u[o, 4] = -(gain * slope + 0.5 * step * sv[i] * pdf[o])  # the content's slope alone
-            y[o] = pk[i, o] - gain * pj[i, o] - step * m
-        centred_moments(u, y, mean_u, gram[i], uy[i], yy, i)
+            y[o, 0] = pk[i, o] - gain * pj[i, o] - step * m
+        centred_moments(u, y, mean_u, gram, uy, yy, i)
         for frame in range(2):  # each frame alone: this one (δ, +c/2), then the partner (ε, −c/2g)
-            profile = pk[i] if frame == 0 else pj[i]
+            profile = pk if frame == 0 else pj
             per_step = 0.5 if frame == 0 else -0.5 / gain
             own_step(
                 profile,
@@ -358,12 +359,12 @@ def moments(
                 pdf,
                 line,
                 noise2,
-                weights[i],
+                weights,
                 frame,
                 u,
                 y,
-                gram[i],
-                uy[i],
+                gram,
+                uy,
                 yy,
                 i,
             )
@@ -392,50 +393,50 @@ def own_step_py(
     yy: F64,
     i: int,
 ) -> None:
-    """Add one frame's own equations to a profile's moments (:func:`moments`): the ``profile`` less the
-    frame's step (``half``·M, M = ``sv``·``cdf``; ``per_step`` = d half / d c) is a straight line, the
-    step's change (basis 1) and the frame's displacement (basis ``col``) explaining the rest; weighted by
-    ``weights[frame]`` (set here from ``noise2`` if negative). ``u`` (width x 5), ``y`` (width) are scratch."""
-    width = len(profile)
+    """Add one frame's own equations to profile ``i``'s moments (:func:`moments`): the frame's profile
+    (``profile[i]``) less its step (``half``·M, M = ``sv``·``cdf``; ``per_step`` = d half / d c) is a straight line,
+    the step's change (basis 1) and the frame's displacement (basis ``col``) explaining the rest; weighted by
+    ``weights[i, frame]`` (set here from ``noise2`` if negative). ``u`` (width x 5), ``y`` (width x 1) are scratch."""
+    width = profile.shape[1]
     for o in range(width):
         m = sv * cdf[o]
-        y[o] = profile[o] - half * m
+        y[o, 0] = profile[i, o] - half * m
         u[o, 1] = per_step * m
         u[o, col] = -half * sv * pdf[o]
-    detrend(y, line)
-    detrend(u[:, 1], line)
-    detrend(u[:, col], line)
+    detrend(y, 0, line)
+    detrend(u, 1, line)
+    detrend(u, col, line)
     left = 0.0
     for o in range(width):
-        left += y[o] * y[o]
-    if weights[frame] < 0.0:
-        weights[frame] = min(1.0, noise2 * width / max(left, 1e-9))
-    weight = weights[frame]
-    yy_i, uy_1, uy_c, g_11, g_1c, g_cc = yy[i], uy[1], uy[col], gram[1, 1], gram[1, col], gram[col, col]
+        left += y[o, 0] * y[o, 0]
+    if weights[i, frame] < 0.0:
+        weights[i, frame] = min(1.0, noise2 * width / max(left, 1e-9))
+    weight = weights[i, frame]
+    yy_i, uy_1, uy_c, g_11, g_1c, g_cc = yy[i], uy[i, 1], uy[i, col], gram[i, 1, 1], gram[i, 1, col], gram[i, col, col]
     for o in range(width):
-        yy_i += weight * y[o] * y[o]
-        uy_1 += weight * u[o, 1] * y[o]
-        uy_c += weight * u[o, col] * y[o]
+        yy_i += weight * y[o, 0] * y[o, 0]
+        uy_1 += weight * u[o, 1] * y[o, 0]
+        uy_c += weight * u[o, col] * y[o, 0]
         g_11 += weight * u[o, 1] * u[o, 1]
         g_1c += weight * u[o, 1] * u[o, col]
         g_cc += weight * u[o, col] * u[o, col]
-    yy[i], uy[1], uy[col], gram[1, 1], gram[1, col], gram[col, col] = yy_i, uy_1, uy_c, g_11, g_1c, g_cc
+    yy[i], uy[i, 1], uy[i, col], gram[i, 1, 1], gram[i, 1, col], gram[i, col, col] = yy_i, uy_1, uy_c, g_11, g_1c, g_cc
 
 
 own_step: Any = own_step_py  # compiled by kernels._compile_sparse into :func:`moments` (as a call, a third of its time)
 
 
-def detrend_py(v: F64, line: F64) -> None:
-    """``v`` less its mean and its component along the unit vector ``line`` (which sums to zero)."""
-    width = len(v)
+def detrend_py(v: F64, col: int, line: F64) -> None:
+    """Column ``col`` of ``v`` less its mean and its component along the unit vector ``line`` (which sums to zero)."""
+    width = v.shape[0]
     mean = 0.0
     along = 0.0
     for o in range(width):
-        mean += v[o]
-        along += v[o] * line[o]
+        mean += v[o, col]
+        along += v[o, col] * line[o]
     mean /= width
     for o in range(width):
-        v[o] -= mean + along * line[o]
+        v[o, col] -= mean + along * line[o]
 
 
 detrend: Any = detrend_py  # compiled by ``ipt.receiver.core.kernels._compile_sparse``
