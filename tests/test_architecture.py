@@ -270,7 +270,7 @@ def test_no_import_cycle_in_the_receiver_counting_function_level_imports() -> No
 def _reason_literals(path: Path) -> set[str]:
     """The reasons a module gives a frame (``FrameReason.X`` as that text, a bare string as itself): the
     fifth argument of ``FrameResult(...)``, what is assigned to ``reason`` (or unpacked into it), and what a
-    ``..._problem`` function or the gates' ``doubt`` returns."""
+    ``..._problem`` function or the gates' ``doubt`` (its answers worked out in ``_doubt``) returns."""
     found: set[str] = set()
     tree = ast.parse(path.read_text(encoding="utf-8"))
 
@@ -294,7 +294,7 @@ def _reason_literals(path: Path) -> set[str]:
                     for t, v in zip(target.elts, node.value.elts, strict=False):
                         if isinstance(t, ast.Name) and t.id == "reason":
                             text(v)
-        elif isinstance(node, ast.FunctionDef) and (node.name.endswith("_problem") or node.name == "doubt"):
+        elif isinstance(node, ast.FunctionDef) and (node.name.endswith("_problem") or node.name in ("doubt", "_doubt")):
             for ret in ast.walk(node):
                 if isinstance(ret, ast.Return) and ret.value is not None:
                     text(ret.value)
