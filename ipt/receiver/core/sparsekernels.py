@@ -11,9 +11,8 @@ I_j = content − (c/2g)·M(o − ε), the content taken for a straight line alo
 weighted by a frame's pixel noise variance over the variance the line leaves (at most 1): over a flat floor
 these place each frame's step apart; over busy content they weigh nothing.
 
-:func:`profiles` calls :data:`edge_row` and :data:`read_profile` (which call :data:`project_floor`,
-:data:`distort` and :data:`bilinear_u8`): the module's globals, which
-``ipt.receiver.core.kernels._compile_sparse`` replaces by their compiled versions before it compiles their caller.
+:func:`profiles` calls :data:`edge_row` and :data:`read_profile` (which call :data:`project_floor`, :data:`distort`
+and :data:`bilinear_u8`): globals that ``kernels._compile_sparse`` replaces by their compiled versions first.
 """
 
 from __future__ import annotations
@@ -111,11 +110,10 @@ def read_profile_py(
 ) -> bool:
     """``image`` into row ``row`` of ``out``: at its width's floor points (ox, oy) + o·(dx, dy), o = −radius..radius
     (``lams``: o / radius), seen at the pose (r, t): three points projected exactly (the ends, and the middle
-    (``mid_u``, ``mid_v``): the caller's :func:`edge_row_py` place of (ox, oy)), the others placed on the parabola
-    through them (the lens and the perspective bend a few pixels' profile by far less than a hundredth of a
-    pixel), bilinear, averaged over ``lines`` parallel lines a pixel apart across the profile (along the edge: the
-    dense difference's smoothing, a camera's noise is several times the map's step). False where the profile
-    leaves the image or the floor is behind the camera."""
+    (``mid_u``, ``mid_v``): the caller's :func:`edge_row_py` place of (ox, oy)), the others on the parabola through them
+    (the lens and the perspective bend a few pixels' profile by far less than 0.01 px), bilinear, averaged over
+    ``lines`` parallel lines a pixel apart along the edge (the dense difference's smoothing: a camera's noise is several
+    times the map's step). False where the profile leaves the image or the floor is behind the camera."""
     h, w = image.shape
     width = out.shape[1]
     radius = width // 2
@@ -133,6 +131,9 @@ def read_profile_py(
         return False
     tx, ty = -b_v / along, b_u / along  # a pixel along the edge
     first = -(lines // 2)
+    far = max(-first, first + lines - 1) + 1e-6  # |λ| <= 1: no point is further from the middle than ru, rv
+    ru, rv = abs(b_u) + abs(a_u) + far * abs(tx) + 1e-6, abs(b_v) + abs(a_v) + far * abs(ty) + 1e-6
+    inside = ru <= mid_u < w - 1.0 - ru and rv <= mid_v < h - 1.0 - rv  # (then none needs the check)
     for o in range(width):
         lam = lams[o]
         u = mid_u + lam * (b_u + lam * a_u)
@@ -140,7 +141,7 @@ def read_profile_py(
         total = 0.0
         for line in range(lines):
             ul, vl = u + (first + line) * tx, v + (first + line) * ty
-            if not (0.0 <= ul < w - 1.0 and 0.0 <= vl < h - 1.0):
+            if not (inside or (0.0 <= ul < w - 1.0 and 0.0 <= vl < h - 1.0)):
                 return False
             total += bilinear_u8(image, ul, vl)
         out[row, o] = total / lines
@@ -213,15 +214,14 @@ def profiles(
     border_px: float,
     lines: int,
 ) -> tuple[I64, F32, F32, F64]:
-    """For the edge samples (floor points ``obj``, floor normals ``nrm``) seen in ``image`` at the pose
-    (``r``, ``t``: arena → camera) through the camera ``k`` with lens ``dist``: which samples are in view
-    (inside by ``border_px``, in front of the camera), and both frames read at the same ``2·radius + 1`` floor
-    points along the normal, spaced one pixel of ``image`` apart at the sample (each the mean of ``lines``
-    readings along the edge, :func:`read_profile_py`): ``image`` at the pose (r, t),
-    ``other`` at (``r_other``, ``t_other``). Also, per sample, the rows of the linear system of both frames
-    (14: d(displacement along the image normal, in profile steps)/d(δ rotation, Δt) of this frame, then of
-    the other, then d(the content's displacement along the profile)/d(its motion on the floor, x and y)). A
-    sample whose profile leaves either image is dropped."""
+    """For the edge samples (floor points ``obj``, floor normals ``nrm``) seen in ``image`` at the pose (``r``, ``t``:
+    arena → camera) through the camera ``k`` with lens ``dist``: which samples are in view (inside by ``border_px``,
+    in front of the camera), and both frames read at the same ``2·radius + 1`` floor points along the normal, spaced
+    one pixel of ``image`` apart at the sample (each the mean of ``lines`` readings along the edge,
+    :func:`read_profile_py`): ``image`` at the pose (r, t), ``other`` at (``r_other``, ``t_other``). Also, per sample,
+    the rows of the linear system of both frames (14: d(displacement along the image normal, in profile steps)/d(δ
+    rotation, Δt) of this frame, then of the other, then d(the content's displacement along the profile)/d(its motion
+    on the floor, x and y)). A sample whose profile leaves either image is dropped."""
     n = obj.shape[0]
     h, w = image.shape
     width = 2 * radius + 1
