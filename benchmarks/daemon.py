@@ -193,7 +193,7 @@ class _MemoryCamera:
 
 
 def run_camera(folder: Path, fps: float, isolation: str = "process", tracker: str = "sparse") -> dict[str, Any]:
-    from ipt.receiver.allocator import keep_freed_memory
+    from ipt.memory import keep_freed_memory
     from ipt.receiver.cli import START_UP_SECONDS, GcHeldForStartUp
     from ipt.receiver.core import kernels
     from ipt.receiver.detect import tagworker

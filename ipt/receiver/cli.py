@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 from ipt import __version__
 from ipt.cliutil import Parser, positive_float, run_main
-from ipt.receiver.allocator import keep_freed_memory
+from ipt.memory import keep_freed_memory
 from ipt.signals import Interrupted, interruption
 
 if TYPE_CHECKING:
@@ -536,7 +536,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``ipt-receiver``."""
     for name, value in SERIAL_BLAS.items():
         os.environ.setdefault(name, value)
-    keep_freed_memory()  # (before the frames' arrays: ipt/receiver/allocator.py)
+    keep_freed_memory()  # (before the frames' arrays: ipt/memory.py)
     words = list(sys.argv[1:] if argv is None else argv)
 
     def on_interrupt(exc: Interrupted) -> int:
