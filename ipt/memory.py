@@ -22,8 +22,6 @@ import os
 import sys
 from typing import Final
 
-import numpy as np
-
 _M_TRIM_THRESHOLD: Final = -1
 _M_MMAP_THRESHOLD: Final = -3
 MMAP_THRESHOLD_MAX: Final = 32 * 1024 * 1024
@@ -56,6 +54,9 @@ def keep_freed_memory(largest_block_bytes: int = MMAP_THRESHOLD_MAX, keep_bytes:
 def warm(shape: tuple[int, ...], count: int) -> None:
     """Allocate ``count`` uint8 arrays of ``shape`` at once, write each page, and free them: run in a thread
     before its deadlines start, so that its heap already holds faulted-in memory for that many frames."""
+    import numpy as np  # (here: ipt-receiver imports this module before it limits numpy's BLAS threads, which
+    # would stop its AprilTag helper's fork: tests/test_startup.py)
+
     arrays = [np.empty(shape, np.uint8) for _ in range(count)]
     for a in arrays:
         a.fill(0)
