@@ -22,7 +22,8 @@ helper process too) with OpenCV on one thread, and scored against its ground tru
 - ``whole_process`` (unless ``--no-whole-process``): ``ipt-receiver replay`` of the rendering's frames as BMP
   images (written once into ``bmp/`` beside the rendering), a process pinned to core 0, its user + sys time by
   ``/usr/bin/time`` (the AprilTag helper process included) as ``frames_per_cpu_s``, the load average when it
-  started, and the yield and errors of that run's own poses (issue 29's target 1). It runs as the systemd unit
+  started, and the yield and errors of that run's own poses (issue 29's target 1), with the SHA-256 of its poses
+  file (``poses_sha256``: two runs that wrote the same poses to the byte). It runs as the systemd unit
   runs the receiver: ``NUMBA_CACHE_DIR`` a folder of ``--cache`` filled by ``ipt-receiver warm`` first, so
   with the kernels built ahead of time where a C compiler is (``kernels`` says how they were loaded). The
   frames are read once before it (into the page cache: reading 2.6 GB of 1280×720 frames from the disk cost
@@ -349,6 +350,12 @@ def frames_folder(folder: Path) -> Path:
 _WARMED: set[Path] = set()
 
 
+def receiver_command(receiver: Path | None) -> list[str]:
+    """How to start ``ipt-receiver``: this environment's entry point, or the module for another checkout's."""
+    entry = Path(sys.executable).with_name("ipt-receiver")
+    return [str(entry)] if receiver is None and entry.is_file() else [sys.executable, "-m", "ipt.receiver.cli"]
+
+
 def kernel_env(cache: Path, receiver: Path | None, command: list[str]) -> dict[str, str]:
     """The environment of a whole-process replay: as the systemd unit runs the receiver, ``NUMBA_CACHE_DIR``
     (a folder of ``cache`` per receiver checkout) filled by ``ipt-receiver warm`` first (numba's cache, and the
@@ -383,8 +390,7 @@ def whole_process(
     truth = read_tum(folder / "groundtruth.tum")
     rate = 1.0 / float(np.median(np.diff(truth.times_s)))
     frames_dir = frames_folder(folder)
-    entry = Path(sys.executable).with_name("ipt-receiver")
-    command = [str(entry)] if receiver is None and entry.is_file() else [sys.executable, "-m", "ipt.receiver.cli"]
+    command = receiver_command(receiver)
     env = kernel_env(cache, receiver, command)
     images = sorted(frames_dir.glob("*.bmp"))
     for image in images:  # into the page cache first: a camera's frames come from no disk
@@ -402,7 +408,7 @@ def whole_process(
         if done.returncode != 0:
             raise SystemExit(f"suite: {' '.join(cmd)} failed: {done.stderr.strip()[-2000:]}")
         user_s, sys_s = (float(v) for v in timing.read_text(encoding="utf-8").split()[-2:])
-        got = read_tum(poses)
+        got, digest = read_tum(poses), hashlib.sha256(poses.read_bytes()).hexdigest()
     kernels_line = next((line for line in done.stdout.splitlines() if "kernels:" in line), "")
     frames = len(images)
     out: dict[str, Any] = {
@@ -412,6 +418,7 @@ def whole_process(
         "load_average": round(load, 2),
         "yield_pct": round(100.0 * len(got) / frames, 2),
         "kernels": kernels_line.split("kernels: ", 1)[-1],
+        "poses_sha256": digest,
     }
     if len(got):
         r = evaluate(truth, got)
