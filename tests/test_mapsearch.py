@@ -145,3 +145,34 @@ def test_the_packed_correlation_is_the_circular_one(shape: tuple[int, int]) -> N
     t = (3, 11)  # one shift by hand
     rolled = np.roll(flat_map, (-t[0], -t[1]), axis=(0, 1))
     assert got[t] == pytest.approx(float((patch * rolled).sum()), rel=1e-4, abs=1e-3)
+
+
+def test_the_pipeline_renders_the_map_s_mask_once_for_both_of_its_searches(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The coarse search's mask renderer and the whole map's search share one rendering of the mask (20 ms at the
+    shipped 1920x2160, before a restarted daemon's first pose), and the map search made from it is the one a
+    rendering of its own gives."""
+    from ipt.config.models import PipelineConfig
+    from ipt.receiver.core.pipeline import Pipeline
+    from ipt.receiver.detect.detector import pipeline_detector
+    from ipt.tagmap import TagMap
+
+    real = TagMap.render_mask
+    rendered: list[TagMap] = []
+
+    def counted(self: TagMap) -> npt.NDArray[np.int8]:
+        rendered.append(self)
+        return real(self)
+
+    monkeypatch.setattr(TagMap, "render_mask", counted)
+    cfg = PipelineConfig()
+    pipeline = Pipeline(TAG_MAP, CAMERA, cfg, 60.0, pipeline_detector(cfg.detector, TAG_MAP.by_id))
+    assert pipeline.masks is not None
+    assert len(rendered) == 1
+    shared = pipeline.acquisition.searcher()
+    assert len(rendered) == 1
+    assert pipeline.acquisition.searcher() is shared
+    own = MapSearch.of(TAG_MAP)
+    assert len(rendered) == 2
+    assert shared.map.tobytes() == own.map.tobytes()
+    assert (shared.origin_m == own.origin_m).all()
+    assert shared.mean_energy == own.mean_energy

@@ -79,9 +79,18 @@ class Acquisition:
     """AprilTag (``detector``) and the map search for the pipeline's ``stages``."""
 
     def __init__(
-        self, stages: TrackStages, tag_map: TagMap, pinhole: CameraInfo, cfg: PipelineConfig, detector: Detector
+        self,
+        stages: TrackStages,
+        tag_map: TagMap,
+        pinhole: CameraInfo,
+        cfg: PipelineConfig,
+        detector: Detector,
+        mask: npt.NDArray[np.int8] | None = None,
     ) -> None:
+        """``mask``: the map's :meth:`~ipt.tagmap.TagMap.render_mask` if the caller made it already (kept for the map
+        search until its first use)."""
         self.stages, self.tag_map, self.pinhole, self.cfg, self.detector = stages, tag_map, pinhole, cfg, detector
+        self._mask = mask
         self.runs = 0
         """AprilTag runs so far."""
         self.since_verify = 0
@@ -169,6 +178,12 @@ class Acquisition:
         self.shadowed_at = target.index
         return False
 
+    def searcher(self) -> MapSearch:
+        """The search of the whole map, built at its first use (from the caller's mask, which it then lets go)."""
+        if self.map_search is None:
+            self.map_search, self._mask = MapSearch.of(self.tag_map, mask=self._mask), None
+        return self.map_search
+
     def search_map(self, target: Frame, other: Frame, diff: PairDifference) -> Candidate | None:
         """No whole tag: the level poses that lay the whole map on the difference (:mod:`~ipt.receiver.core.
         mapsearch`; one pair every :data:`SEARCH_EVERY` frames), the first the track confirms. Not on a frame
@@ -181,9 +196,8 @@ class Acquisition:
             return None  # the next pair, a whole number of periods apart, is searched instead
         if not self._search_turn(target) or target.lit_share < ACQUIRE_LIT_SHARE:
             return None  # (a dim frame's turn goes by, as if searched: the frames after meet the turns they would have)
-        self.map_search = self.map_search or MapSearch.of(self.tag_map)
         lit = diff.valid if target.signal is None else np.minimum(diff.valid, target.signal)
-        for h in self.map_search.search(diff.diff, lit, self.pinhole.camera_matrix):
+        for h in self.searcher().search(diff.diff, lit, self.pinhole.camera_matrix):
             # (a search around the start, not _coarse's: that one lays a level guess's view wrong by a tag)
             found = self._placed(target, other, diff, (h.rvec, h.tvec), h.search_px)
             if found is not None:

@@ -130,7 +130,8 @@ class Pipeline:
         self.edges = MapEdges.from_tag_map(tag_map) if self.tracking else None
         if self.ipt:
             kernels.warm_in_background()  # ready before the first pair: a live camera must not wait
-        self.masks = MaskRenderer(tag_map.render_mask(), pixel_to_arena(tag_map)) if self.tracking else None
+        mask = tag_map.render_mask() if self.tracking else None  # (one rendering for the coarse search and the map's)
+        self.masks = MaskRenderer(mask, pixel_to_arena(tag_map)) if mask is not None else None
         scale = camera.width_px / 640
         t = cfg.pose.track
         self.track_settings = TrackSettings(
@@ -156,7 +157,7 @@ class Pipeline:
         self.stage_seconds: dict[str, float] = defaultdict(float)
         """Processor time of the pipeline's thread spent per stage (the AprilTag helper process's own time is not
         in "detect"), for benchmarks and diagnostics."""
-        self.acquisition = Acquisition(self, tag_map, self.pinhole, cfg, detector)
+        self.acquisition = Acquisition(self, tag_map, self.pinhole, cfg, detector, mask)
         """AprilTag's acquisition and check of the track, and the search of the whole map."""
         self.sparse: SparseStage | None = None
         """The sparse tracker (``cfg.tracker`` "sparse", tracking only): poses a frame first, the dense way second."""
