@@ -96,3 +96,33 @@ def test_a_dim_view_rests_too_and_its_turns_of_the_search_go_by(short_flight: Pa
     assert [i for i, r in enumerate(rested) if not r] == [0, 8, 16]
     assert turns == [i - i % SEARCH_EVERY for i in range(18)]  # (each frame a search's turn falls on took it)
     assert acq.map_search is None
+
+
+def test_a_frame_at_rest_is_prepared_for_its_lit_share_only(short_flight: Path) -> None:
+    """A shadowed frame whose pairs rest needs its lit share (its undistorted lightness and signal mask), not the
+    alignment's features: those are made for the frames of a pair only."""
+    frames = flight_frames(short_flight)
+    p = flight_pipeline(short_flight, PipelineConfig())
+    featured: dict[int, bool] = {}
+    paired: set[int] = set()
+    dense, pair = p._dense, p.pair
+
+    def dense_spy(f: Frame, features: bool = False) -> None:
+        dense(f, features)
+        featured[f.index] = featured.get(f.index, False) or f.features is not None
+
+    def pair_spy(a: Frame, b: Frame) -> Any:
+        paired.update((a.index, b.index))
+        return pair(a, b)
+
+    p._dense = dense_spy  # type: ignore[method-assign]
+    p.pair = pair_spy  # type: ignore[method-assign]
+    try:
+        for i, frame in enumerate(frames[:40]):
+            p.process(i, _shadowed(frame) if i < SHADOWED else frame, i * 8_333)
+        p.flush()
+    finally:
+        p.close()
+    assert {i for i, has in featured.items() if has} <= paired
+    at_rest = [i for i, has in featured.items() if i < SHADOWED and not has]
+    assert len(at_rest) >= SHADOWED // 2

@@ -265,6 +265,14 @@ def signal_mask(lum: U8, coverage: U8 | None = None) -> U8:
     return erode_ellipse(cv2.morphologyEx(lit, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)), 2 * margin + 1)
 
 
+def undistorted_lit(lum: U8, undistort: Undistorter | None) -> tuple[U8, U8]:
+    """A frame's lightness undistorted (by ``undistort``, if any) and its :func:`signal_mask`."""
+    if undistort is None:
+        return lum, signal_mask(lum)
+    lum = undistort(lum)
+    return lum, signal_mask(lum, undistort.coverage)
+
+
 @functools.lru_cache(maxsize=8)
 def _ellipse_rectangles(size: int) -> tuple[npt.NDArray[np.uint8], ...]:
     """OpenCV's ``size`` × ``size`` ellipse (``MORPH_ELLIPSE``) as the union of the centred rectangles it is made of:
