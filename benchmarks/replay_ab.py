@@ -14,9 +14,9 @@ in the machine's load hits both alike. This machine's time is noisy (a shared ho
 ratios of one run, with its load.
 
 JSON on stdout: for each flight every run (which checkout, frames per processor-second, user and sys seconds, the
-load average when it started, the SHA-256 of the poses file), the median of each checkout's runs, the median and the
-range of the pairs' ratios new / base, and ``same_poses``: whether every run of both wrote the same bytes (a speed-up
-that claims to leave the poses alone must show true). Progress goes to stderr.
+load average when it started, the SHA-256 of the poses file, how the kernels were loaded), the median of each
+checkout's runs, the median and the range of the pairs' ratios new / base, and ``same_poses``: whether every run of
+both wrote the same bytes (a speed-up that claims to leave the poses alone must show true). Progress goes to stderr.
 """
 
 from __future__ import annotations
@@ -99,7 +99,8 @@ def main() -> int:
             for side, tree in order:
                 r = suite.whole_process(folder, folder / "arena.yaml", "ipt", tree, args.cache)
                 runs.append({"checkout": side, **{k: r[k] for k in ("frames_per_cpu_s", "user_s", "sys_s")},
-                             "load_average": r["load_average"], "poses_sha256": r["poses_sha256"]})  # fmt: skip
+                             "load_average": r["load_average"], "poses_sha256": r["poses_sha256"],
+                             "kernels": r["kernels"]})  # fmt: skip
                 print(f"replay_ab: {path.stem} pair {pair + 1}/{args.pairs} {side}: {r['frames_per_cpu_s']} frames "
                       f"per processor-second (load {r['load_average']})", file=sys.stderr, flush=True)  # fmt: skip
         out["flights"][path.stem] = {"runs": runs, **summary(runs)}
