@@ -52,25 +52,55 @@ def free_pupil_detector(det: Any) -> None:
     det.tag_families = {}
 
 
+#: Bits of error the binding's decode table corrects (its constructor's, for every family).
+BINDING_BITS = 2
+
+
 def make_pupil_detector(settings: dict[str, float], binding: Any = None) -> Any:
     """A tag36h11 dt-apriltags detector with ``settings`` (see :func:`ipt.receiver.detect.detector.c_settings`).
     Free it with :func:`free_pupil_detector`. ``binding``: another module of pupil-apriltags' interface to make
-    it with (``pupil_apriltags`` itself, for ``benchmarks/apriltag_binding.py``'s comparison)."""
+    it with (``pupil_apriltags`` itself, for ``benchmarks/apriltag_binding.py``'s comparison).
+
+    Its decode table corrects ``settings["max_hamming"]`` bits (default :data:`BINDING_BITS`): the detector keeps
+    no decode with more, and tag36h11's table with two corrected bits costs 23 ms and ~35 MB at every start where
+    one bit's costs 0.6 ms and 0.3 MB. Its codewords are 11 bits apart, so a code within one bit of a codeword is
+    more than two bits from every other: both tables give the same decodes of at most one bit. The binding builds
+    the table in its constructor, for two bits, so the detector is made with the tiny tag16h5 family and that is
+    swapped for tag36h11 (:func:`_use_tag36h11`)."""
     if binding is None:
         import dt_apriltags
 
         binding = dt_apriltags
+    bits = int(settings.get("max_hamming", BINDING_BITS))
     det = binding.Detector(
-        families="tag36h11",
+        families="tag36h11" if bits >= BINDING_BITS else "tag16h5",
         nthreads=int(settings["nthreads"]),
         quad_decimate=settings["quad_decimate"],
         quad_sigma=settings["quad_sigma"],
         refine_edges=int(settings["refine_edges"]),
         decode_sharpening=settings["decode_sharpening"],
     )
+    if bits < BINDING_BITS:
+        _use_tag36h11(det, bits)
     # dt-apriltags 3.1.7 (as pupil-apriltags 1.0.4) stores int(decode_sharpening): 0.25 would reach C as 0.
     det.tag_detector_ptr.contents.decode_sharpening = settings["decode_sharpening"]
     return det
+
+
+def _use_tag36h11(det: Any, bits: int) -> None:
+    """Replace ``det``'s tag16h5 family by tag36h11 with a decode table of ``bits`` corrected bits (the library's
+    own calls; the binding's ``tag_families`` kept in step, which :func:`free_pupil_detector` frees)."""
+    libc, ptr = det.libc, det.tag_detector_ptr
+    small = det.tag_families.pop("tag16h5")
+    for name in ("apriltag_detector_remove_family", "tag16h5_destroy", "apriltag_detector_add_family_bits"):
+        getattr(libc, name).restype = None
+    libc.apriltag_detector_remove_family(ptr, small)  # (frees its decode table)
+    libc.tag16h5_destroy(small)
+    libc.tag36h11_create.restype = type(small)
+    family = libc.tag36h11_create()
+    libc.apriltag_detector_add_family_bits(ptr, family, bits)
+    det.tag_families["tag36h11"] = family
+    det.params["families"] = ["tag36h11"]
 
 
 def pupil_settings(det: Any) -> dict[str, float]:

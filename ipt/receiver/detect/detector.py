@@ -50,6 +50,7 @@ def c_settings(cfg: DetectorConfig) -> dict[str, float]:
         "quad_sigma": cfg.quad_sigma,
         "refine_edges": int(cfg.refine_edges),
         "decode_sharpening": cfg.decode_sharpening,
+        "max_hamming": cfg.max_hamming,  # (the bits its decode table corrects: no more are kept)
     }
 
 
@@ -147,7 +148,6 @@ class TagDetector:
                 continue
             out.append(TagDetection(tag_id, hamming, margin, corners))
         return tuple(out)
-
 
 
 def pipeline_detector(cfg: DetectorConfig, known_ids: Iterable[int]) -> TagDetector:
