@@ -134,7 +134,9 @@ class DetectorConfig(StrictModel):
     refine_edges: bool = Field(True, description="Snap quad edges to strong gradients.")
     decode_sharpening: float = Field(0.25, ge=0.0, le=2.0, description="Sharpening of decoded images.")
     threads: int = Field(1, ge=1, le=16, description="Detector worker threads.")
-    max_hamming: int = Field(1, ge=0, le=2, description="Decodes with more bit errors than this are dropped.")
+    max_hamming: int = Field(
+        1, ge=0, le=2, description="Bit errors a decode may have: AprilTag's table corrects this many, no more."
+    )
     border_margin_px: float = Field(
         2.0,
         ge=0.0,
