@@ -63,7 +63,7 @@ def make_pupil_detector(settings: dict[str, float], binding: Any = None) -> Any:
 
     Its decode table corrects ``settings["max_hamming"]`` bits (default :data:`BINDING_BITS`): the detector keeps
     no decode with more, and tag36h11's table with two corrected bits costs 23 ms and ~35 MB at every start where
-    one bit's costs 0.6 ms and 0.3 MB. Its codewords are 11 bits apart, so a code within one bit of a codeword is
+    one bit's costs 0.6 ms and ~1 MB. Its codewords are 11 bits apart, so a code within one bit of a codeword is
     more than two bits from every other: both tables give the same decodes of at most one bit. The binding builds
     the table in its constructor, for two bits, so the detector is made with the tiny tag16h5 family and that is
     swapped for tag36h11 (:func:`_use_tag36h11`)."""
