@@ -10,9 +10,14 @@ rounds alternating so that a change in the machine's load hits both. ``--wx`` ad
 W^X whatever the unit says (what the old unit cost). ``--read-only`` (root, Linux) runs the unit's
 commands in a mount namespace of their own where the whole file system is read-only but the cache folder,
 as ``ProtectSystem=strict`` with ``CacheDirectory=`` leaves it (numba cannot then fall back to a cache
-next to the sources). Prints one JSON object.
+next to the sources). ``--live DIR`` (a folder as ``ipt sim`` writes it: frames.mkv, camera.yaml,
+groundtruth.tum) adds issue 29's live figure under the same settings: ``benchmarks/daemon.py --video DIR
+--modes camera`` (the daemon fed the recording at the camera's rate, capture -> send latency) pinned to one core,
+as the unit runs the receiver and unrestricted, alternating for ``--live-rounds``; with ``--wx`` under W^X too.
+Prints one JSON object.
 
     ./dev run python benchmarks/unit_kernels.py --video DIR/bmp --camera DIR/camera.yaml --config DIR/arena.yaml
+    ./dev run python benchmarks/unit_kernels.py ... --rounds 0 --live DIR --live-rounds 3 --wx --read-only
 """
 
 from __future__ import annotations
@@ -55,12 +60,38 @@ READ_ONLY = 'mount --make-rprivate / && mount --bind "$0" "$0" && mount -o remou
 """sh: bind the cache folder ($0) onto itself, then make the root mount read-only, then run the command."""
 
 
-def _timed(command: list[str], env: dict[str, str], wx: bool, writable: str | None = None) -> dict[str, object]:
+def _restricted(command: list[str], wx: bool, writable: str | None) -> list[str]:
+    """``command`` pinned to core 0 and timed, under W^X (``wx``), the file system read-only but ``writable``."""
     if wx:
         command = [sys.executable, "-c", MDWE_EXEC, *command]
     if writable is not None:
         command = ["unshare", "-m", "sh", "-c", READ_ONLY, writable, *command]
-    full = ["taskset", "-c", "0", "/usr/bin/time", "-f", "%U %S", *command]
+    return ["taskset", "-c", "0", "/usr/bin/time", "-f", "%U %S", *command]
+
+
+LIVE_FIGURES = ("poses", "frames_per_second", "latency_p50_ms", "latency_p99_ms", "drops", "poses_over_30ms")
+"""What each live run reports of ``benchmarks/daemon.py``'s camera mode (its packets' errors are checked too)."""
+
+
+def _live(folder: str, env: dict[str, str], wx: bool, writable: str | None) -> dict[str, object]:
+    """``benchmarks/daemon.py --video folder --modes camera`` under these settings: its camera mode's figures."""
+    env = dict(env, TMPDIR=writable) if writable is not None else env  # (its temporary folder, as PrivateTmp= gives)
+    daemon = [sys.executable, str(ROOT / "benchmarks" / "daemon.py"), "--video", folder, "--modes", "camera"]
+    result = subprocess.run(_restricted(daemon, wx, writable), capture_output=True, text=True, env=env, check=False,
+                            timeout=1800)  # fmt: skip
+    if result.returncode != 0:
+        return {"exit": result.returncode, "error": result.stderr.strip().splitlines()[-1:]}
+    camera = json.loads(result.stdout)["camera"]
+    out: dict[str, object] = {name: camera.get(name) for name in LIVE_FIGURES}
+    seconds = camera["frames_captured"] / 120.0  # (the flight's length: the camera's frames at 120 FPS)
+    out["poses_per_second"] = round(camera["poses"] / seconds, 1) if seconds else None
+    out["packets_over_30mm"] = camera.get("packet_error_mm", {}).get("over_30mm")
+    out["loadavg_1min"] = os.getloadavg()[0]
+    return out
+
+
+def _timed(command: list[str], env: dict[str, str], wx: bool, writable: str | None = None) -> dict[str, object]:
+    full = _restricted(command, wx, writable)
     result = subprocess.run(full, capture_output=True, text=True, env=env, check=False, timeout=1800)
     lines = result.stderr.strip().splitlines()
     user, sys_s = (float(x) for x in lines[-1].split())
@@ -77,7 +108,11 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--wx", action="store_true", help="also one replay under W^X (the old unit's setting)")
     parser.add_argument("--read-only", action="store_true", help="as the unit: all read-only but the cache (root)")
+    parser.add_argument("--live", metavar="DIR", help="also the live daemon on this flight folder (frames.mkv, ...)")
+    parser.add_argument("--live-rounds", type=int, default=3, help="live runs of each setting, alternating")
     args = parser.parse_args()
+    if args.live is not None and not (Path(args.live) / "frames.mkv").is_file():
+        parser.error(f"--live {args.live}: no frames.mkv there (a folder as ipt sim writes it)")
     unit_env, unit_wx = _unit_settings()
     with tempfile.TemporaryDirectory(prefix="ipt-unit-") as tmp:
         cli = [sys.executable, "-m", "ipt.receiver.cli"]
@@ -99,8 +134,8 @@ def main() -> int:
         for _ in range(args.rounds):
             unit_run = _timed(replay, as_unit, unit_wx, writable)
             rounds.append({"unrestricted": _timed(replay, free, False), "unit": unit_run})
-        free_s = statistics.median(float(r["unrestricted"]["cpu_s"]) for r in rounds)  # type: ignore[arg-type]
-        unit_s = statistics.median(float(r["unit"]["cpu_s"]) for r in rounds)  # type: ignore[arg-type]
+        free_s = statistics.median(float(r["unrestricted"]["cpu_s"]) for r in rounds) if rounds else None  # type: ignore[arg-type]
+        unit_s = statistics.median(float(r["unit"]["cpu_s"]) for r in rounds) if rounds else None  # type: ignore[arg-type]
         out: dict[str, object] = {
             "unit_environment": unit_env,
             "unit_wx": unit_wx,
@@ -109,11 +144,22 @@ def main() -> int:
             "warm_as_unit": warm_unit,
             "rounds": rounds,
             "median_cpu_s": {"unrestricted": free_s, "unit": unit_s},
-            "ratio_unit_to_unrestricted": round(unit_s / free_s, 3),
+            "ratio_unit_to_unrestricted": round(unit_s / free_s, 3) if unit_s and free_s else None,
             "loadavg_1min": os.getloadavg()[0],
         }
-        if args.wx:
+        if args.wx and rounds:
             out["under_wx"] = _timed(replay, as_unit, True)
+        if args.live is not None:
+            live = []
+            for _ in range(args.live_rounds):
+                one = {
+                    "unit": _live(args.live, as_unit, unit_wx, writable),
+                    "unrestricted": _live(args.live, free, False, None),
+                }
+                if args.wx:
+                    one["unit_under_wx"] = _live(args.live, as_unit, True, writable)
+                live.append(one)
+            out["live"] = live
     print(json.dumps(out, indent=1))
     return 0
 
