@@ -194,13 +194,16 @@ class _MemoryCamera:
 
 def run_camera(folder: Path, fps: float, isolation: str = "process", tracker: str = "sparse") -> dict[str, Any]:
     from ipt.memory import keep_freed_memory
-    from ipt.receiver.cli import START_UP_SECONDS, GcHeldForStartUp
+    from ipt.receiver.cli import START_UP_SECONDS, GcHeldForStartUp, serial_libraries
+
+    # The start-up of `ipt-receiver run` (ipt/receiver/cli.py, main and _run_daemon): OpenCV's one thread (set before
+    # it loads: numpy's BLAS loaded with this script already), the allocator keeping what a frame frees, the garbage
+    # collector held until the first pose, AprilTag's helper forked while this process is lean (not later, from one
+    # holding every decoded frame), the kernels loaded on a thread of their own.
+    serial_libraries()
     from ipt.receiver.core import kernels
     from ipt.receiver.detect import tagworker
 
-    # The start-up of `ipt-receiver run` (ipt/receiver/cli.py, main and _run_daemon): the allocator keeping what a
-    # frame frees, the garbage collector held until the first pose, AprilTag's helper forked while this process is
-    # lean (not later, from one holding every decoded frame), the kernels loaded on a thread of their own.
     keep_freed_memory()
     hold = GcHeldForStartUp()
     prestarted = isolation == "process" and tagworker.prestart()

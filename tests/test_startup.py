@@ -15,6 +15,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 from ipt.config.camera_info import CameraInfo, save_camera_info
 
@@ -229,3 +230,28 @@ def test_the_collector_is_held_off_until_the_first_pose_then_the_start_up_is_fro
     finally:
         gc.unfreeze()
         gc.enable()
+
+
+_THREADS_AFTER_MAIN = """
+import contextlib, io, os, sys
+from ipt.receiver.cli import main
+with contextlib.redirect_stdout(io.StringIO()), contextlib.suppress(SystemExit):
+    main(["--version"])
+import cv2
+print(os.environ["OPENCV_FOR_THREADS_NUM"], cv2.getNumThreads())
+"""
+
+
+@pytest.mark.parametrize(("users", "expected"), [(None, "1 1"), ("3", "3 3")])
+def test_the_receiver_runs_opencv_on_one_thread_unless_told(users: str | None, expected: str) -> None:
+    # OpenCV's pool splits a 640-pixel frame's remaps and warps over the cores and its idle workers spin
+    # (sched_yield): 0.7-1.0 s of a two-core replay's processor time for no wall time. The entry point sets one
+    # thread before OpenCV loads; a user's own OPENCV_FOR_THREADS_NUM is kept.
+    env = {k: v for k, v in os.environ.items() if k != "OPENCV_FOR_THREADS_NUM"}
+    if users is not None:
+        env["OPENCV_FOR_THREADS_NUM"] = users
+    proc = subprocess.run(
+        [sys.executable, "-c", _THREADS_AFTER_MAIN], capture_output=True, text=True, timeout=120, check=False, env=env
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.strip() == expected

@@ -525,17 +525,27 @@ def _main(argv: Sequence[str] | None) -> int:
     return rc
 
 
-SERIAL_BLAS = {"OPENBLAS_NUM_THREADS": "1"}
-"""Set (unless already set) before numpy loads: the receiver's matrix products are small (3x3 up to a few
-thousand rows by 3), and OpenBLAS's worker threads, one per core, started with numpy in this process and in
-the AprilTag helper, only spin: a tenth of a second of processor time at every start, taken from the other
-core while the daemon starts. Under ``taskset -c 0`` OpenBLAS runs one thread anyway; the poses are the same."""
+SERIAL_LIBRARIES = {"OPENBLAS_NUM_THREADS": "1", "OPENCV_FOR_THREADS_NUM": "1"}
+"""Set (unless already set) before numpy and OpenCV load (:func:`serial_libraries`). The receiver's matrix products
+are small (3x3 up to a few thousand rows by 3), and OpenBLAS's worker threads, one per core, started with numpy in
+this process and in the AprilTag helper, only spin: a tenth of a second of processor time at every start, taken from
+the other core while the daemon starts. OpenCV's pool splits each remap, warp and blur of a 640-pixel frame over the
+cores and its idle workers wait by spinning (``sched_yield``, 240 000-280 000 calls a replay): on this 2-core machine an
+unpinned moving-content replay took 5.8-6.2 s of processor time against 4.5-5.3 with one thread, and no less wall
+time (4.7-5.0 s against 4.2-4.9), the same poses; on a Pi's four cores the spin takes what the capture thread and the
+AprilTag helper would use. Under ``taskset -c 0`` both run one thread anyway."""
+
+
+def serial_libraries() -> None:
+    """:data:`SERIAL_LIBRARIES` into the environment where the user has not set them (before numpy or OpenCV loads:
+    each reads its variable then)."""
+    for name, value in SERIAL_LIBRARIES.items():
+        os.environ.setdefault(name, value)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``ipt-receiver``."""
-    for name, value in SERIAL_BLAS.items():
-        os.environ.setdefault(name, value)
+    serial_libraries()
     keep_freed_memory()  # (before the frames' arrays: ipt/memory.py)
     words = list(sys.argv[1:] if argv is None else argv)
 
