@@ -245,8 +245,8 @@ print(os.environ["OPENCV_FOR_THREADS_NUM"], cv2.getNumThreads())
 @pytest.mark.parametrize(("users", "expected"), [(None, "1 1"), ("3", "3 3")])
 def test_the_receiver_runs_opencv_on_one_thread_unless_told(users: str | None, expected: str) -> None:
     # OpenCV's pool splits a 640-pixel frame's remaps and warps over the cores and its idle workers spin
-    # (sched_yield): 0.7-1.0 s of a two-core replay's processor time for no wall time. The entry point sets one
-    # thread before OpenCV loads; a user's own OPENCV_FOR_THREADS_NUM is kept.
+    # (sched_yield): 10-22 % of a two-core replay's processor time for no wall time (docs/receiver-cores.md, stop
+    # 67). The entry point sets one thread before OpenCV loads; a user's own OPENCV_FOR_THREADS_NUM is kept.
     env = {k: v for k, v in os.environ.items() if k != "OPENCV_FOR_THREADS_NUM"}
     if users is not None:
         env["OPENCV_FOR_THREADS_NUM"] = users
