@@ -69,6 +69,9 @@ def _restricted(command: list[str], wx: bool, writable: str | None) -> list[str]
     return ["taskset", "-c", "0", "/usr/bin/time", "-f", "%U %S", *command]
 
 
+FPS = 120.0
+"""The camera's frame rate, for the replays and the live runs alike (the simulated flights' 120 FPS)."""
+
 LIVE_FIGURES = ("poses", "frames_per_second", "latency_p50_ms", "latency_p99_ms", "drops", "poses_over_30ms")
 """What each live run reports of ``benchmarks/daemon.py``'s camera mode (its packets' errors are checked too)."""
 
@@ -76,14 +79,15 @@ LIVE_FIGURES = ("poses", "frames_per_second", "latency_p50_ms", "latency_p99_ms"
 def _live(folder: str, env: dict[str, str], wx: bool, writable: str | None) -> dict[str, object]:
     """``benchmarks/daemon.py --video folder --modes camera`` under these settings: its camera mode's figures."""
     env = dict(env, TMPDIR=writable) if writable is not None else env  # (its temporary folder, as PrivateTmp= gives)
-    daemon = [sys.executable, str(ROOT / "benchmarks" / "daemon.py"), "--video", folder, "--modes", "camera"]
+    daemon = [sys.executable, str(ROOT / "benchmarks" / "daemon.py"), "--video", folder, "--modes", "camera",
+              "--fps", str(FPS)]  # fmt: skip
     result = subprocess.run(_restricted(daemon, wx, writable), capture_output=True, text=True, env=env, check=False,
                             timeout=1800)  # fmt: skip
     if result.returncode != 0:
         return {"exit": result.returncode, "error": result.stderr.strip().splitlines()[-1:]}
     camera = json.loads(result.stdout)["camera"]
     out: dict[str, object] = {name: camera.get(name) for name in LIVE_FIGURES}
-    seconds = camera["frames_captured"] / 120.0  # (the flight's length: the camera's frames at 120 FPS)
+    seconds = camera["frames_captured"] / FPS  # (the flight's length)
     out["poses_per_second"] = round(camera["poses"] / seconds, 1) if seconds else None
     out["packets_over_30mm"] = camera.get("packet_error_mm", {}).get("over_30mm")
     out["loadavg_1min"] = os.getloadavg()[0]
@@ -117,7 +121,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="ipt-unit-") as tmp:
         cli = [sys.executable, "-m", "ipt.receiver.cli"]
         replay = [*cli, "replay", "--config", args.config, "--camera", args.camera, "--video", args.video,
-                  "--fps", "120", "--output", str(Path(tmp) / "poses.tum")]  # fmt: skip
+                  "--fps", str(FPS), "--output", str(Path(tmp) / "poses.tum")]  # fmt: skip
         free = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
         as_unit = {k: v for k, v in free.items() if not k.startswith(("NUMBA_", "XDG_"))}
         as_unit.update(unit_env, HOME="/nonexistent")
