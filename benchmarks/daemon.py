@@ -326,9 +326,7 @@ def main() -> int:
         default="sparse",
         help="the pipeline's tracker in the camera modes (default sparse, the ipt profile's)",
     )
-    p.add_argument(
-        "--modes", default="camera,fast", help="comma-separated: camera, camera_inline, realtime, fast"
-    )
+    p.add_argument("--modes", default="camera,fast", help="comma-separated: camera, camera_inline, realtime, fast")
     p.add_argument("--compare-replay", action="store_true", help="also count the poses ipt-receiver replay finds")
     args = p.parse_args()
     with tempfile.TemporaryDirectory() as tmp:

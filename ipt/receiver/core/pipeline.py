@@ -208,6 +208,10 @@ class Pipeline:
     def _tracked(self) -> None:
         self.acquisition.since_verify += 1
 
+    def _lit_share(self, signal: U8) -> float:
+        """The share of the view (the undistorted sensor's pixels) that a frame's signal mask ``signal`` lights."""
+        return cv2.countNonZero(signal) / self._view_px
+
     def _dense(self, f: Frame, features: bool = False) -> None:
         """The dense preparation of ``f`` (sparse tracker), once: its undistorted lightness and signal mask (its lit
         share), its alignment features only for a pair (``features``: 0.2 of 1.5 ms, of no use to a frame at rest)."""
@@ -216,7 +220,7 @@ class Pipeline:
         t0 = time.thread_time()
         if f.signal is None:
             f.lum, f.signal = undistorted_lit(f.raw, self.undistort)
-            f.lit_share = cv2.countNonZero(f.signal) / self._view_px
+            f.lit_share = self._lit_share(f.signal)
             self.dense_prepared += 1
         if features and f.features is None:
             f.features = alignment_features(f.lum)
@@ -248,8 +252,8 @@ class Pipeline:
             self._restart()  # a jump in the video, or time going backwards
         assert ready.lum is not None
         new = Frame(index, capture_time_us, ready.lum, ready.signal, ready.features)
-        if ready.signal is not None:  # the share of the view (the undistorted sensor's pixels) it lights
-            new.lit_share = cv2.countNonZero(ready.signal) / self._view_px
+        if ready.signal is not None:
+            new.lit_share = self._lit_share(ready.signal)
         if self.sparse is not None:
             new.raw, self.sparse.now_us = ready.lum, None if waited_us is None else capture_time_us + waited_us
         if gap:  # its reason unless a later frame pairs with it
