@@ -7,8 +7,9 @@ k−3, those with a pose first), both poses fitted when that one has none yet (a
 its prediction); then each + frame still waiting is fitted on its own against the − frame's new pose. While the
 floor's content holds still (judged on each − frame against the − frame of the video frame before,
 :func:`content_still`) a + frame is fitted at once with its past partner instead of waiting. Predictions carry the
-chain's last two poses on at constant velocity. A fit its checks refuse gives no pose: the caller's dense pipeline
-poses that frame and re-seeds the chain with it.
+chain's last two poses on at constant velocity, turned as the image moved since the newest (:mod:`~ipt.receiver.core.
+imageshift`). A fit its checks refuse gives no pose: the caller's dense pipeline poses that frame and re-seeds the
+chain with it.
 
 :class:`LiveChain` is that chain fed one frame at a time (the pipeline's); the functions below it are shared with
 ``benchmarks/sparse_track.py``, which runs other pairings for comparison. Pure: lightness frames and poses in,
@@ -28,6 +29,7 @@ import numpy.typing as npt
 
 from ipt.receiver.core import kernels
 from ipt.receiver.core.demodulator import median_f32
+from ipt.receiver.core.imageshift import ImageShifts
 from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.phaseclock import PhaseClock
 from ipt.receiver.core.pose import pose_of
@@ -44,11 +46,8 @@ Fit = Callable[[U8, U8, RT, RT, float, bool], FitResult]
 MAX_JUMP_M = 0.03
 #: Two fits of one frame with different partners, both further than :data:`MAX_JUMP_M` from the prediction, within
 #: this of each other (metres) are taken (:func:`corroborates`) up to :data:`MAX_CORROBORATED_M` from it: the
-#: prediction was off, not the fits. Takeoff (stop 62, `/work/scratch/s62/refused.py`): of 36 fits refused as far from
-#: their prediction, 32 were within 10 mm of the truth, their predictions 30-75 mm off (the chain's last pose a noisy
-#: one, its velocity over one frame carried three frames on); a frame whose fits are all refused goes the dense way
-#: with its partners (20-30 ms each). Taken when two agree (and the frames refitted after them started as far off),
-#: takeoff's dense frames 125-133 -> 95-97 over three 1e-12 m nudges of every start (docs/receiver-cores.md, stop 62).
+#: prediction was off, not the fits (takeoff's refused fits were mostly within 10 mm of the truth, their predictions
+#: 30-75 mm off: docs/receiver-cores.md, stop 62).
 AGREE_M = 0.01
 MAX_CORROBORATED_M = 0.09
 #: The spread of two same-phase frames' difference (a video frame apart) up to this many times a pair fit's
@@ -60,14 +59,8 @@ WAIT_FRAMES = 3
 KEEP_FRAMES = 16
 #: No joint fit where the map's largest code cell, seen straight down from the predicted height, spans fewer pixels
 #: than this share of the joint fit's profile half-length (:attr:`~ipt.receiver.core.sparse.SparseSettings.radius_px`:
-#: 4.5 px at 640 across). A profile of ±6 px over 4 px cells crosses three of the map's edges where the fit models
-#: one, and its coarse smoothing blurs neighbouring cells together: on the suite's and held-out flights (stop 53,
-#: `/work/tools/jointt.py`) all 350 joint fits at 4.1-4.35 px (hover-2.5m) were refused, 26 % of that flight's
-#: processor time, and the smallest cells a joint fit was taken at were 4.79 px (takeoff). A rendered pair started
-#: from its true poses: refused from 2.3 and 2.5 m (4.5 and 4.1 px), found from 2.0 m (5.2 px; tests/test_sparse.py).
-#: Damped from the third step (stop 56) that pair's fits hold from 2.5 m too, but on hover-2.5m without this rule 188 of
-#: 299 joint fits still gave up: 124.6 -> 102.3 frames a second in process, MAE 3.56 / 2.97 / 0.95 -> 3.78 / 3.24 /
-#: 1.02 mm. Kept.
+#: 4.5 px at 640 across): a profile of ±6 px over 4 px cells crosses three of the map's edges where the fit models one.
+#: On hover-2.5m all such fits were refused, 26 % of its processor time (docs/receiver-cores.md, stops 53 and 56).
 JOINT_MIN_CELL_RADII = 0.75
 
 
@@ -100,6 +93,8 @@ class Chain:
     """Whether each joint fit of a frame (the last one tried) passed the fit's own checks."""
     partner: dict[int, int] = field(default_factory=dict)
     """The partner frame of each fitted pose."""
+    shifts: ImageShifts | None = None
+    """The image's shifts between frames, which turn the predictions (:mod:`~ipt.receiver.core.imageshift`)."""
 
 
 @dataclass(frozen=True)
@@ -158,16 +153,17 @@ def shift_m(result: SparseResult, guess: RT) -> F64:
 def predict(chain: Chain, k: int, times_us: Mapping[int, int], baseline: int = 1) -> RT | None:
     """The chain's last pose before ``k`` (within five frames) carried on to ``k`` at the velocity since a pose
     at least ``baseline`` frames before it (within eight frames; else the nearest before it), or that last pose
-    alone."""
+    alone; turned as the image moved since that last pose where the chain's :attr:`Chain.shifts` measured it."""
     recent = [j for j in range(k - 1, max(k - 6, -1), -1) if j in chain.rt]
     if not recent:
         return None
     b = recent[0]
     before = [j for j in range(b - 1, max(b - 9, -1), -1) if j in chain.rt]
-    if not before:
-        return chain.rt[b]
-    a = next((j for j in before if j <= b - baseline), before[0])
-    return extrapolate(chain.rt[a], times_us[a], chain.rt[b], times_us[b], times_us[k])
+    a = next((j for j in before if j <= b - baseline), before[0]) if before else b
+    rt = extrapolate(chain.rt[a], times_us[a], chain.rt[b], times_us[b], times_us[k]) if before else chain.rt[b]
+    shifts = chain.shifts
+    shift_px = shifts.between(b, k) if shifts is not None else None
+    return rt if shifts is None or shift_px is None else shifts.turned(rt, chain.rt[b], shift_px)
 
 
 def accept(chain: Chain, result: SparseResult | None, why: str, guess: RT, want: int) -> bool:
@@ -490,7 +486,8 @@ class LiveChain:
 
     def __init__(self, camera: SparseCamera, edges: MapEdges, fit: Fit, projector_hz: float, wait: bool = True) -> None:
         self.camera, self.edges, self.fit, self.projector_hz = camera, edges, fit, projector_hz
-        self.chain = Chain()
+        self.shifts = ImageShifts(camera.camera_matrix)
+        self.chain = Chain(shifts=self.shifts)
         self._lum: dict[int, U8] = {}
         self._times_us: dict[int, int] = {}
         self._phase: dict[int, int] = {}
@@ -509,10 +506,10 @@ class LiveChain:
     def reset(self, frames: bool = True) -> None:
         """Forget the chain's poses, and with ``frames`` the frames too (else a frame kept may still be seeded):
         the chain waits for a new seed."""
-        self.chain = Chain(reseeds=self.chain.reseeds, refused=self.chain.refused)
+        self.chain = Chain(reseeds=self.chain.reseeds, refused=self.chain.refused, shifts=self.shifts)
         self._judge = None
         if frames:
-            for kept in (self._lum, self._times_us, self._phase):
+            for kept in (self._lum, self._times_us, self._phase, self.shifts):
                 kept.clear()
         self._pending.clear()
 
@@ -533,6 +530,7 @@ class LiveChain:
         self._lum[k], self._times_us[k] = lum, time_us
         if phase is not None:
             self._phase[k] = phase
+        self.shifts.add(k, lum, phase)
         self._forget(k - KEEP_FRAMES)
         out: dict[int, SparseResult] = {}
         chain, pairing, started = self.chain, self.pairing, self.started
@@ -591,6 +589,7 @@ class LiveChain:
         for kept in (self._lum, self._times_us, self._phase):
             for j in [j for j in kept if j < before]:
                 del kept[j]
+        self.shifts.forget(before)
         c = self.chain
         for kept_rt in (c.rt, c.sign, c.step, c.fitted, c.emitted, c.guesses, c.joint_ok, c.partner):
             for j in [j for j in kept_rt if j < before]:
