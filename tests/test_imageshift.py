@@ -77,6 +77,27 @@ def test_the_shift_between_two_frames_of_one_phase_is_the_cameras_move(phases: t
     assert not shifts.shift_px
 
 
+def test_a_narrow_cameras_frames_are_measured_as_they_are_even_read_bottom_up(phases: tuple[U8, U8]) -> None:
+    plus, _ = phases
+    half_k = K.copy()
+    half_k[:2] /= 2
+    size = (SIZE[0] // 2, SIZE[1] // 2)
+    turned = rot_y(np.deg2rad(0.5)) @ R_ARENA_CAM
+    first = lightness(render_view(plus, ARENA, half_k, POSITION_M, R_ARENA_CAM, size))
+    second = lightness(render_view(plus, ARENA, half_k, POSITION_M, turned, size))
+    shifts = ImageShifts(half_k)
+    backwards = [np.flipud(np.ascontiguousarray(np.flipud(view))) for view in (first, second)]
+    assert backwards[0].strides[0] < 0  # (views whose rows run backwards in memory, the frames they show)
+    shifts.add(0, backwards[0], 1)
+    shifts.add(1, backwards[1], 1)
+    axis = R_ARENA_CAM[:, 2]
+    floor = POSITION_M + axis * (-POSITION_M[2] / axis[2])
+    seen, _ = cv2.projectPoints(floor.reshape(1, 3), *rt_of(POSITION_M, turned), half_k, None)
+    truth = seen.reshape(2) - half_k[:2, 2]
+    assert float(np.linalg.norm(truth)) > 1.5
+    assert float(np.linalg.norm(shifts.shift_px[0] - truth)) < 0.3, (shifts.shift_px[0], truth)
+
+
 def test_an_unmeasured_shift_takes_the_mean_of_its_measured_neighbours() -> None:
     shifts = ImageShifts(K)
     shifts.shift_px.update({3: np.array([1.0, 2.0]), 5: np.array([3.0, -2.0])})
