@@ -44,12 +44,12 @@ def _view(img: U8, position_m: F64, r_arena_cam: F64) -> U8:
     return lightness(render_view(img, ARENA, K, position_m, r_arena_cam, SIZE))
 
 
-def _centre_moves_px(position_a: F64, r_a: F64, position_b: F64, r_b: F64) -> F64:
-    """Where the floor point on camera a's optical axis is seen by camera b, less the principal point."""
+def _centre_moves_px(position_a: F64, r_a: F64, position_b: F64, r_b: F64, k: F64 = K) -> F64:
+    """Where the floor point on camera a's optical axis is seen by camera b (``k``), less the principal point."""
     axis = r_a[:, 2]
     floor = position_a + axis * (-position_a[2] / axis[2])
-    seen, _ = cv2.projectPoints(floor.reshape(1, 3), *rt_of(position_b, r_b), K, None)
-    return np.asarray(seen.reshape(2) - K[:2, 2], np.float64)
+    seen, _ = cv2.projectPoints(floor.reshape(1, 3), *rt_of(position_b, r_b), k, None)
+    return np.asarray(seen.reshape(2) - k[:2, 2], np.float64)
 
 
 def test_the_shift_between_two_frames_of_one_phase_is_the_cameras_move(phases: tuple[U8, U8]) -> None:
@@ -90,10 +90,7 @@ def test_a_narrow_cameras_frames_are_measured_as_they_are_even_read_bottom_up(ph
     assert backwards[0].strides[0] < 0  # (views whose rows run backwards in memory, the frames they show)
     shifts.add(0, backwards[0], 1)
     shifts.add(1, backwards[1], 1)
-    axis = R_ARENA_CAM[:, 2]
-    floor = POSITION_M + axis * (-POSITION_M[2] / axis[2])
-    seen, _ = cv2.projectPoints(floor.reshape(1, 3), *rt_of(POSITION_M, turned), half_k, None)
-    truth = seen.reshape(2) - half_k[:2, 2]
+    truth = _centre_moves_px(POSITION_M, R_ARENA_CAM, POSITION_M, turned, half_k)
     assert float(np.linalg.norm(truth)) > 1.5
     assert float(np.linalg.norm(shifts.shift_px[0] - truth)) < 0.3, (shifts.shift_px[0], truth)
 

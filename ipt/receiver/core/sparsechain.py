@@ -159,11 +159,12 @@ def predict(chain: Chain, k: int, times_us: Mapping[int, int], baseline: int = 1
         return None
     b = recent[0]
     before = [j for j in range(b - 1, max(b - 9, -1), -1) if j in chain.rt]
-    a = next((j for j in before if j <= b - baseline), before[0]) if before else b
-    rt = extrapolate(chain.rt[a], times_us[a], chain.rt[b], times_us[b], times_us[k]) if before else chain.rt[b]
-    shifts = chain.shifts
-    shift_px = shifts.between(b, k) if shifts is not None else None
-    return rt if shifts is None or shift_px is None else shifts.turned(rt, chain.rt[b], shift_px)
+    rt = chain.rt[b]
+    if before:
+        a = next((j for j in before if j <= b - baseline), before[0])
+        rt = extrapolate(chain.rt[a], times_us[a], rt, times_us[b], times_us[k])
+    shift_px = chain.shifts.between(b, k) if chain.shifts is not None else None
+    return rt if chain.shifts is None or shift_px is None else chain.shifts.turned(rt, chain.rt[b], shift_px)
 
 
 def accept(chain: Chain, result: SparseResult | None, why: str, guess: RT, want: int) -> bool:
