@@ -185,7 +185,7 @@ CHECK_EVERY = 8
 
 
 def _checks(
-    folder: Path, frames: list[Any], monkeypatch: pytest.MonkeyPatch, quality: float | None = None, joint: bool = False
+    folder: Path, frames: list[Any], monkeypatch: pytest.MonkeyPatch, quality: float | None = None
 ) -> list[tuple[int, int]]:
     """The frames the dense check fell on (here every 4 sparse poses, every 12 once trusted: the short flight has
     60 frames), each with the trusted checks in a row before it."""
@@ -200,8 +200,6 @@ def _checks(
     assert stage is not None
     checks: list[tuple[int, int]] = []
     after = stage.after_dense
-    if joint:  # as if a joint fit (a new video frame) had started a frame since every check
-        monkeypatch.setattr(stage.chain, "joint_since", lambda k: True)
 
     def noted(new: Any) -> None:
         if new.index == stage._checking:
@@ -223,9 +221,8 @@ def test_the_checks_come_less_often_once_two_in_a_row_found_the_chain_on_a_dense
 ) -> None:
     """On the calm short flight the chain and the dense checks agree within 3 mm and the dense poses fit most of the
     map: after two such checks the next comes TRUSTED_CHECK_EVERY sparse poses later, not CHECK_EVERY. Where the
-    dense poses fit less of the map than asked (a wrong arena file fits less), every CHECK_EVERY; so too where a joint
-    fit (a new video frame) came since the last check."""
-    from ipt.receiver.core.sparsestage import TRUSTED_AFTER, TRUSTED_QUALITY
+    dense poses fit less of the map than asked (a wrong arena file fits less), every CHECK_EVERY."""
+    from ipt.receiver.core.sparsestage import TRUSTED_AFTER
 
     trusting = _checks(short_flight, frames, monkeypatch)
     gaps = [b[0] - a[0] for a, b in pairwise(trusting)]
@@ -235,6 +232,3 @@ def test_the_checks_come_less_often_once_two_in_a_row_found_the_chain_on_a_dense
     assert all(trusted == 0 for _, trusted in never)
     assert max(b[0] - a[0] for a, b in pairwise(never)) < 12
     assert len(never) > len(trusting)
-    moving = _checks(short_flight, frames, monkeypatch, quality=TRUSTED_QUALITY, joint=True)
-    assert [t for _, t in moving[: TRUSTED_AFTER + 1]] == list(range(TRUSTED_AFTER + 1))  # (trusted, but not calm)
-    assert max(b[0] - a[0] for a, b in pairwise(moving)) < 12

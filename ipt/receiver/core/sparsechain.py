@@ -568,10 +568,6 @@ class LiveChain:
             self.chain.still, self.chain.moved = bool(verdict), verdict is False
         return self.chain.still
 
-    def joint_since(self, k: int) -> bool:
-        """Whether a joint fit (both poses predicted: a new video frame) started a frame after ``k``."""
-        return any(j > k for j in self.chain.guesses)
-
     def content_moved(self) -> bool:
         """Whether the floor's content was judged to have moved over the last video frame (:attr:`Chain.moved`)."""
         self._still()

@@ -10,8 +10,7 @@ yet). Dense poses the gates do not doubt re-seed the chain. Against drift: every
 frame is posed the dense way too (which also lets AprilTag's periodic check of the track run); a sparse pose more
 than :data:`CHECK_M` off the dense one restarts the chain from the dense pose, and the dense pose is taken. Once
 :data:`TRUSTED_AFTER` checks in a row found the chain within :data:`TRUSTED_M` of a dense pose that fits the map well
-(:data:`TRUSTED_QUALITY`), the checks come every :data:`TRUSTED_CHECK_EVERY` sparse poses instead, while the chain
-fits each frame against a posed partner (no joint fit: the video still). Live
+(:data:`TRUSTED_QUALITY`), the checks come every :data:`TRUSTED_CHECK_EVERY` sparse poses instead. Live
 (a live camera's frames come with their wait: :attr:`SparseStage.now_us`), a frame the chain gave up on that is
 already :data:`LIVE_LATE_US` old takes no dense way and no bridge: it goes out without a pose (``late``).
 """
@@ -39,10 +38,11 @@ CHECK_M = 0.02
 #: is what tells a wrong arena file: at the checks the uncalibrated keystoned flight's dense poses fit 0.45 of the
 #: edges (median; 0.23-0.62 where the chain agreed within 3 mm), shadow-vibration's 0.78 (p10 0.63). Every 32 sparse
 #: poses after close checks alone (stops 57, 62), that flight's chain went otherwise where its file is 5-6 cm off,
-#: and the dense way then posed frames 10-14 cm off (docs/receiver-cores.md, stop 63). Not after a joint fit since
-#: the last check (a new video frame: both poses predicted): there the checks' dense poses re-seed a chain whose
-#: next joint fits start from them (every check after 32 anyway: realcam 59 -> 65 dense frames, takeoff 97 -> 100).
-TRUSTED_CHECK_EVERY = 32
+#: and the dense way then posed frames 10-14 cm off (docs/receiver-cores.md, stop 63). Also after joint fits (a new
+#: video frame: both poses predicted), since the image's measured shift starts them (stop 69): stop 63 kept those at
+#: 16 for the re-seeds a joint fit then needed. 48, not 32 (stop 70): moving-content's dense pair solves 63 -> 26,
+#: realcam's 103 -> 48, takeoff's 902 -> 849, the uncalibrated keystoned flight's the same (never trusted).
+TRUSTED_CHECK_EVERY = 48
 TRUSTED_AFTER = 2
 TRUSTED_M = 0.003
 TRUSTED_QUALITY = 0.6
@@ -115,8 +115,7 @@ class SparseStage:
         if new.index not in step.poses:
             return not step.waits
         self._since_check += 1
-        trusted = self._trusted >= TRUSTED_AFTER and not self.chain.joint_since(self._checked)
-        if self._since_check < (TRUSTED_CHECK_EVERY if trusted else CHECK_EVERY):
+        if self._since_check < (TRUSTED_CHECK_EVERY if self._trusted >= TRUSTED_AFTER else CHECK_EVERY):
             return False
         self._since_check, self._checking, self._checked = 0, new.index, new.index
         return True
