@@ -15,7 +15,7 @@ from __future__ import annotations
 import os
 import sys
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -113,8 +113,10 @@ def replay(
     fps: float | None,
     pipeline_cfg: PipelineConfig,
     progress: TextIO | None = sys.stderr,
+    on_result: Callable[[object, FrameResult, int], None] | None = None,
 ) -> ReplaySummary:
-    """Run the recording at ``video_path`` through the pipeline; write one TUM line per pose."""
+    """Run the recording at ``video_path`` through the pipeline; write one TUM line per pose (``on_result``: told
+    of each frame's result as the daemon's hook is, ``(None, result, 0)``)."""
     camera = load_camera_info(camera_path)
     with open_frames(video_path, skip_bad=True, grey=pipeline_cfg.luminance_only) as source:
         if (source.width, source.height) != (camera.width_px, camera.height_px):
@@ -149,6 +151,8 @@ def replay(
 
             def write(results: list[FrameResult]) -> int:
                 for result in results:
+                    if on_result is not None:
+                        on_result(None, result, 0)
                     if result.pose is not None:
                         t_s = result.capture_time_us * 1e-6
                         out.write(format_tum_line(t_s, result.pose.position_m, result.pose.quat_wxyz))
