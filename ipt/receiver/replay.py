@@ -104,6 +104,11 @@ def _camera_rate(video_path: Path, rate: float | None) -> float:
     return rate
 
 
+def _no_hook(frame: object, result: FrameResult | None, sent: int) -> None:
+    """:func:`replay`'s ``on_result`` when none is given (the daemon's hook takes each result as ``(None, result,
+    0)``: no frame object, nothing sent)."""
+
+
 def replay(
     arena: ArenaConfig,
     tag_map: TagMap,
@@ -113,10 +118,9 @@ def replay(
     fps: float | None,
     pipeline_cfg: PipelineConfig,
     progress: TextIO | None = sys.stderr,
-    on_result: Callable[[object, FrameResult, int], None] | None = None,
+    on_result: Callable[[object, FrameResult | None, int], None] = _no_hook,
 ) -> ReplaySummary:
-    """Run the recording at ``video_path`` through the pipeline; write one TUM line per pose (``on_result``: told
-    of each frame's result as the daemon's hook is, ``(None, result, 0)``)."""
+    """Run the recording at ``video_path`` through the pipeline; one TUM line per pose; ``on_result``: the hook."""
     camera = load_camera_info(camera_path)
     with open_frames(video_path, skip_bad=True, grey=pipeline_cfg.luminance_only) as source:
         if (source.width, source.height) != (camera.width_px, camera.height_px):
@@ -151,8 +155,7 @@ def replay(
 
             def write(results: list[FrameResult]) -> int:
                 for result in results:
-                    if on_result is not None:
-                        on_result(None, result, 0)
+                    on_result(None, result, 0)
                     if result.pose is not None:
                         t_s = result.capture_time_us * 1e-6
                         out.write(format_tum_line(t_s, result.pose.position_m, result.pose.quat_wxyz))
