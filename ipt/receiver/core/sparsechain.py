@@ -163,8 +163,9 @@ def predict(chain: Chain, k: int, times_us: Mapping[int, int], baseline: int = 1
     if before:
         a = next((j for j in before if j <= b - baseline), before[0])
         rt = extrapolate(chain.rt[a], times_us[a], rt, times_us[b], times_us[k])
-    shift_px = chain.shifts.between(b, k) if chain.shifts is not None else None
-    return rt if chain.shifts is None or shift_px is None else chain.shifts.turned(rt, chain.rt[b], shift_px)
+    if chain.shifts is None or (shift_px := chain.shifts.between(b, k)) is None:
+        return rt
+    return chain.shifts.turned(rt, chain.rt[b], shift_px)
 
 
 def accept(chain: Chain, result: SparseResult | None, why: str, guess: RT, want: int) -> bool:

@@ -78,8 +78,6 @@ class SparseStage:
         """Checks in a row that found the chain within :data:`TRUSTED_M` of a dense pose of :data:`TRUSTED_QUALITY`."""
         self._checking: int | None = None
         """The frame a check is due on (posed by the chain, then the dense way)."""
-        self._checked = -1
-        """The frame of the last check."""
         self.checks_failed = 0
         """Dense checks that found the chain's pose more than :data:`CHECK_M` off."""
         self.now_us: int | None = None
@@ -117,7 +115,7 @@ class SparseStage:
         self._since_check += 1
         if self._since_check < (TRUSTED_CHECK_EVERY if self._trusted >= TRUSTED_AFTER else CHECK_EVERY):
             return False
-        self._since_check, self._checking, self._checked = 0, new.index, new.index
+        self._since_check, self._checking = 0, new.index
         return True
 
     def after_dense(self, new: Frame) -> None:
