@@ -116,6 +116,20 @@ def yaw_mod_90(diff: F32, valid: U8 | None) -> tuple[float, float]:
     return float(yaw), float(near / total)
 
 
+def _blurred(mask: npt.NDArray[np.int8], sigma_px: float, factor: int) -> tuple[F32, F64]:
+    """``mask`` blurred by a Gaussian of ``sigma_px`` (its pixels), at a ``factor`` coarser resolution, and the
+    homography from its pixel indices to the result's. The mean over ``factor`` x ``factor`` squares first (a box:
+    variance (factor² − 1) / 12), then the Gaussian that makes up the rest: at a map index of ~15 mask pixels a
+    blur of σ 6 on 4 million pixels cost 40-70 ms here, this 6 ms, the map the same within 0.07 of its ±1 (stop 71).
+    The rows and columns beyond a whole square at the far edges are left out (floor, outside every tag)."""
+    h, w = mask.shape[0] // factor * factor, mask.shape[1] // factor * factor
+    small = cv2.resize(mask[:h, :w].astype(np.float32), (w // factor, h // factor), interpolation=cv2.INTER_AREA)
+    rest_px = math.sqrt(max(sigma_px * sigma_px - (factor * factor - 1) / 12.0, 0.25)) / factor
+    centre = (factor - 1) / (2.0 * factor)  # a square's first pixel centre, in its own pixels
+    to_small = np.array([[1.0 / factor, 0.0, -centre], [0.0, 1.0 / factor, -centre], [0.0, 0.0, 1.0]])
+    return np.asarray(cv2.GaussianBlur(small, (0, 0), rest_px), np.float32), to_small
+
+
 class MapSearch:
     """The whole map, rendered once at a coarse resolution with its spectrum, for :meth:`search`."""
 
@@ -146,10 +160,13 @@ class MapSearch:
         edge_to_index = np.array([[1.0, 0.0, -0.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])
         to_mask = edge_to_index @ np.linalg.inv(pixel_to_arena) @ index_to_arena
         px_per_index = float(np.sqrt(abs(np.linalg.det(to_mask[:2, :2]))))
-        blurred = cv2.GaussianBlur(mask.astype(np.float32), (0, 0), max(0.5, 0.4 * px_per_index))
+        blurred, to_blurred = _blurred(mask, max(0.5, 0.4 * px_per_index), max(1, int(px_per_index // 3)))
         self.map = np.asarray(
             cv2.warpPerspective(
-                blurred, to_mask, (int(size[0]), int(size[1])), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+                blurred,
+                to_blurred @ to_mask,
+                (int(size[0]), int(size[1])),
+                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
             ),
             np.float32,
         )
