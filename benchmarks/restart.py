@@ -22,8 +22,9 @@ bytecode; an editable checkout under ``PYTHONDONTWRITEBYTECODE`` would otherwise
 ipt at every start, so the warm runs without that variable).
 
 With ``--baseline DIR`` (another checkout of ipt, e.g. ``git worktree add /tmp/base main``) the rounds
-alternate between that checkout's receiver and this one, on the same rendering, so that a busy machine weighs
-on both alike; the JSON then has one entry per build and the ratio of their medians.
+alternate between that checkout's receiver and this one (which starts first swapped every round), on the same
+rendering, so that a busy machine weighs on both alike; the JSON then has one entry per build and the ratio of
+their medians.
 
     ./dev run python benchmarks/restart.py              # 5 rounds, about half a minute
     ./dev run python benchmarks/restart.py --rounds 9
@@ -94,6 +95,11 @@ def _builds(baseline: Path | None, tmp: Path) -> list[_Build]:
     here = _Build("this", dict(os.environ, NUMBA_CACHE_DIR=str(tmp / "cache-this")), None)
     if baseline is None:
         return [here]
+    # Both started alike, each from a folder of its own through PYTHONPATH (run from its checkout, "this" had the
+    # checkout first on the path where the baseline had an empty folder: not the same start).
+    own = tmp / "this-cwd"
+    own.mkdir()
+    here = _Build("this", dict(here.env or {}, PYTHONPATH=str(Path(__file__).resolve().parents[1])), str(own))
     if not (baseline / "ipt" / "receiver" / "cli.py").is_file():
         raise SystemExit(f"restart: --baseline {baseline}: not a checkout of ipt (no ipt/receiver/cli.py)")
     cwd = tmp / "baseline-cwd"
@@ -162,7 +168,9 @@ def _summary(rounds: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def _run_rounds(builds: list[_Build], cmd: list[str], listener: socket.socket, n: int) -> dict[str, Any]:
-    """A cold start of the first build, then ``n`` rounds of kill-and-restart of each build in turn."""
+    """A cold start of the first build, then ``n`` rounds of kill-and-restart of each build in turn, the order
+    swapped every round, so that a bias of the place in a round weighs on both alike (stop 71: with the order
+    fixed, the build started second was the slower one to its first pose in four runs of five, whichever it was)."""
     rounds: dict[str, list[dict[str, Any]]] = {b.name: [] for b in builds}
     started = time.monotonic()
     proc = _start(builds[0], cmd)
@@ -171,7 +179,7 @@ def _run_rounds(builds: list[_Build], cmd: list[str], listener: socket.socket, n
         listener.recv(2048)
         cold_s = time.monotonic() - started
         for k in range(n):
-            for build in builds:
+            for build in builds if k % 2 == 0 else builds[::-1]:
                 proc.kill()
                 killed = time.monotonic()
                 proc.wait(5.0)
