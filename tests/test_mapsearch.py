@@ -18,7 +18,7 @@ from ipt.receiver.core.mapsearch import MapSearch, MapSearchError, level_pose, y
 from ipt.receiver.core.track import TrackSettings, track_pose
 from ipt.receiver.detect.detector import InlineBackend, c_settings
 from ipt.sender.modulator import PaperModulator
-from ipt.tagmap import grid_tag_map
+from ipt.tagmap import grid_tag_map, pixel_to_arena
 
 U8 = npt.NDArray[np.uint8]
 F64 = npt.NDArray[np.float64]
@@ -176,3 +176,24 @@ def test_the_pipeline_renders_the_map_s_mask_once_for_both_of_its_searches(monke
     assert shared.map.tobytes() == own.map.tobytes()
     assert (shared.origin_m == own.origin_m).all()
     assert shared.mean_energy == own.mean_energy
+
+
+def test_the_coarse_map_is_the_whole_mask_blurred_at_full_resolution(search: MapSearch) -> None:
+    """The map is built from the mask's 4 x 4 means and a smaller Gaussian (a tenth of the time): it matches the
+    whole-resolution Gaussian warped the same way, place for place (a misplaced square's offset would show as a
+    shift of the tags' edges, errors of order 1 at every edge)."""
+    mask = TAG_MAP.render_mask()
+    to_mask = np.linalg.inv(
+        np.array([[search.res_m, 0.0, search.origin_m[0]], [0.0, search.res_m, search.origin_m[1]], [0.0, 0.0, 1.0]])
+    )
+    edge_to_index = np.array([[1.0, 0.0, -0.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])
+    to_mask = edge_to_index @ np.linalg.inv(pixel_to_arena(TAG_MAP)) @ np.linalg.inv(to_mask)
+    px_per_index = float(np.sqrt(abs(np.linalg.det(to_mask[:2, :2]))))
+    assert px_per_index > 8  # (the shipped arena: the 4 x 4 means are used)
+    whole = cv2.GaussianBlur(mask.astype(np.float32), (0, 0), 0.4 * px_per_index)
+    h, w = search.map.shape
+    reference = cv2.warpPerspective(whole, to_mask, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    error = np.abs(search.map - reference)
+    assert float(error.max()) < 0.1
+    assert float(np.sqrt(np.mean(error**2))) < 0.02
+    assert float(np.sqrt(np.mean(reference**2))) > 0.3  # (a map with tags on it)
