@@ -92,20 +92,20 @@ class _Build:
 def _builds(baseline: Path | None, tmp: Path) -> list[_Build]:
     """Each receiver with a kernel cache folder of its own (``NUMBA_CACHE_DIR``, as the unit's
     ``CacheDirectory=``), which :func:`_warm` fills."""
-    here = _Build("this", dict(os.environ, NUMBA_CACHE_DIR=str(tmp / "cache-this")), None)
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp / "cache-this"))
     if baseline is None:
-        return [here]
+        return [_Build("this", env, None)]
+    if not (baseline / "ipt" / "receiver" / "cli.py").is_file():
+        raise SystemExit(f"restart: --baseline {baseline}: not a checkout of ipt (no ipt/receiver/cli.py)")
     # Both started alike, each from a folder of its own through PYTHONPATH (run from its checkout, "this" had the
     # checkout first on the path where the baseline had an empty folder: not the same start).
     own = tmp / "this-cwd"
     own.mkdir()
-    here = _Build("this", dict(here.env or {}, PYTHONPATH=str(Path(__file__).resolve().parents[1])), str(own))
-    if not (baseline / "ipt" / "receiver" / "cli.py").is_file():
-        raise SystemExit(f"restart: --baseline {baseline}: not a checkout of ipt (no ipt/receiver/cli.py)")
+    here = _Build("this", dict(env, PYTHONPATH=str(Path(__file__).resolve().parents[1])), str(own))
     cwd = tmp / "baseline-cwd"
     cwd.mkdir()
-    env = dict(os.environ, PYTHONPATH=str(baseline.resolve()), NUMBA_CACHE_DIR=str(tmp / "cache-baseline"))
-    return [_Build("baseline", env, str(cwd)), here]
+    base_env = dict(os.environ, PYTHONPATH=str(baseline.resolve()), NUMBA_CACHE_DIR=str(tmp / "cache-baseline"))
+    return [_Build("baseline", base_env, str(cwd)), here]
 
 
 def _warm(build: _Build) -> None:

@@ -183,11 +183,11 @@ def test_the_coarse_map_is_the_whole_mask_blurred_at_full_resolution(search: Map
     whole-resolution Gaussian warped the same way, place for place (a misplaced square's offset would show as a
     shift of the tags' edges, errors of order 1 at every edge)."""
     mask = TAG_MAP.render_mask()
-    to_mask = np.linalg.inv(
-        np.array([[search.res_m, 0.0, search.origin_m[0]], [0.0, search.res_m, search.origin_m[1]], [0.0, 0.0, 1.0]])
+    index_to_arena = np.array(
+        [[search.res_m, 0.0, search.origin_m[0]], [0.0, search.res_m, search.origin_m[1]], [0.0, 0.0, 1.0]]
     )
     edge_to_index = np.array([[1.0, 0.0, -0.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])
-    to_mask = edge_to_index @ np.linalg.inv(pixel_to_arena(TAG_MAP)) @ np.linalg.inv(to_mask)
+    to_mask = edge_to_index @ np.linalg.inv(pixel_to_arena(TAG_MAP)) @ index_to_arena
     px_per_index = float(np.sqrt(abs(np.linalg.det(to_mask[:2, :2]))))
     assert px_per_index > 8  # (the shipped arena: the 4 x 4 means are used)
     whole = cv2.GaussianBlur(mask.astype(np.float32), (0, 0), 0.4 * px_per_index)
