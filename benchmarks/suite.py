@@ -23,7 +23,8 @@ helper process too) with OpenCV on one thread, and scored against its ground tru
   images (written once into ``bmp/`` beside the rendering), a process pinned to core 0, its user + sys time by
   ``/usr/bin/time`` (the AprilTag helper process included) as ``frames_per_cpu_s``, the load average when it
   started, and the yield and errors of that run's own poses (issue 29's target 1), with the SHA-256 of its poses
-  file (``poses_sha256``: two runs that wrote the same poses to the byte). It runs as the systemd unit
+  file (``poses_sha256``: two runs that wrote the same poses to the byte), told of a rolling shutter as the
+  in-process run is (``replay --rolling-shutter``; ``rolling_shutter`` then true there too). It runs as the systemd unit
   runs the receiver: ``NUMBA_CACHE_DIR`` a folder of ``--cache`` filled by ``ipt-receiver warm`` first, so
   with the kernels built ahead of time where a C compiler is (``kernels`` says how they were loaded). The
   frames are read once before it (into the page cache: reading 2.6 GB of 1280×720 frames from the disk cost
@@ -377,16 +378,24 @@ def kernel_env(cache: Path, receiver: Path | None, command: list[str]) -> dict[s
 
 
 def whole_process(
-    folder: Path, arena_path: Path, profile: str, receiver: Path | None, cache: Path, tracker: str | None = None
+    folder: Path,
+    arena_path: Path,
+    profile: str,
+    receiver: Path | None,
+    cache: Path,
+    tracker: str | None = None,
+    rolling_shutter: bool = False,
 ) -> dict[str, Any]:
     """``ipt-receiver replay`` of the rendering's BMP frames as a process of its own pinned to core 0, its
     processor time (user + sys, the AprilTag helper process included) by ``/usr/bin/time``, and the yield and
     errors of the poses that run wrote. ``receiver``: another checkout's ``ipt`` to run instead (a baseline).
-    The replay is not told of a rolling shutter (it has no such option); its frame k is at k/fps, with the rate
-    given as a user would (``--fps 120``, 119.88: the truth's times, whole microseconds, put it at 120.0048),
-    so its poses may differ a little from the in-process run's, which takes the truth's times. (Measured at stop
-    52: the same yields and errors to the digit on every flight of the suite and the held-out set but the two
-    with a rolling shutter.)"""
+    ``rolling_shutter``: the replay is told of the camera's (``--rolling-shutter``, with the ipt profile, as the
+    in-process run is; a baseline's replay is not: before stop 72 it had no such option). Its frame k is at k/fps,
+    with the rate given as a user would (``--fps 120``, 119.88: the truth's times, whole microseconds, put it at
+    120.0048), so its poses may differ a little from the in-process run's, which takes the truth's times. (Measured
+    at stop 52: the same yields and errors to the digit on every flight of the suite and the held-out set but the
+    two with a rolling shutter, whose replay was not told of it then.)"""
+    told = rolling_shutter and profile == "ipt" and receiver is None
     truth = read_tum(folder / "groundtruth.tum")
     rate = 1.0 / float(np.median(np.diff(truth.times_s)))
     frames_dir = frames_folder(folder)
@@ -400,7 +409,8 @@ def whole_process(
         cmd = ["taskset", "-c", "0", "/usr/bin/time", "-f", "%U %S", "-o", str(timing), *command, "replay",
                "--config", str(arena_path.resolve()), "--camera", str((folder / "camera.yaml").resolve()),
                "--video", str(frames_dir.resolve()), "--fps", f"{rate:.2f}", "--output", str(poses),
-               "--profile", profile, *(["--tracker", tracker] if profile == "ipt" and tracker else [])]  # fmt: skip
+               "--profile", profile, *(["--tracker", tracker] if profile == "ipt" and tracker else []),
+               *(["--rolling-shutter"] if told else [])]  # fmt: skip
         load = os.getloadavg()[0]
         # In a folder of its own: ``python -m`` puts the working directory first on the path, which in a checkout
         # would import that checkout's ipt instead of ``receiver``'s.
@@ -412,6 +422,7 @@ def whole_process(
     kernels_line = next((line for line in done.stdout.splitlines() if "kernels:" in line), "")
     frames = len(images)
     out: dict[str, Any] = {
+        **({"rolling_shutter": True} if told else {}),
         "frames_per_cpu_s": round(frames / (user_s + sys_s), 1),
         "user_s": user_s,
         "sys_s": sys_s,
@@ -544,8 +555,9 @@ def main() -> int:
             r = flight["profiles"][profile]
             if not args.no_whole_process:
                 r["whole_process"] = whole_process(
-                    folder, folder / "arena.yaml", profile, args.receiver, args.cache, args.tracker
-                )
+                    folder, folder / "arena.yaml", profile, args.receiver, args.cache, args.tracker,
+                    sim.camera.readout_ms > 0,
+                )  # fmt: skip
             print(
                 f"suite: {path.stem} / {profile}: yield {r['yield_pct']:.1f} %, MAE {_cell_mm(r['mae_mm'])} mm, "
                 f"{r['frames_per_s']} frames/s{_whole(r)} ({time.monotonic() - start:.0f} s){_seam(r)}",
@@ -582,8 +594,9 @@ def main() -> int:
                     if not args.no_whole_process:
                         arena_yaml = folder / "calibrated.yaml" if where is folder else where / "arena.yaml"
                         r["whole_process"] = whole_process(
-                            where, arena_yaml, profile, args.receiver, args.cache, args.tracker
-                        )
+                            where, arena_yaml, profile, args.receiver, args.cache, args.tracker,
+                            sim.camera.readout_ms > 0,
+                        )  # fmt: skip
                     print(
                         f"suite: {name} / {profile}: yield {r['yield_pct']:.1f} %, MAE {_cell_mm(r['mae_mm'])} mm"
                         f"{_seam(r)}",

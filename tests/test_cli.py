@@ -293,6 +293,34 @@ def test_replay_of_image_folder_needs_fps(tmp_path: Path, camera_file: Path) -> 
     _no_output(out)
 
 
+def test_replay_told_of_a_rolling_shutter_fits_its_sweep(tmp_path: Path, short_flight: Path) -> None:
+    """``--rolling-shutter`` reaches the pipeline (``pose.track.rolling_shutter``, as a daemon's receiver.yaml sets
+    it): the dense way's fits, the first pose's among them, gain the sweep's six unknowns, which on this
+    global-shutter flight fit noise, so the poses differ from those of the replay not told of it."""
+    camera, video = short_flight / "camera.yaml", short_flight / "frames.mkv"
+    plain, told = tmp_path / "plain.tum", tmp_path / "told.tum"
+    for out, extra in ((plain, ()), (told, ("--rolling-shutter",))):
+        proc = _replay(tmp_path, camera, video, out, "--fps", "120", *extra)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    poses = [
+        [line for line in f.read_text(encoding="utf-8").splitlines() if not line.startswith("#")] for f in (plain, told)
+    ]
+    assert len(poses[0]) >= 50
+    assert len(poses[1]) >= 50
+    assert poses[0][0] != poses[1][0], "the first pose (the dense way's) fitted the same without the sweep"
+
+
+def test_replay_rolling_shutter_needs_the_ipt_profile_and_a_video(tmp_path: Path, camera_file: Path) -> None:
+    folder = _frames_folder(tmp_path, [(64, 48)] * 2)
+    out = tmp_path / "poses.tum"
+    proc = _replay(tmp_path, camera_file, folder, out, "--fps", "120", "--profile", "paper", "--rolling-shutter")
+    _assert_one_line_error(proc, "ipt-receiver", "--rolling-shutter", "ipt profile")
+    _no_output(out)
+    proc = _run([*RECEIVER, "replay", "--frames", str(folder), "--output", str(out), "--rolling-shutter"], tmp_path)
+    _assert_one_line_error(proc, "ipt-receiver", "--frames", "drop the other flags")
+    _no_output(out)
+
+
 def test_replay_camera_size_mismatch(tmp_path: Path, camera_file: Path) -> None:
     folder = _frames_folder(tmp_path, [(80, 48)] * 2)
     out = tmp_path / "poses.tum"

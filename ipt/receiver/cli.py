@@ -69,8 +69,10 @@ def _replay(args: argparse.Namespace, hold: GcHeldForStartUp) -> int:
 
     if (args.video is None) == (args.frames is None):
         raise ReplayError("replay: give either --video (with --camera) or --frames")
-    if args.frames is not None and (args.camera or args.config or args.fps):
-        raise ReplayError("replay --frames: the recording holds its arena, camera and rate; drop the other flags")
+    if args.frames is not None and (args.camera or args.config or args.fps or args.rolling_shutter):
+        raise ReplayError("replay --frames: the recording holds its arena, camera and settings; drop the other flags")
+    if args.rolling_shutter and args.profile != "ipt":
+        raise ReplayError("replay --rolling-shutter: only the ipt profile models a rolling shutter")
     if args.frames is None and args.camera is None:
         raise ReplayError("replay --video: --camera CAMERA.yaml is needed")
     if args.frames is not None:
@@ -80,7 +82,7 @@ def _replay(args: argparse.Namespace, hold: GcHeldForStartUp) -> int:
         _say_kernels()
         return 0
     arena = load_arena_config(args.config or shipped_config_path("arena.yaml"))
-    cfg = _with_tracker(PipelineConfig.profile(args.profile), args.tracker)
+    cfg = _replay_config(PipelineConfig.profile(args.profile), args.tracker, args.rolling_shutter)
     if cfg.detector.isolation != "process":
         drop_prestarted()  # AprilTag runs in this process: the forked helper has nothing to do
     tag_map = grid_tag_map(arena)
@@ -91,9 +93,15 @@ def _replay(args: argparse.Namespace, hold: GcHeldForStartUp) -> int:
     return 0
 
 
-def _with_tracker(cfg: PipelineConfig, tracker: str | None) -> PipelineConfig:
-    """``cfg`` with ``replay --tracker`` if given (the profile's own otherwise)."""
-    return cfg if tracker is None else cfg.model_copy(update={"tracker": tracker})
+def _replay_config(cfg: PipelineConfig, tracker: str | None, rolling_shutter: bool) -> PipelineConfig:
+    """``cfg`` with ``replay --tracker`` if given (the profile's own otherwise), told of a rolling shutter
+    (``pose.track.rolling_shutter``, as a daemon's receiver.yaml tells it) with ``--rolling-shutter``."""
+    if tracker is not None:
+        cfg = cfg.model_copy(update={"tracker": tracker})
+    if rolling_shutter:
+        track = cfg.pose.track.model_copy(update={"rolling_shutter": True})
+        cfg = cfg.model_copy(update={"pose": cfg.pose.model_copy(update={"track": track})})
+    return cfg
 
 
 def _say_kernels() -> None:
@@ -442,6 +450,13 @@ def _add_replay(sub: argparse._SubParsersAction[Parser]) -> None:
         help="with the ipt profile: 'dense' (every frame undistorted, aligned and differenced) or 'sparse' (the "
         "sparse chain first, the dense way for the frames it does not pose; docs/receiver-cores.md); default: "
         "the profile's",
+    )
+    r.add_argument(
+        "--rolling-shutter",
+        action="store_true",
+        help="the camera reads its rows out over time (most Pi and USB cameras): with the ipt profile, fit how the "
+        "pose moves from the top row to the bottom one, as the daemon does with pose.track.rolling_shutter in its "
+        "receiver.yaml",
     )
     r.set_defaults(func=_cmd_replay)
 
