@@ -441,6 +441,25 @@ def test_the_bridge_puts_a_frame_without_a_pose_between_its_neighbours() -> None
     np.testing.assert_allclose(own[0], poses[9][0], atol=1e-9)
 
 
+def test_no_bridge_is_tried_or_waited_for_under_a_rolling_shutter(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Under a rolling shutter each row saw its own share of the old and the new video (and the projector's phase
+    flips inside the frame): the bridge's one mix per frame does not hold, so a frame that every pair failed is
+    neither bridged nor kept waiting for a bridge; with a global shutter it is both."""
+    history = FrameHistory(60.0, "opposite_phase")
+    lum = np.zeros((4, 4), np.uint8)
+    for k in range(8, 11):
+        history.append(Frame(k, _t_us(k), lum))
+    target, new = history[1], history[2]
+    target.tried = {8, 10}  # frame 9: paired with 8 and with 10, no pose from either
+    for rolling_shutter, expected in ((False, [(8, 9, 10)]), (True, [])):
+        bridge = ContentBridge(history, MotionTrack(), _NoStages(), None, 2, rolling_shutter)  # type: ignore[arg-type]
+        calls: list[tuple[int, int, int]] = []
+        monkeypatch.setattr(bridge, "bridge", lambda b, t, a, got=calls: got.append((b.index, t.index, a.index)))
+        bridge.offer(new)
+        assert calls == expected
+        assert bridge.wait(target) == (0 if rolling_shutter else 1)
+
+
 def test_the_bridge_is_not_tried_when_neither_neighbour_has_a_pose(
     short_flight: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -146,8 +146,8 @@ class Pipeline:
         self.gates = PoseGates(cfg.pose)
         """The gates on the poses, and the motion of the poses they judged (the first guesses' last resort)."""
         coverage = self.undistort.coverage if self.undistort is not None else None
-        self.bridge = ContentBridge(self.history, self.gates.motion, self, coverage, self.lookahead)
-        """The bridge over frames whose exposure spans a content change (tracking only)."""
+        self.bridge = ContentBridge(self.history, self.gates.motion, self, coverage, self.lookahead, t.rolling_shutter)
+        """The bridge over frames whose exposure spans a content change (tracking only; not under a rolling shutter)."""
         self.second_look = SecondLook(self.history, self.gates, self)
         """The second look at frames whose fits the recent motion doubts (tracking only)."""
         self._guide = MotionTrack()
