@@ -460,6 +460,16 @@ def test_no_bridge_is_tried_or_waited_for_under_a_rolling_shutter(monkeypatch: p
         assert bridge.wait(target) == (0 if rolling_shutter else 1)
 
 
+def test_a_pipeline_told_of_a_rolling_shutter_tells_its_bridge(short_flight: Path) -> None:
+    base = PipelineConfig()
+    track = base.pose.track.model_copy(update={"rolling_shutter": True})
+    told = base.model_copy(update={"pose": base.pose.model_copy(update={"track": track})})
+    for cfg, rolling_shutter in ((PipelineConfig(), False), (told, True)):
+        p = flight_pipeline(short_flight, cfg)
+        p.close()
+        assert p.bridge.rolling_shutter is rolling_shutter
+
+
 def test_the_bridge_is_not_tried_when_neither_neighbour_has_a_pose(
     short_flight: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
