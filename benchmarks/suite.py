@@ -184,10 +184,7 @@ def receiver_config(profile: str, rolling_shutter: bool, tracker: str | None = N
     cfg = PipelineConfig.profile(profile)
     if profile == "ipt" and tracker is not None:
         cfg = cfg.model_copy(update={"tracker": tracker})
-    if rolling_shutter and profile == "ipt":
-        track = cfg.pose.track.model_copy(update={"rolling_shutter": True})
-        cfg = cfg.model_copy(update={"pose": cfg.pose.model_copy(update={"track": track})})
-    return cfg
+    return cfg.with_rolling_shutter() if rolling_shutter and profile == "ipt" else cfg
 
 
 def score(

@@ -211,11 +211,7 @@ def test_with_a_rolling_shutter_the_consistency_gate_allows_for_the_pose_s_own_u
     xs[8] += 0.025
     stds = [0.010] * 12
     cfg = PipelineConfig()
-    rolling = cfg.model_copy(
-        update={
-            "pose": cfg.pose.model_copy(update={"track": cfg.pose.track.model_copy(update={"rolling_shutter": True})})
-        }
-    )
+    rolling = cfg.with_rolling_shutter()
     assert [r.reason for r in _gate(flight_pipeline(short_flight, rolling), xs, stds)] == ["pose"] * 12
     assert _gate(flight_pipeline(short_flight, cfg), xs, stds)[8].reason == "inconsistent"
     xs[8] += 0.020
@@ -461,10 +457,7 @@ def test_no_bridge_is_tried_or_waited_for_under_a_rolling_shutter(monkeypatch: p
 
 
 def test_a_pipeline_told_of_a_rolling_shutter_tells_its_bridge(short_flight: Path) -> None:
-    base = PipelineConfig()
-    track = base.pose.track.model_copy(update={"rolling_shutter": True})
-    told = base.model_copy(update={"pose": base.pose.model_copy(update={"track": track})})
-    for cfg, rolling_shutter in ((PipelineConfig(), False), (told, True)):
+    for cfg, rolling_shutter in ((PipelineConfig(), False), (PipelineConfig().with_rolling_shutter(), True)):
         p = flight_pipeline(short_flight, cfg)
         p.close()
         assert p.bridge.rolling_shutter is rolling_shutter

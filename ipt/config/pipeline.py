@@ -298,6 +298,12 @@ class PipelineConfig(StrictModel):
         grey). The paper's CIELAB lightness needs the colours."""
         return self.demodulation.lightness == "luma"
 
+    def with_rolling_shutter(self) -> PipelineConfig:
+        """These settings told that the camera has a rolling shutter (``pose.track.rolling_shutter``, as a
+        receiver.yaml sets it for such a camera)."""
+        track = self.pose.track.model_copy(update={"rolling_shutter": True})
+        return self.model_copy(update={"pose": self.pose.model_copy(update={"track": track})})
+
     @classmethod
     def profile(cls, name: str) -> PipelineConfig:
         """The settings of a named profile: ``ipt`` (the defaults) or ``paper`` (the paper as published)."""

@@ -98,10 +98,7 @@ def _replay_config(cfg: PipelineConfig, tracker: str | None, rolling_shutter: bo
     (``pose.track.rolling_shutter``, as a daemon's receiver.yaml tells it) with ``--rolling-shutter``."""
     if tracker is not None:
         cfg = cfg.model_copy(update={"tracker": tracker})
-    if rolling_shutter:
-        track = cfg.pose.track.model_copy(update={"rolling_shutter": True})
-        cfg = cfg.model_copy(update={"pose": cfg.pose.model_copy(update={"track": track})})
-    return cfg
+    return cfg.with_rolling_shutter() if rolling_shutter else cfg
 
 
 def _say_kernels() -> None:
