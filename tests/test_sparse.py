@@ -131,6 +131,9 @@ def _guess_off_by(pixels: float) -> tuple[F64, F64]:
 
 
 DEFAULT = SparseSettings()
+EVERY_SAMPLE = SparseSettings(lit_only=False)
+"""For the tests of other rules than ``lit_only``, on every sample: the pair's content is random video of 40-216
+levels, whose darkest parts the rule takes for unlit (a real shadow: ``test_sparseloop.py``)."""
 
 
 def _fit(
@@ -158,7 +161,7 @@ def test_an_error_of_the_partners_pose_is_not_inherited(pinhole_pair: Pair, edge
     shift_m = 1.0 * OTHER_POSITION_M[2] / K[0, 0]
     partner = rt_of(OTHER_POSITION_M + np.array([-0.6 * shift_m, 0.8 * shift_m, 0.0]), R_OTHER)
     result, why = fit_sparse(
-        pinhole_pair.image, pinhole_pair.other, pinhole_pair.camera, edges, partner, _guess_off_by(2.0)
+        pinhole_pair.image, pinhole_pair.other, pinhole_pair.camera, edges, partner, _guess_off_by(2.0), EVERY_SAMPLE
     )
     assert result is not None, why
     assert _image_error_px(result.rvec, result.tvec) < 0.25
@@ -411,9 +414,9 @@ def test_a_fit_that_reads_half_the_samples_while_far_off_ends_on_all_of_them(
 ) -> None:
     """Every second sample steers the first steps (``half_until_px``); the fit settles, and is judged, on all."""
     start = _guess_off_by(3.0)
-    full, why = _fit(pinhole_pair, edges, start)
+    full, why = _fit(pinhole_pair, edges, start, EVERY_SAMPLE)  # (lit_only judges at the first full read: later here)
     assert full is not None, why
-    halved, why = _fit(pinhole_pair, edges, start, SparseSettings(half_until_px=1.0, iterations=5))
+    halved, why = _fit(pinhole_pair, edges, start, replace(EVERY_SAMPLE, half_until_px=1.0, iterations=5))
     assert halved is not None, why
     assert halved.tried == full.tried
     assert _image_error_px(halved.rvec, halved.tvec) < 0.2
@@ -452,9 +455,10 @@ def test_a_joint_fit_whose_steps_stay_large_gives_up_early(
     """Started 12 px off, a joint fit's steps grow (4–6 px a sample from its 7th on): it gives up after its 9th
     instead of running all 12 to be refused unsettled."""
     start = _guess_off_by(12.0)
-    result, why, steps = _iterations_of(monkeypatch, pinhole_pair, edges, start, replace(JOINT, give_up_px=0.0))
+    joint = replace(JOINT, lit_only=False)
+    result, why, steps = _iterations_of(monkeypatch, pinhole_pair, edges, start, replace(joint, give_up_px=0.0))
     assert (result, why, steps) == (None, "not_converged", 12)
-    result, why, steps = _iterations_of(monkeypatch, pinhole_pair, edges, start, JOINT)
+    result, why, steps = _iterations_of(monkeypatch, pinhole_pair, edges, start, joint)
     assert (result, why) == (None, "gave_up")
     assert steps == JOINT.give_up_from == 9
 
@@ -571,7 +575,11 @@ def test_a_fit_whose_step_is_small_on_average_stops_there(
         total = 0
         for px in (2.0, 3.0, 4.0):
             result, why, n = _iterations_of(
-                monkeypatch, pinhole_pair, edges, _guess_off_by(px), replace(known, converged_rms_px=rms_px)
+                monkeypatch,
+                pinhole_pair,
+                edges,
+                _guess_off_by(px),
+                replace(known, converged_rms_px=rms_px, lit_only=False),
             )
             assert result is not None, why
             assert _image_error_px(result.rvec, result.tvec) < 0.15

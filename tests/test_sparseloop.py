@@ -11,7 +11,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
-from test_sparse import OTHER_POSITION_M, R_OTHER, Pair, _guess_off_by, _pair
+from test_sparse import OTHER_POSITION_M, POSITION_M, R_OTHER, Pair, _guess_off_by, _pair
 
 from ipt.config.models import ArenaConfig
 from ipt.receiver.core import kernels, sparseloop
@@ -43,7 +43,20 @@ def pairs() -> dict[str, Pair]:
     def noisy(img: np.ndarray) -> np.ndarray:  # type: ignore[type-arg]
         return np.clip(img + rng.normal(0.0, 4.0, img.shape), 0, 255).round().astype(np.uint8)
 
-    return {"pinhole": pinhole, "lens": lens, "noisy": Pair(noisy(pinhole.image), noisy(pinhole.other), pinhole.camera)}
+    return {
+        "pinhole": pinhole,
+        "lens": lens,
+        "noisy": Pair(noisy(pinhole.image), noisy(pinhole.other), pinhole.camera),
+        "shadowed": Pair(_shadowed(pinhole.image), _shadowed(pinhole.other), pinhole.camera),
+    }
+
+
+def _shadowed(image: np.ndarray) -> np.ndarray:  # type: ignore[type-arg]
+    """The left two fifths of the view in the drone's shadow: 8 % of the light (no projector light there)."""
+    out = image.copy()
+    cut = int(0.4 * image.shape[1])
+    out[:, :cut] = (out[:, :cut] * 0.08).astype(np.uint8)
+    return out
 
 
 def _fit(
@@ -74,12 +87,13 @@ def _same(a: tuple[SparseResult | None, str], b: tuple[SparseResult | None, str]
     assert np.abs(x.other_tvec - y.other_tvec).max() < 1e-7
     assert (x.iterations, x.inliers, x.tried, x.sign, x.tags) == (y.iterations, y.inliers, y.tried, y.sign, y.tags)
     assert x.amplitude == pytest.approx(y.amplitude, rel=1e-6)
-    assert x.rms_px == pytest.approx(y.rms_px, rel=1e-5)  # (OpenCV's blur and ours: float32 sums in two orders)
+    assert x.rms_px == pytest.approx(y.rms_px, rel=2e-5)  # (OpenCV's blur and ours: float32 sums in two orders)
     assert x.gain == pytest.approx(y.gain, rel=1e-6)
-    assert np.allclose(x.cov_rt, y.cov_rt, rtol=1e-4, atol=1e-18)
+    # (an element a million times below the largest, 8e-13, differs by 0.3 %: float32 sums in two orders)
+    assert np.allclose(x.cov_rt, y.cov_rt, rtol=1e-4, atol=1e-5 * float(np.abs(y.cov_rt).max()))
 
 
-@pytest.mark.parametrize("name", ["pinhole", "lens", "noisy"])
+@pytest.mark.parametrize("name", ["pinhole", "lens", "noisy", "shadowed"])
 @pytest.mark.parametrize(
     ("fit", "off_px"), [("known", 0.5), ("known", 2.0), ("known", 4.0), ("joint", 2.0), ("joint", 5.0)]
 )
@@ -94,6 +108,30 @@ def test_the_compiled_iterations_fit_as_the_python_loop(
     compiled = _fit(pairs[name], edges, start, settings, compiled=True)
     assert python[0] is not None, python[1]
     _same(python, compiled)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_fit_leaves_out_the_samples_in_the_shadow(pairs: dict[str, Pair], edges: MapEdges, compiled: bool) -> None:
+    """Samples whose profiles are unlit in either frame (``SparseSettings.lit_only``) are left out: fitted, the
+    shadowed ones pass as inliers (their residuals are small: no step, no noise), pull the map's step down and the
+    pose off; left out, the step is the unshadowed pair's and the pose as near the truth as from the lit tags."""
+    start = _guess_off_by(2.0)
+    plain, _ = _fit(pairs["pinhole"], edges, start, KNOWN, compiled)
+    lit, _ = _fit(pairs["shadowed"], edges, start, KNOWN, compiled)
+    every, _ = _fit(pairs["shadowed"], edges, start, replace(KNOWN, lit_only=False), compiled)
+    assert plain is not None
+    assert lit is not None
+    assert every is not None
+    assert every.amplitude < 0.7 * plain.amplitude
+    assert lit.amplitude == pytest.approx(plain.amplitude, rel=0.05)
+    assert len(lit.tags) < len(every.tags)
+    assert lit.tried < 0.7 * every.tried
+
+    def error_m(result: SparseResult) -> float:
+        r, _ = cv2.Rodrigues(result.rvec)
+        return float(np.linalg.norm(-r.T @ result.tvec - POSITION_M))
+
+    assert error_m(lit) < error_m(every)
 
 
 def test_the_smoothing_is_opencvs() -> None:

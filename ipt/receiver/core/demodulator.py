@@ -246,14 +246,20 @@ DARK_MARGIN_PX = 5
 MASK_BOX_PX = 5
 
 
+def dark_level(values: U8, fraction: float = DARK_FRACTION) -> float:
+    """The lightness at or below which a frame's floor is taken for unlit, from a sample of its pixels: ``fraction``
+    of the way from their darkest tenth to their median, at least 12."""
+    low, mid = percentiles_u8(values, (10, 50))
+    return max(12.0, low + fraction * (mid - low))
+
+
 def signal_mask(lum: U8, coverage: U8 | None = None) -> U8:
     """255 where the frame may carry the hidden tags: lit by the projector (the lightness, averaged over
     :data:`MASK_BOX_PX`, above the level :data:`DARK_FRACTION` sets), inside the sensor's view."""
     _h, w = lum.shape
     box = max(1, round(MASK_BOX_PX * w / REFERENCE_WIDTH_PX))
     smooth = np.asarray(cv2.blur(lum, (box, box)), np.uint8) if box > 1 else lum
-    low, mid = percentiles_u8(smooth[::4, ::4], (10, 50))
-    level = max(12.0, low + DARK_FRACTION * (mid - low))
+    level = dark_level(smooth[::4, ::4])
     # 255 where lum > level (for 8-bit pixels OpenCV compares with floor(level): the same test, 5x cheaper)
     lit = np.asarray(cv2.threshold(smooth, level, 255, cv2.THRESH_BINARY)[1], np.uint8)
     if coverage is not None:

@@ -303,7 +303,8 @@ def warm_sparse() -> None:
     reals, counts, flags = np.ones(10), np.full(9, 4, np.int64), np.ones(4, np.bool_)
     sparse_iterate(
         *(one, one, np.zeros(1), eye.copy(), t.copy(), eye.copy(), t.copy(), eye, np.zeros(5), u8, u8),
-        *(np.array([1.0, 0.0]), np.zeros(6), np.zeros((2, width)), np.zeros((2, width)), reals, counts, flags),
+        *(np.array([1.0, 0.0]), np.zeros(6), np.zeros(2), np.zeros((2, width)), np.zeros((2, width)), reals, counts),
+        flags,
     )
 
 

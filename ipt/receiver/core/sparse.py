@@ -33,6 +33,7 @@ import numpy as np
 import numpy.typing as npt
 
 from ipt.receiver.core import kernels, sparseloop
+from ipt.receiver.core.demodulator import dark_level
 from ipt.receiver.core.mapedges import MapEdges
 from ipt.receiver.core.pose import PoseEstimate, estimate_from_step
 from ipt.receiver.core.track import MIN_CELL_PX, fast_median
@@ -41,6 +42,11 @@ F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
 U8 = npt.NDArray[np.uint8]
+
+#: A profile whose mean lies below this share of the way from its frame's darkest tenth to the median is taken for
+#: unlit (:attr:`SparseSettings.lit_only`). The dense signal mask's 0.35 also takes dark video content for unlit;
+#: at 0.2 only the shadow's depth is (every suite and held-out row in process, stop 73: 0.1 / 0.2 / 0.3 / 0.35).
+LIT_FRACTION = 0.2
 
 
 @dataclass(frozen=True)
@@ -101,6 +107,11 @@ class SparseSettings:
     the partner's centred profile is its (turned over) step, and the gain and the step are one unknown."""
     min_amplitude: float = 0.5
     """... and be at least this many lightness levels per unit of the map's step."""
+    lit_only: bool = True
+    """Leave out the samples whose profiles (their means) are not lit in both frames at the start
+    (:func:`dark_levels`): the drone's shadow and the floor beyond the projection carry no step, yet fitted they
+    pass as inliers (no step, and no more noise than the lit floor) and pull the map's step down and the pose
+    towards them."""
     esm_partner: bool = False
     """The partner's displacement's slope averaged, as this frame's is, with the slope where it will be
     (this frame's profile less the step's): then a move of both frames together (where the pair sits on the
@@ -335,7 +346,7 @@ def fit_sparse(
     """The pose of the frame ``image`` (raw 8-bit lightness, as the camera sees it: not undistorted) from its
     pair with ``other`` (opposite projector phase) whose pose ``other_rt`` (rvec, tvec: arena → camera) is
     known, starting from ``guess_rt``; ``step_hint``: the pair's step if known (the last pair's, signed for
-    this frame). The result, or None and why ("few_samples", "few_in_view", "few_kept", "few_tags",
+    this frame). The result, or None and why ("few_samples", "few_in_view", "few_lit", "few_kept", "few_tags",
     "not_converged", "gave_up", "weak_step", "partner_moved")."""
     s = settings
     st = _initial(image, other, other_rt, guess_rt, step_hint)
@@ -344,8 +355,9 @@ def fit_sparse(
         return None, "few_samples"
     obj, nrm, steps = edges.points_m[chosen], edges.normals_m[chosen], edges.step[chosen]
     k, dist = camera.camera_matrix, camera.dist_coeffs
+    dark = dark_levels(image, other) if s.lit_only else np.zeros(2)
     if s.smooth_px == 0.0 and s.half_until_px <= 0 and kernels.sparse_iterate_compiled():
-        return _fit_compiled(st, image, other, k, dist, edges, chosen, obj, nrm, steps, s)
+        return _fit_compiled(st, image, other, k, dist, edges, chosen, obj, nrm, steps, dark, s)
     moved, it, gain_set, large = np.inf, 0, False, 0  # (large: steps running that moved a sample over give_up_px)
     kept = np.ones(len(chosen), np.bool_)  # per chosen sample: its profile is not an outlier
     # per chosen sample: the weights of its frames' own steps (-1: not yet known)
@@ -354,6 +366,7 @@ def fit_sparse(
     every = np.arange(len(chosen))
     half = every[::2] if s.half_until_px > 0 else every
     last_push = np.full(len(chosen), np.nan)  # per chosen sample: the last step's displacement (pixels)
+    judged = not dark.any()  # the unlit samples left out (on the first step that reads every sample)
     for it in range(s.iterations):
         coarse = it < s.coarse_iterations
         radius = s.radius_px if coarse else s.fine_radius_px
@@ -367,6 +380,20 @@ def fit_sparse(
         idx = idx if reading_all else active[idx]
         if len(idx) < s.min_inliers * len(active) / len(every):
             return None, "few_in_view"
+        if not judged and reading_all:  # (as the compiled loop does: the unlit samples left out from here on)
+            judged = True
+            shown = sparseloop.lit_py(pk, pj, dark)
+            if int(shown.sum()) < s.min_inliers:
+                return None, "few_lit"
+            if not shown.all():
+                stays = np.ones(len(chosen), np.bool_)
+                stays[idx[~shown]] = False
+                place = np.cumsum(stays) - 1  # each staying sample's new index
+                chosen, obj, nrm, steps = chosen[stays], obj[stays], nrm[stays], steps[stays]
+                kept, weights, last_push = kept[stays], weights[stays], last_push[stays]
+                every = np.arange(len(chosen))
+                half = every[::2] if s.half_until_px > 0 else every
+                idx, pk, pj, a_rows = place[idx[shown]], pk[shown], pj[shown], a_rows[shown]
         if not gain_set:
             st.gain, gain_set = fast_median(pk.mean(axis=1) / np.maximum(pj.mean(axis=1), 1.0)), True
         smooth = s.coarse_smooth_px if coarse else s.smooth_px
@@ -415,6 +442,7 @@ def _fit_compiled(
     obj: F64,
     nrm: F64,
     steps: F64,
+    dark: F64,
     s: SparseSettings,
 ) -> tuple[SparseResult | None, str]:
     """:func:`fit_sparse`'s iterations in one compiled call (:func:`~ipt.receiver.core.sparseloop.iterate`: every
@@ -422,7 +450,7 @@ def _fit_compiled(
     fine, coarse, reals, counts, flags = _settings_arrays(s)
     gain_step = np.array([st.gain, st.step])
     outcome, it, moved, idx, keep, rms, normal, a_rows = kernels.sparse_iterate(
-        *(obj, nrm, steps, st.r, st.t, st.r_other, st.t_other, k, dist, image, other, gain_step, st.other_moved),
+        *(obj, nrm, steps, st.r, st.t, st.r_other, st.t_other, k, dist, image, other, gain_step, st.other_moved, dark),
         *(fine, coarse, reals, counts, flags),
     )
     if outcome != sparseloop.DONE:
@@ -445,6 +473,12 @@ def _settings_arrays(s: SparseSettings) -> tuple[F64, F64, F64, I64, npt.NDArray
     counts += [2 * s.fine_radius_px + 1, s.coarse_iterations, s.radius_px]
     flags = [s.damp_swings, s.own_steps, s.esm_partner, s.fit_gain]
     return fine, coarse, np.array(reals, np.float64), np.array(counts, np.int64), np.array(flags, np.bool_)
+
+
+def dark_levels(image: U8, other: U8) -> F64:
+    """Each frame's dark level (this one's, the partner's) for :attr:`SparseSettings.lit_only`:
+    :data:`LIT_FRACTION` of the way from the darkest tenth of every 8th pixel of every 8th row to their median."""
+    return np.array([dark_level(image[::8, ::8], LIT_FRACTION), dark_level(other[::8, ::8], LIT_FRACTION)])
 
 
 def converged_by_rms(push: F64, moved: float, s: SparseSettings) -> bool:

@@ -32,9 +32,9 @@ F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
 U8 = npt.NDArray[np.uint8]
 
-DONE, FEW_IN_VIEW, FEW_KEPT, GAVE_UP = 0, 1, 2, 3
+DONE, FEW_IN_VIEW, FEW_KEPT, GAVE_UP, FEW_LIT = 0, 1, 2, 3, 4
 """:func:`iterate`'s outcome: ran to convergence or its last iteration, or why it stopped early."""
-WHY = {FEW_IN_VIEW: "few_in_view", FEW_KEPT: "few_kept", GAVE_UP: "gave_up"}
+WHY = {FEW_IN_VIEW: "few_in_view", FEW_KEPT: "few_kept", GAVE_UP: "gave_up", FEW_LIT: "few_lit"}
 
 profiles = sparsekernels.profiles
 moments = sparsekernels.moments
@@ -116,6 +116,22 @@ def smoothed_py(profiles: F32, sigma_px: float) -> F32:
     return out
 
 
+def lit_py(pk: F32, pj: F32, levels: F64) -> npt.NDArray[np.bool_]:
+    """Per profile: lit in both frames, its mean above the frame's dark level (``levels``: this frame's, the
+    partner's; :func:`~ipt.receiver.core.sparse.dark_levels`). A sample in the drone's shadow or beyond the
+    projection carries no step: fitted, it pulls the step down and the pose towards the shadow's edge."""
+    m, w = pk.shape
+    out = np.empty(m, np.bool_)
+    for i in range(m):
+        sk = np.float32(0.0)
+        sj = np.float32(0.0)
+        for j in range(w):
+            sk += pk[i, j]
+            sj += pj[i, j]
+        out[i] = sk / np.float32(w) > levels[0] and sj / np.float32(w) > levels[1]
+    return out
+
+
 def pushed_py(a_rows: F64, sol: F64, keep: npt.NDArray[np.bool_]) -> tuple[F64, float, float]:
     """Each read sample's displacement by the step ``sol`` (pixels), the kept ones' largest and their RMS."""
     m = len(keep)
@@ -171,13 +187,14 @@ def stepped_py(sol: F64, r: F64, t: F64, r_other: F64, t_other: F64, other_moved
     gain_step[1] += sol[1]
 
 
-HELPERS = ("median_of", "rotate_by", "pair_gain", "pixel_noise", "smoothed", "pushed", "damped", "stepped")
+HELPERS = ("median_of", "rotate_by", "pair_gain", "pixel_noise", "smoothed", "lit", "pushed", "damped", "stepped")
 """The helpers :func:`iterate` calls, each the module's global ``name`` (``name_py`` compiled), callees first."""
 median_of = median_of_py
 rotate_by = rotate_by_py
 pair_gain = pair_gain_py
 pixel_noise = pixel_noise_py
 smoothed = smoothed_py
+lit = lit_py
 pushed = pushed_py
 damped = damped_py
 stepped = stepped_py
@@ -197,6 +214,7 @@ def iterate(
     other: U8,
     gain_step: F64,
     other_moved: F64,
+    dark: F64,
     fine_model: F64,
     coarse_model: F64,
     reals: F64,
@@ -205,7 +223,9 @@ def iterate(
 ) -> tuple[int, int, float, I64, npt.NDArray[np.bool_], F64, F64, F64]:
     """``fit_sparse``'s iterations over every sample (``obj``, ``nrm``, ``steps``: the chosen samples' floor points,
     normals and steps): the poses (``r``, ``t``; ``r_other``, ``t_other``), ``gain_step`` (the gain, the step) and
-    the partner's move so far (``other_moved``) updated in place; the step model and its slope (``*_model``, rows)
+    the partner's move so far (``other_moved``) updated in place; ``dark``: each frame's dark level (the samples
+    whose profiles are not lit in both frames at the start, :func:`lit_py`, are left out; 0, 0: none is); the step
+    model and its slope (``*_model``, rows)
     of the fine and the coarse steps; the settings in ``sparse._settings_arrays``' order. Returns the outcome
     (:data:`DONE` or why it stopped), the last iteration's number, the largest move of its step, the samples read
     (indices into the chosen), which were kept, their RMS residuals, the normal matrix and their rows."""
@@ -221,12 +241,26 @@ def iterate(
     weights = np.full((n, 2), -1.0 if own_steps else 0.0)
     idx, keep, rms = np.zeros(0, np.int64), np.zeros(0, np.bool_), np.zeros(0)
     normal, a_rows = np.eye(16), np.eye(0, 14)
+    order = np.arange(n)  # each sample's place among the given ones (the unlit are dropped after the first read)
     for it in range(iterations):
         coarse = it < coarse_steps
         reach = coarse_reach if coarse else radius
         idx, pk, pj, a_rows = profiles(obj, nrm, r, t, r_other, t_other, k, dist, image, other, reach, border_px, lines)
         if len(idx) < min_inliers:
-            return FEW_IN_VIEW, it, moved, idx, keep, rms, normal, a_rows
+            return FEW_IN_VIEW, it, moved, order[idx], keep, rms, normal, a_rows
+        if it == 0 and (dark[0] > 0.0 or dark[1] > 0.0):
+            shown = lit(pk, pj, dark)
+            if not shown.all():
+                if shown.sum() < min_inliers:
+                    return FEW_LIT, it, moved, order[idx[shown]], keep, rms, normal, a_rows[shown]
+                stays = np.ones(n, np.bool_)
+                stays[idx[~shown]] = False
+                place = np.cumsum(stays) - 1  # each staying sample's new index
+                order, obj, nrm, steps = order[stays], obj[stays], nrm[stays], steps[stays]
+                idx, pk, pj, a_rows = place[idx[shown]], pk[shown], pj[shown], a_rows[shown]
+                n = len(obj)
+                kept, last_push = np.ones(n, np.bool_), np.full(n, np.nan)
+                weights = np.full((n, 2), -1.0 if own_steps else 0.0)
         if it == 0:
             gain_step[0] = pair_gain(pk, pj)
         if coarse:
@@ -243,7 +277,7 @@ def iterate(
         sol = np.zeros(16)
         for _ in range(2 if it == 0 else 1):  # robust: drop profiles far worse than the typical one
             if keep.sum() < min_inliers:
-                return FEW_KEPT, it, moved, idx, keep, rms, normal, a_rows
+                return FEW_KEPT, it, moved, order[idx], keep, rms, normal, a_rows
             sol, rss, normal, _ok = solve_step(
                 gram, uy, yy, a_rows, keep, other_moved, other_sigma_px, flow_sigma_px, fit_gain, width
             )
@@ -261,5 +295,5 @@ def iterate(
             break
         large = large + 1 if give_up_px > 0.0 and moved > give_up_px else 0
         if large >= give_up_steps and it + 1 >= give_up_from and it + 1 < iterations:
-            return GAVE_UP, it, moved, idx, keep, rms, normal, a_rows
-    return DONE, it, moved, idx, keep, rms, normal, a_rows
+            return GAVE_UP, it, moved, order[idx], keep, rms, normal, a_rows
+    return DONE, it, moved, order[idx], keep, rms, normal, a_rows
