@@ -387,6 +387,24 @@ def test_content_that_held_still_is_told_from_content_that_panned(panned: tuple[
         assert sparsechain.content_still(chain, 4, lum, phase, pair.camera, edges) == still
 
 
+def test_content_that_held_still_under_a_moving_shadow_is_still(panned: tuple[Pair, U8], edges: MapEdges) -> None:
+    """The drone's shadow moves with it over the floor: where it lies in one frame and not in the other the two
+    frames differ, but not the content. The judge leaves the unlit profiles out, as the fits whose residual is its
+    yardstick do: the content that held still, with three fifths of the earlier view in shadow, is still."""
+    pair, _ = panned
+    fitted, why = _fit(pair, edges, _guess_off_by(1.0))
+    assert fitted is not None, why
+    held = lightness(_distorted_view(_photo(0)[1], PREVIOUS_POSITION_M, R_ARENA_CAM, LENS))
+    shadowed = held.copy()
+    cut = int(0.6 * held.shape[1])
+    shadowed[:, :cut] = (shadowed[:, :cut] * 0.08).astype(np.uint8)
+    chain = sparsechain.Chain()
+    chain.rt = {0: rt_of(PREVIOUS_POSITION_M, R_ARENA_CAM), 4: rt_of(OTHER_POSITION_M, R_OTHER)}
+    chain.fitted = {4: fitted}
+    lum, phase = {0: shadowed, 4: pair.other}, {0: -1, 4: -1}
+    assert sparsechain.content_still(chain, 4, lum, phase, pair.camera, edges) is True
+
+
 def test_a_judge_of_the_content_left_waiting_judges_the_frames_as_they_were(
     panned: tuple[Pair, U8], edges: MapEdges
 ) -> None:

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from ipt.receiver.core import kernels
+from ipt.receiver.core import kernels, sparse
 from ipt.receiver.core.demodulator import median_f32
 from ipt.receiver.core.imageshift import ImageShifts
 from ipt.receiver.core.mapedges import MapEdges
@@ -50,8 +50,8 @@ MAX_JUMP_M = 0.03
 #: 30-75 mm off: docs/receiver-cores.md, stop 62).
 AGREE_M = 0.01
 MAX_CORROBORATED_M = 0.09
-#: The spread of two same-phase frames' difference (a video frame apart) up to this many times a pair fit's
-#: residual: the content held still (shadow-vibration 0.4-1.0, moving-content 1.0-1.6, realcam 1.2-2.0).
+#: Two same-phase frames' difference (a video frame apart, lit profiles) spread up to this many times a pair fit's
+#: residual: still (p10-p90, stop 73: shadow-vibration 0.78-1.01; fast 1.10-2.53, moving-content 1.59-3.12 moved).
 STILL_SPREAD = 1.0
 #: A + frame still waiting this many frames after it is given up (the caller poses it densely).
 WAIT_FRAMES = 3
@@ -351,6 +351,9 @@ def _held_still(
         3.0,
         3,
     )
+    dark = sparse.dark_levels(lum_k, lum_m)  # (the fits' residual is of lit profiles: so is the spread)
+    lit = (pk.mean(axis=1) > dark[0]) & (pm.mean(axis=1) > dark[1])
+    pk, pm = pk[lit], pm[lit]
     if len(pk) < 30:
         return None
     gain = median_f32(pk.mean(axis=1) / np.maximum(pm.mean(axis=1), 1.0))  # (float32: np.median's floats)
