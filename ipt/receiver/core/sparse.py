@@ -44,8 +44,8 @@ I64 = npt.NDArray[np.int64]
 U8 = npt.NDArray[np.uint8]
 
 #: A profile whose mean lies below this share of the way from its frame's darkest tenth to the median is taken for
-#: unlit (:attr:`SparseSettings.lit_only`). The dense signal mask's 0.35 also takes dark video content for unlit;
-#: at 0.2 only the shadow's depth is (every suite and held-out row in process, stop 73: 0.1 / 0.2 / 0.3 / 0.35).
+#: unlit (:attr:`SparseSettings.lit_only`). The dense signal mask's 0.35 takes more dark video for unlit too; 0.2
+#: measured best (every suite and held-out row in process at 0.1 / 0.2 / 0.3 / 0.35: docs/receiver-cores.md, stop 73).
 LIT_FRACTION = 0.2
 
 
