@@ -109,9 +109,9 @@ class SparseSettings:
     """... and be at least this many lightness levels per unit of the map's step."""
     lit_only: bool = True
     """Leave out the samples whose profiles (their means) are not lit in both frames at the start
-    (:func:`dark_levels`): the drone's shadow and the floor beyond the projection carry no step, yet fitted they
-    pass as inliers (no step, and no more noise than the lit floor) and pull the map's step down and the pose
-    towards them."""
+    (:func:`dark_levels`; too few left: "few_in_view"): the drone's shadow and the floor beyond the projection carry
+    no step, yet fitted they pass as inliers (no step, and no more noise than the lit floor) and pull the map's step
+    down and the pose towards them."""
     esm_partner: bool = False
     """The partner's displacement's slope averaged, as this frame's is, with the slope where it will be
     (this frame's profile less the step's): then a move of both frames together (where the pair sits on the
@@ -346,7 +346,7 @@ def fit_sparse(
     """The pose of the frame ``image`` (raw 8-bit lightness, as the camera sees it: not undistorted) from its
     pair with ``other`` (opposite projector phase) whose pose ``other_rt`` (rvec, tvec: arena → camera) is
     known, starting from ``guess_rt``; ``step_hint``: the pair's step if known (the last pair's, signed for
-    this frame). The result, or None and why ("few_samples", "few_in_view", "few_lit", "few_kept", "few_tags",
+    this frame). The result, or None and why ("few_samples", "few_in_view", "few_kept", "few_tags",
     "not_converged", "gave_up", "weak_step", "partner_moved")."""
     s = settings
     st = _initial(image, other, other_rt, guess_rt, step_hint)
@@ -384,7 +384,7 @@ def fit_sparse(
             judged = True
             shown = sparseloop.lit_py(pk, pj, dark)
             if int(shown.sum()) < s.min_inliers:
-                return None, "few_lit"
+                return None, "few_in_view"
             if not shown.all():
                 stays = np.ones(len(chosen), np.bool_)
                 stays[idx[~shown]] = False

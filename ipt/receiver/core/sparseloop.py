@@ -32,9 +32,9 @@ F64 = npt.NDArray[np.float64]
 I64 = npt.NDArray[np.int64]
 U8 = npt.NDArray[np.uint8]
 
-DONE, FEW_IN_VIEW, FEW_KEPT, GAVE_UP, FEW_LIT = 0, 1, 2, 3, 4
+DONE, FEW_IN_VIEW, FEW_KEPT, GAVE_UP = 0, 1, 2, 3
 """:func:`iterate`'s outcome: ran to convergence or its last iteration, or why it stopped early."""
-WHY = {FEW_IN_VIEW: "few_in_view", FEW_KEPT: "few_kept", GAVE_UP: "gave_up", FEW_LIT: "few_lit"}
+WHY = {FEW_IN_VIEW: "few_in_view", FEW_KEPT: "few_kept", GAVE_UP: "gave_up"}
 
 profiles = sparsekernels.profiles
 moments = sparsekernels.moments
@@ -132,6 +132,21 @@ def lit_py(pk: F32, pj: F32, levels: F64) -> npt.NDArray[np.bool_]:
     return out
 
 
+def unlit_out_py(
+    dark: F64, order: I64, obj: F64, nrm: F64, steps: F64, idx: I64, pk: F32, pj: F32, a_rows: F64
+) -> tuple[I64, F64, F64, F64, I64, F32, F32, F64]:
+    """The given samples (``order``: their places among the chosen; ``obj``, ``nrm``, ``steps``) and the read ones
+    (``idx`` into the given, their profiles and rows) without those whose profiles are not lit (:func:`lit_py`;
+    ``dark`` 0, 0: all are kept)."""
+    if dark[0] <= 0.0 and dark[1] <= 0.0:
+        return order, obj, nrm, steps, idx, pk, pj, a_rows
+    shown = lit(pk, pj, dark)
+    stays = np.ones(len(obj), np.bool_)
+    stays[idx[~shown]] = False
+    place = np.cumsum(stays) - 1  # each staying sample's new index
+    return order[stays], obj[stays], nrm[stays], steps[stays], place[idx[shown]], pk[shown], pj[shown], a_rows[shown]
+
+
 def pushed_py(a_rows: F64, sol: F64, keep: npt.NDArray[np.bool_]) -> tuple[F64, float, float]:
     """Each read sample's displacement by the step ``sol`` (pixels), the kept ones' largest and their RMS."""
     m = len(keep)
@@ -187,7 +202,8 @@ def stepped_py(sol: F64, r: F64, t: F64, r_other: F64, t_other: F64, other_moved
     gain_step[1] += sol[1]
 
 
-HELPERS = ("median_of", "rotate_by", "pair_gain", "pixel_noise", "smoothed", "lit", "pushed", "damped", "stepped")
+HELPERS: tuple[str, ...] = ("median_of", "rotate_by", "pair_gain", "pixel_noise", "smoothed", "lit", "unlit_out")
+HELPERS += ("pushed", "damped", "stepped")
 """The helpers :func:`iterate` calls, each the module's global ``name`` (``name_py`` compiled), callees first."""
 median_of = median_of_py
 rotate_by = rotate_by_py
@@ -195,6 +211,7 @@ pair_gain = pair_gain_py
 pixel_noise = pixel_noise_py
 smoothed = smoothed_py
 lit = lit_py
+unlit_out = unlit_out_py
 pushed = pushed_py
 damped = damped_py
 stepped = stepped_py
@@ -222,13 +239,12 @@ def iterate(
     flags: npt.NDArray[np.bool_],
 ) -> tuple[int, int, float, I64, npt.NDArray[np.bool_], F64, F64, F64]:
     """``fit_sparse``'s iterations over every sample (``obj``, ``nrm``, ``steps``: the chosen samples' floor points,
-    normals and steps): the poses (``r``, ``t``; ``r_other``, ``t_other``), ``gain_step`` (the gain, the step) and
-    the partner's move so far (``other_moved``) updated in place; ``dark``: each frame's dark level (the samples
-    whose profiles are not lit in both frames at the start, :func:`lit_py`, are left out; 0, 0: none is); the step
-    model and its slope (``*_model``, rows)
-    of the fine and the coarse steps; the settings in ``sparse._settings_arrays``' order. Returns the outcome
-    (:data:`DONE` or why it stopped), the last iteration's number, the largest move of its step, the samples read
-    (indices into the chosen), which were kept, their RMS residuals, the normal matrix and their rows."""
+    normals and steps; those unlit at the start left out, :func:`unlit_out_py` by each frame's ``dark`` level):
+    the poses (``r``, ``t``; ``r_other``, ``t_other``), ``gain_step`` (the gain, the step) and the partner's move so
+    far (``other_moved``) updated in place; the step model and its slope (``*_model``, rows) of the fine and the coarse
+    steps; the settings in ``sparse._settings_arrays``' order. Returns the outcome (:data:`DONE` or why it stopped),
+    the last iteration's number, the largest move of its step, the samples read (indices into the chosen), which were
+    kept, their RMS residuals, the normal matrix and their rows."""
     border_px, min_inliers, outlier_factor, converged_px = reals[0], reals[1], reals[2], reals[3]
     converged_rms_px, settled_px, give_up_px = reals[4], reals[5], reals[6]
     other_sigma_px, flow_sigma_px, coarse_smooth_px = reals[7], reals[8], reals[9]
@@ -237,36 +253,21 @@ def iterate(
     damp_swings, own_steps, esm_partner, fit_gain = flags[0], flags[1], flags[2], flags[3]
     n = len(obj)
     moved, large, noise2, it = np.inf, 0, -1.0, 0
-    kept, last_push = np.ones(n, np.bool_), np.full(n, np.nan)
-    weights = np.full((n, 2), -1.0 if own_steps else 0.0)
-    idx, keep, rms = np.zeros(0, np.int64), np.zeros(0, np.bool_), np.zeros(0)
-    normal, a_rows = np.eye(16), np.eye(0, 14)
-    order = np.arange(n)  # each sample's place among the given ones (the unlit are dropped after the first read)
+    kept, last_push, order = np.ones(n, np.bool_), np.full(n, np.nan), np.arange(n)  # (order: places among the chosen)
+    weights, normal = np.full((n, 2), -1.0 if own_steps else 0.0), np.eye(16)
+    idx, keep, rms, a_rows = np.zeros(0, np.int64), np.zeros(0, np.bool_), np.zeros(0), np.eye(0, 14)
     for it in range(iterations):
         coarse = it < coarse_steps
         reach = coarse_reach if coarse else radius
         idx, pk, pj, a_rows = profiles(obj, nrm, r, t, r_other, t_other, k, dist, image, other, reach, border_px, lines)
+        if it == 0:  # (the unlit left out while their kept marks, weights and pushes are still the first ones)
+            order, obj, nrm, steps, idx, pk, pj, a_rows = unlit_out(dark, order, obj, nrm, steps, idx, pk, pj, a_rows)
+            kept, last_push, weights = kept[: len(obj)], last_push[: len(obj)], weights[: len(obj)]
         if len(idx) < min_inliers:
             return FEW_IN_VIEW, it, moved, order[idx], keep, rms, normal, a_rows
-        if it == 0 and (dark[0] > 0.0 or dark[1] > 0.0):
-            shown = lit(pk, pj, dark)
-            if not shown.all():
-                if shown.sum() < min_inliers:
-                    return FEW_LIT, it, moved, order[idx[shown]], keep, rms, normal, a_rows[shown]
-                stays = np.ones(n, np.bool_)
-                stays[idx[~shown]] = False
-                place = np.cumsum(stays) - 1  # each staying sample's new index
-                order, obj, nrm, steps = order[stays], obj[stays], nrm[stays], steps[stays]
-                idx, pk, pj, a_rows = place[idx[shown]], pk[shown], pj[shown], a_rows[shown]
-                n = len(obj)
-                kept, last_push = np.ones(n, np.bool_), np.full(n, np.nan)
-                weights = np.full((n, 2), -1.0 if own_steps else 0.0)
-        if it == 0:
-            gain_step[0] = pair_gain(pk, pj)
-        if coarse:
-            pk, pj = smoothed(pk, coarse_smooth_px), smoothed(pj, coarse_smooth_px)
-        if noise2 < 0:
-            noise2 = pixel_noise(pk)
+        gain_step[0] = pair_gain(pk, pj) if it == 0 else gain_step[0]
+        pk, pj = (smoothed(pk, coarse_smooth_px), smoothed(pj, coarse_smooth_px)) if coarse else (pk, pj)
+        noise2 = pixel_noise(pk) if noise2 < 0 else noise2
         frame_weights = weights[idx]
         keep = kept[idx]
         model = coarse_model if coarse else fine_model
@@ -288,10 +289,8 @@ def iterate(
         if damp_swings:
             sol = damped(sol, push, last_push, idx, keep, it >= damp_from)
         stepped(sol, r, t, r_other, t_other, other_moved, gain_step)
-        settled = moved < converged_px or (
-            converged_rms_px > 0.0 and moved <= settled_px and push_rms < converged_rms_px
-        )
-        if settled and not coarse:
+        by_rms = converged_rms_px > 0.0 and moved <= settled_px and push_rms < converged_rms_px
+        if (moved < converged_px or by_rms) and not coarse:  # settled
             break
         large = large + 1 if give_up_px > 0.0 and moved > give_up_px else 0
         if large >= give_up_steps and it + 1 >= give_up_from and it + 1 < iterations:
