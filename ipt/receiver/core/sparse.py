@@ -358,6 +358,16 @@ def fit_sparse(
     dark = dark_levels(image, other) if s.lit_only else np.zeros(2)
     if s.smooth_px == 0.0 and s.half_until_px <= 0 and kernels.sparse_iterate_compiled():
         return _fit_compiled(st, image, other, k, dist, edges, chosen, obj, nrm, steps, dark, s)
+    return _fit_python(st, image, other, camera, edges, chosen, dark, s)
+
+
+def _fit_python(
+    st: _State, image: U8, other: U8, camera: SparseCamera, edges: MapEdges, chosen: I64, dark: F64, s: SparseSettings
+) -> tuple[SparseResult | None, str]:
+    """:func:`fit_sparse`'s iterations as a Python loop around the three compiled kernels (a fit that smooths every
+    step or reads half its samples first, or a process without numba), then its checks."""
+    obj, nrm, steps = edges.points_m[chosen], edges.normals_m[chosen], edges.step[chosen]
+    k, dist = camera.camera_matrix, camera.dist_coeffs
     moved, it, gain_set, large = np.inf, 0, False, 0  # (large: steps running that moved a sample over give_up_px)
     kept = np.ones(len(chosen), np.bool_)  # per chosen sample: its profile is not an outlier
     # per chosen sample: the weights of its frames' own steps (-1: not yet known)
