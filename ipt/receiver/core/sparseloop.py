@@ -69,18 +69,24 @@ def rotate_by_py(v0: float, v1: float, v2: float, r: F64) -> None:
     r[:, :] = out
 
 
-def pair_gain_py(pk: F32, pj: F32) -> float:
-    """The pair's brightness ratio: the median over the profiles of their means' ratio (the partner's at least 1)."""
+def profile_means_py(pk: F32, pj: F32) -> tuple[F32, F32]:
+    """Each profile's mean in this frame and in the partner (float32, summed in order)."""
     m, w = pk.shape
-    ratios = np.empty(m, np.float32)
+    mk, mj = np.empty(m, np.float32), np.empty(m, np.float32)
     for i in range(m):
         sk = np.float32(0.0)
         sj = np.float32(0.0)
         for j in range(w):
             sk += pk[i, j]
             sj += pj[i, j]
-        ratios[i] = (sk / np.float32(w)) / max(sj / np.float32(w), np.float32(1.0))
-    return median_of(ratios)
+        mk[i], mj[i] = sk / np.float32(w), sj / np.float32(w)
+    return mk, mj
+
+
+def pair_gain_py(pk: F32, pj: F32) -> float:
+    """The pair's brightness ratio: the median over the profiles of their means' ratio (the partner's at least 1)."""
+    mk, mj = profile_means(pk, pj)
+    return median_of(mk / np.maximum(mj, np.float32(1.0)))
 
 
 def pixel_noise_py(pk: F32) -> float:
@@ -120,16 +126,9 @@ def lit_py(pk: F32, pj: F32, levels: F64) -> npt.NDArray[np.bool_]:
     """Per profile: lit in both frames, its mean above the frame's dark level (``levels``: this frame's, the
     partner's; :func:`~ipt.receiver.core.sparse.dark_levels`). A sample in the drone's shadow or beyond the
     projection carries no step: fitted, it pulls the step down and the pose towards the shadow's edge."""
-    m, w = pk.shape
-    out = np.empty(m, np.bool_)
-    for i in range(m):
-        sk = np.float32(0.0)
-        sj = np.float32(0.0)
-        for j in range(w):
-            sk += pk[i, j]
-            sj += pj[i, j]
-        out[i] = sk / np.float32(w) > levels[0] and sj / np.float32(w) > levels[1]
-    return out
+    mk, mj = profile_means(pk, pj)
+    shown: npt.NDArray[np.bool_] = (mk > levels[0]) & (mj > levels[1])
+    return shown
 
 
 def unlit_out_py(
@@ -202,11 +201,12 @@ def stepped_py(sol: F64, r: F64, t: F64, r_other: F64, t_other: F64, other_moved
     gain_step[1] += sol[1]
 
 
-HELPERS: tuple[str, ...] = ("median_of", "rotate_by", "pair_gain", "pixel_noise", "smoothed", "lit", "unlit_out")
-HELPERS += ("pushed", "damped", "stepped")
+HELPERS: tuple[str, ...] = ("median_of", "rotate_by", "profile_means", "pair_gain", "pixel_noise", "smoothed", "lit")
+HELPERS += ("unlit_out", "pushed", "damped", "stepped")
 """The helpers :func:`iterate` calls, each the module's global ``name`` (``name_py`` compiled), callees first."""
 median_of = median_of_py
 rotate_by = rotate_by_py
+profile_means = profile_means_py
 pair_gain = pair_gain_py
 pixel_noise = pixel_noise_py
 smoothed = smoothed_py
